@@ -1,0 +1,193 @@
+"""Configuration: the scene spec, every step's parameters, presets and YAML loading.
+
+Precedence, lowest first: model defaults < preset (`configs/presets/NAME.yaml`) < scene file < CLI
+arguments. Angles are degrees here (user-facing); the library converts to radians.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from wonderverse.errors import ConfigError
+
+CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
+PRESET_DIR = CONFIG_DIR / "presets"
+MAX_PROMPT_CHARS = 2000
+
+Direction = Literal["left", "right", "up", "down", "forward", "back"]
+
+
+class Model(BaseModel):
+    """Base for every config model: unknown keys are errors, values are immutable."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ExtensionSpec(Model):
+    """How the scene grows beyond the initial video (the paper repeats left+right `rounds` times)."""
+
+    rounds: int = Field(1, ge=0, le=16, description="extension iterations n; each adds one segment per direction")
+    directions: tuple[Direction, ...] = Field(("left", "right"), min_length=1)
+    intents: tuple[str, ...] = Field((), description="the user's words for each extension, in order")
+
+
+class VideoSpec(Model):
+    """The video backend and the shape of what it renders."""
+
+    backend: Literal["procedural"] = "procedural"
+    frames_per_segment: int = Field(25, ge=2, le=1000)
+    width: int = Field(480, ge=32, le=4096)
+    height: int = Field(320, ge=32, le=4096)
+    fps: float = Field(8.0, gt=0, le=240)
+    fov_deg: float = Field(60.0, gt=5, lt=170, description="horizontal field of view")
+    options: dict[str, Any] = Field(default_factory=dict, description="backend-specific, validated by it")
+
+
+class PlannerSpec(Model):
+    """Which planner turns the description and the user's words into camera moves."""
+
+    backend: Literal["rules", "chat"] = "rules"
+    base_url: str = Field("http://127.0.0.1:8000/v1", description="OpenAI-compatible endpoint (chat backend)")
+    model: str = "gpt-4o-mini"
+    api_key_env: str = Field("OPENAI_API_KEY", description="name of the environment variable holding the key")
+    timeout_s: float = Field(30.0, gt=0, le=600)
+    max_retries: int = Field(1, ge=0, le=5)
+
+
+class SceneSpec(Model):
+    """What the user asks for: everything that defines the scene's content."""
+
+    prompt: str
+    seed: int = Field(0, ge=0, lt=2**32)
+    extensions: ExtensionSpec = ExtensionSpec()
+    video: VideoSpec = VideoSpec()
+    planner: PlannerSpec = PlannerSpec()
+
+    @field_validator("prompt")
+    @classmethod
+    def _prompt_ok(cls, v: str) -> str:
+        v = " ".join(v.split())
+        if not v:
+            raise ValueError("prompt is empty")
+        if len(v) > MAX_PROMPT_CHARS:
+            raise ValueError(f"prompt has {len(v)} characters; at most {MAX_PROMPT_CHARS} are allowed")
+        return v
+
+
+class PlanParams(Model):
+    """Step `plan`: the initial camera move and the sizes of rule-planned extension moves."""
+
+    initial_move: str = Field("right 30, up 0, forward 2", description="paper format, for the initial video")
+    yaw_step_deg: float = Field(35.0, gt=0, le=180)
+    pitch_step_deg: float = Field(15.0, gt=0, le=89)
+    forward_step_m: float = Field(2.0, gt=0, le=100)
+    strafe_m_per_deg: float = Field(
+        0.04, ge=0, le=1, description="sideways travel per degree of yaw, so turns keep parallax for SfM"
+    )
+
+
+class GenerateParams(Model):
+    """Step `generate_segments`."""
+
+    max_workers: int = Field(1, ge=1, le=64, description="segments rendered concurrently")
+
+
+class StepsConfig(Model):
+    plan: PlanParams = PlanParams()
+    generate: GenerateParams = GenerateParams()
+
+
+class RunConfig(Model):
+    """A full run: the scene and every step's parameters."""
+
+    preset: str = "standard"
+    scene: SceneSpec
+    steps: StepsConfig = StepsConfig()
+
+
+def deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
+    """Recursively merge `over` into a copy of `base` (dicts merge, everything else replaces)."""
+    out = dict(base)
+    for k, v in over.items():
+        out[k] = deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def read_yaml(path: Path) -> dict[str, Any]:
+    """A YAML mapping from `path`; a missing, malformed or non-mapping file is a ConfigError."""
+    try:
+        text = Path(path).read_text()
+    except OSError as e:
+        raise ConfigError(f"cannot read config file {path}: {e.strerror or e}") from None
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
+        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
+        raise ConfigError(f"malformed YAML in {path}{where}: {problem}") from None
+    if data is None:
+        return {}
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path} must hold a mapping of settings, not a {type(data).__name__}")
+    return data
+
+
+def preset_names() -> list[str]:
+    return sorted(p.stem for p in PRESET_DIR.glob("*.yaml"))
+
+
+def load_preset(name: str) -> dict[str, Any]:
+    path = PRESET_DIR / f"{name}.yaml"
+    if not path.is_file():
+        raise ConfigError(f"unknown preset {name!r}; choose one of: {', '.join(preset_names())}")
+    return read_yaml(path)
+
+
+def format_validation_error(err: ValidationError) -> str:
+    """One line per problem: `field.path: message (got VALUE)`."""
+    lines = []
+    for e in err.errors():
+        loc = ".".join(str(p) for p in e["loc"]) or "config"
+        msg = e["msg"].removeprefix("Value error, ")
+        if e["type"] == "extra_forbidden":
+            lines.append(f"{loc}: unknown setting")
+        elif e["type"] == "missing":
+            lines.append(f"{loc}: required setting is missing")
+        else:
+            got = repr(e.get("input"))
+            got = got if len(got) <= 60 else got[:57] + "..."
+            lines.append(f"{loc}: {msg} (got {got})")
+    return "; ".join(lines)
+
+
+def build_config(
+    prompt: str | None = None,
+    preset: str | None = None,
+    config_file: Path | None = None,
+    overrides: dict[str, Any] | None = None,
+) -> RunConfig:
+    """Compose defaults, a preset, a scene file and explicit overrides into a validated RunConfig."""
+    file_data = read_yaml(config_file) if config_file else {}
+    name = preset or file_data.get("preset") or "standard"
+    if not isinstance(name, str):
+        raise ConfigError(f"preset: must be a preset name (got {name!r})")
+    merged = deep_merge(load_preset(name), file_data)
+    merged["preset"] = name
+    if prompt is not None:
+        merged = deep_merge(merged, {"scene": {"prompt": prompt}})
+    merged = deep_merge(merged, overrides or {})
+    if "prompt" not in merged.get("scene", {}):
+        raise ConfigError("scene.prompt: no prompt given (pass PROMPT or set scene.prompt in the config file)")
+    return validate_config(merged)
+
+
+def validate_config(data: dict[str, Any]) -> RunConfig:
+    try:
+        return RunConfig.model_validate(data)
+    except ValidationError as e:
+        raise ConfigError(f"invalid config: {format_validation_error(e)}") from None

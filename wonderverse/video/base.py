@@ -1,0 +1,44 @@
+"""The video-model interface every backend implements."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+
+@dataclass
+class GroundTruth:
+    """What a synthetic backend knows exactly. Never read by the pipeline, only by metrics.
+
+    poses: (T,4,4) float64 W2C of the camera that actually rendered each frame (faults included).
+    depth: (T,H,W) float32 camera-space z in metres; +inf where the ray hits nothing (sky).
+    normals: (T,H,W,3) float32 unit normals in camera space (OpenCV axes), facing the camera; 0 for sky.
+    faults: what went wrong on purpose, e.g. {"type": "teleport", "frames": [12]}; {} when clean.
+    """
+
+    poses: np.ndarray
+    depth: np.ndarray
+    normals: np.ndarray
+    faults: dict[str, Any] = field(default_factory=dict)
+
+
+@dataclass
+class Video:
+    """frames: (T,H,W,3) uint8 RGB. K: (3,3) float64 pixel intrinsics when the backend knows them."""
+
+    frames: np.ndarray
+    K: np.ndarray | None = None
+    gt: GroundTruth | None = None
+
+
+class VideoModel(Protocol):
+    """generate(prompt, camera path, seed, reference frame) -> Video.
+
+    path: (T,4,4) float64 W2C poses the video is conditioned on (world frame of the scene); a
+    backend that cannot follow a path exactly treats it as guidance. reference: (H,W,3) uint8 frame
+    the segment must continue from (its pose is path[0]), or None for the initial video.
+    """
+
+    def generate(self, prompt: str, path: np.ndarray, seed: int, reference: np.ndarray | None) -> Video: ...
