@@ -30,7 +30,9 @@ class Model(BaseModel):
 class ExtensionSpec(Model):
     """How the scene grows beyond the initial video (the paper repeats left+right `rounds` times)."""
 
-    rounds: int = Field(1, ge=0, le=16, description="extension iterations n; each adds one segment per direction")
+    rounds: int = Field(
+        1, ge=0, le=16, description="extension iterations n; each adds one segment per direction"
+    )
     directions: tuple[Direction, ...] = Field(("left", "right"), min_length=1)
     intents: tuple[str, ...] = Field((), description="the user's words for each extension, in order")
 
@@ -182,7 +184,9 @@ def build_config(
         merged = deep_merge(merged, {"scene": {"prompt": prompt}})
     merged = deep_merge(merged, overrides or {})
     if "prompt" not in merged.get("scene", {}):
-        raise ConfigError("scene.prompt: no prompt given (pass PROMPT or set scene.prompt in the config file)")
+        raise ConfigError(
+            "scene.prompt: no prompt given (pass PROMPT or set scene.prompt in the config file)"
+        )
     return validate_config(merged)
 
 

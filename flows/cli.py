@@ -1,0 +1,174 @@
+"""The `wonderverse` command line.
+
+Every user-facing problem (bad prompt, config, store, failed step) is one line on stderr and exit
+code 2; nothing already in the store is touched before the inputs are validated.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import sys
+from pathlib import Path
+from typing import Annotated
+
+import typer
+from rich.console import Console
+
+from wonderverse.errors import WonderError
+
+app = typer.Typer(
+    add_completion=False,
+    no_args_is_help=True,
+    help="WonderVerse: text prompt -> extendable 3D scene.",
+    pretty_exceptions_enable=False,
+)
+console = Console(stderr=True)
+out = Console()
+
+
+def _quiet_prefect() -> None:
+    # Local runs: keep Prefect's own chatter and telemetry out of the user's terminal and network.
+    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
+    os.environ.setdefault("PREFECT_CLI_PROMPT", "false")
+
+
+def _default_out(prompt: str) -> Path:
+    slug = "".join(c if c.isalnum() else "-" for c in prompt.lower()).strip("-")
+    return Path("scenes") / ("-".join(filter(None, slug.split("-")))[:48] or "scene")
+
+
+@app.command()
+def generate(
+    prompt: Annotated[
+        str | None, typer.Argument(help="what the scene shows (or scene.prompt in --config)")
+    ] = None,
+    preset: Annotated[str | None, typer.Option(help="preview | standard | high")] = None,
+    config: Annotated[Path | None, typer.Option(help="scene spec YAML (see configs/scenes/)")] = None,
+    out_dir: Annotated[
+        Path | None, typer.Option("--out", help="scene folder (default scenes/<prompt>)")
+    ] = None,
+    until: Annotated[str | None, typer.Option(help="run only the steps this step needs")] = None,
+    engine: Annotated[
+        str, typer.Option(help="prefect (default) or local (plain in-process calls)")
+    ] = "prefect",
+    seed: Annotated[int | None, typer.Option(help="scene seed (overrides the config)")] = None,
+) -> None:
+    """Plan, render and store a scene; cached steps are skipped."""
+    from flows import progress
+    from flows.pipeline import run_pipeline, steps_until
+    from wonderverse.config import build_config
+
+    if engine not in ("prefect", "local"):
+        raise WonderError(f"--engine must be prefect or local (got {engine!r})")
+    overrides = {"scene": {"seed": seed}} if seed is not None else None
+    cfg = build_config(prompt=prompt, preset=preset, config_file=config, overrides=overrides)
+    try:
+        steps = steps_until(until)
+    except KeyError:
+        from tasks import STEP_NAMES
+
+        raise WonderError(f"unknown step {until!r}; steps are: {', '.join(STEP_NAMES)}") from None
+    scene_dir = out_dir or _default_out(cfg.scene.prompt)
+    if engine == "prefect":
+        _quiet_prefect()
+    token = progress.current.set(progress.RichReporter(console, len(steps)))
+    try:
+        results = run_pipeline(scene_dir, cfg, until, engine=engine)  # type: ignore[arg-type]
+    finally:
+        progress.current.reset(token)
+    console.print(progress.results_table(results))
+    out.print(f"scene: {scene_dir}", highlight=False)
+
+
+@app.command()
+def inspect(
+    scene_dir: Annotated[Path, typer.Argument(help="scene folder")],
+    as_json: Annotated[
+        bool, typer.Option("--json", help="machine-readable output (schema in README)")
+    ] = False,
+) -> None:
+    """Steps with status and cache key, segments with attempts and checks, arrays and sizes."""
+    from rich.table import Table
+
+    from flows.inspect import summarize
+    from wonderverse.store import SceneStore
+
+    info = summarize(SceneStore.open(scene_dir))
+    if as_json:
+        print(json.dumps(info, indent=2))
+        return
+    spec = info.get("spec") or {}
+    out.print(f"[bold]{info['scene_dir']}[/] — {spec.get('prompt', '?')!r} (seed {spec.get('seed')})")
+    t = Table(title="steps")
+    for c in ("step", "status", "cache key"):
+        t.add_column(c)
+    for s in info["steps"]:
+        t.add_row(s["name"], s["status"], (s["cache_key"] or "-")[:12])
+    out.print(t)
+    t = Table(title="segments (stitched order: " + " ".join(info["order"]) + ")")
+    for c in ("segment", "role", "move", "attempts", "accepted", "check", "frames", "MB"):
+        t.add_column(c)
+    for s in info["segments"]:
+        acc = next((a for a in s["attempts"] if a["index"] == s["accepted_attempt"]), None)
+        check = (acc or {}).get("check") or {}
+        verdict = "-" if not check else ("ok" if check.get("accepted") else "rejected")
+        shape = ((acc or {}).get("arrays", {}).get("frames") or {}).get("shape", "-")
+        mb = sum(a["bytes"] for a in s["attempts"]) / 1e6
+        t.add_row(
+            s["id"],
+            str(s["role"]),
+            str(s["move"]),
+            str(len(s["attempts"])),
+            str(s["accepted_attempt"]),
+            verdict,
+            "x".join(map(str, shape)) if shape != "-" else "-",
+            f"{mb:.1f}",
+        )
+    out.print(t)
+    out.print(f"store size: {info['size_bytes'] / 1e6:.1f} MB")
+
+
+@app.command()
+def preview(scene_dir: Annotated[Path, typer.Argument(help="scene folder")]) -> None:
+    """Write the stitched video (preview.mp4) and a contact sheet (contact_sheet.png) into the scene folder."""
+    from tasks.segments import stitched
+    from wonderverse.media import contact_sheet, write_mp4
+    from wonderverse.store import SceneStore
+
+    store = SceneStore.open(scene_dir)
+    frames, index = stitched(store)
+    if len(frames) == 0:
+        raise WonderError(f"{scene_dir} has no rendered segments yet; run `wonderverse generate` first")
+    fps = float((store.root.attrs.get("spec") or {}).get("video", {}).get("fps", 8))
+    mp4 = write_mp4(frames, Path(scene_dir) / "preview.mp4", fps)
+    pick = sorted(set(range(0, len(frames), max(1, len(frames) // 32))))
+    png = Path(scene_dir) / "contact_sheet.png"
+    png.write_bytes(contact_sheet(frames[pick], [f"{index[i][0]}:{index[i][1]}" for i in pick]))
+    out.print(f"wrote {mp4} ({len(frames)} frames) and {png}", highlight=False)
+
+
+def main() -> None:
+    """Entry point: user errors become one line on stderr and exit code 2."""
+    try:
+        app(standalone_mode=False)
+    except WonderError as e:  # StepFailed included
+        console.print(f"error: {e}", highlight=False, markup=False)
+        sys.exit(2)
+    except (typer.Exit, SystemExit) as e:
+        code = getattr(e, "exit_code", getattr(e, "code", 0))
+        sys.exit(code)
+    except Exception as e:  # click usage errors
+        import click
+
+        if isinstance(e, click.ClickException):
+            e.show()
+            sys.exit(2)
+        if isinstance(e, click.exceptions.Abort):
+            sys.exit(130)
+        raise
+
+
+if __name__ == "__main__":
+    main()

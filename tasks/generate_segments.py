@@ -1,0 +1,124 @@
+"""Step `generate_segments`: render every planned segment with the video backend.
+
+Segments form a tree (each extension continues from a frame of an earlier one), so they are
+generated in waves; segments of one wave run concurrently. Each segment is its own cached unit
+(`segments/<seg>`, keyed by its plan entry, the video settings and its parent's key), so adding an
+extension or re-running after a kill regenerates only what is missing.
+"""
+
+from __future__ import annotations
+
+from concurrent.futures import ThreadPoolExecutor
+from typing import Any
+
+import numpy as np
+
+from tasks.base import Step
+from tasks.plan import load_plan
+from tasks.segments import frames, stitched_frame_index
+from wonderverse.camera import intrinsics, move_path
+from wonderverse.config import RunConfig
+from wonderverse.store import SceneStore, cache_key, write_array
+
+SEGMENT_VERSION = 1
+
+
+def _params(cfg: RunConfig) -> dict[str, Any]:
+    return {"video": cfg.scene.video, "prompt": cfg.scene.prompt, "seed": cfg.scene.seed}
+
+
+def attempt_seed(scene_seed: int, seg: str, attempt: int) -> int:
+    """A distinct, reproducible seed per (scene, segment, attempt)."""
+    ss = np.random.SeedSequence([scene_seed, int(seg.lstrip("s")), attempt])
+    return int(ss.generate_state(1)[0])
+
+
+def segment_prompt(scene_prompt: str, role: str, intent: str) -> str:
+    """The paper's prompt template for a segment ("around left|right" for side extensions)."""
+    around = {"left": " around left,", "right": " around right,"}.get(role, "")
+    extra = f" {intent}." if intent else ""
+    return f"aerial shot, soft lighting,{around} realistic, high-quality, displaying {scene_prompt}.{extra}"
+
+
+def plan_paths(cfg: RunConfig, plan: Any, start_w2c: np.ndarray) -> dict[str, dict[str, Any]]:
+    """Per segment: conditioning path (T,4,4) W2C, parent, reference index, cache key; generation order."""
+    T = cfg.scene.video.frames_per_segment
+    strafe = cfg.steps.plan.strafe_m_per_deg
+    base = _params(cfg)
+    out: dict[str, dict[str, Any]] = {}
+    for s in plan.segments:
+        parent = out.get(s.reference_segment) if s.reference_segment else None
+        if s.reference_segment and parent is None:
+            raise ValueError(f"segment {s.id} continues from unknown segment {s.reference_segment}")
+        ref_idx = stitched_frame_index(parent["reversed"], T, s.reference) if parent else None
+        start = parent["path"][ref_idx] if parent else start_w2c
+        m = s.move
+        path = move_path(
+            start, np.radians(m.yaw_deg), np.radians(m.pitch_deg), m.forward_m, strafe * m.yaw_deg, T
+        )
+        key = cache_key(
+            "segment",
+            SEGMENT_VERSION,
+            {**base, "segment": s, "strafe_m_per_deg": strafe},
+            [parent["key"]] if parent else [],
+        )
+        out[s.id] = {
+            "plan": s,
+            "path": path,
+            "parent": s.reference_segment,
+            "ref_idx": ref_idx,
+            "reversed": s.reversed,
+            "key": key,
+            "wave": parent["wave"] + 1 if parent else 0,
+        }
+    return out
+
+
+def _generate_one(store: SceneStore, cfg: RunConfig, model: Any, seg: str, info: dict[str, Any]) -> None:
+    s = info["plan"]
+    ref = frames(store, info["parent"])[info["ref_idx"]] if info["parent"] else None
+    seed = attempt_seed(cfg.scene.seed, seg, 0)
+    video = model.generate(segment_prompt(cfg.scene.prompt, s.role, s.intent), info["path"], seed, ref)
+    v = cfg.scene.video
+    K = video.K if video.K is not None else intrinsics(v.width, v.height, v.fov_deg)
+    seg_attrs = {
+        "role": s.role,
+        "reversed": s.reversed,
+        "move": s.move.to_paper(),
+        "intent": s.intent,
+        "reference_segment": info["parent"],
+        "reference_frame": info["ref_idx"],
+    }
+    with store.staged(f"segments/{seg}", info["key"], **seg_attrs) as g:
+        write_array(g, "path", info["path"], chunks=info["path"].shape)
+        write_array(g, "K", np.asarray(K, np.float64), chunks=(3, 3))
+        a = g.create_group("attempts/0")
+        a.attrs.update({"seed": seed, "source": v.backend})
+        write_array(a, "frames", video.frames)
+        if video.gt is not None:
+            gt = a.create_group("gt")
+            write_array(gt, "poses", video.gt.poses.astype(np.float64), chunks=video.gt.poses.shape)
+            write_array(gt, "depth", video.gt.depth.astype(np.float32))
+            write_array(gt, "normals", video.gt.normals.astype(np.float16))
+            gt.attrs["faults"] = video.gt.faults
+
+
+def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
+    from wonderverse.planning import stitched_order
+    from wonderverse.video import initial_pose, make_video_model
+
+    plan = load_plan(store)
+    model = make_video_model(cfg.scene)
+    info = plan_paths(cfg, plan, initial_pose(model))
+    todo = [seg for seg, i in info.items() if not store.is_complete(f"segments/{seg}", i["key"])]
+    with ThreadPoolExecutor(cfg.steps.generate.max_workers) as pool:
+        for wave in sorted({i["wave"] for i in info.values()}):
+            batch = [seg for seg in todo if info[seg]["wave"] == wave]
+            list(pool.map(lambda seg: _generate_one(store, cfg, model, seg, info[seg]), batch))
+    for stale in set(store.children("segments")) - set(info):
+        store.remove(f"segments/{stale}")
+    store.mark_complete("segments", key, order=stitched_order(plan.segments))
+    return f"{len(todo)} rendered, {len(info) - len(todo)} cached"
+
+
+STEP = Step("generate_segments", 1, ("plan",), _params, run, "render every planned segment", group="segments")

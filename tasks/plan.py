@@ -1,0 +1,45 @@
+"""Step `plan`: the scene description (and the user's words) -> one camera move per segment."""
+
+from __future__ import annotations
+
+from typing import Any
+
+from tasks.base import Step
+from wonderverse.config import RunConfig
+from wonderverse.store import SceneStore
+
+
+def _params(cfg: RunConfig) -> dict[str, Any]:
+    s = cfg.scene
+    # The API key itself is never part of the config; only the variable's name is.
+    return {"prompt": s.prompt, "extensions": s.extensions, "planner": s.planner, "plan": cfg.steps.plan}
+
+
+def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
+    from wonderverse.planning import make_planner
+
+    planner = make_planner(cfg.scene.planner)
+    plan = planner.plan_scene(cfg.scene.prompt, cfg.scene.extensions, cfg.steps.plan)
+    with store.staged(
+        "plan",
+        key,
+        plan=plan.model_dump(mode="json"),
+        moves=[s.move.to_paper() for s in plan.segments],
+        intents=[s.intent for s in plan.segments],
+    ):
+        pass
+    note = f" ({plan.fallback_reason})" if plan.fallback_reason else ""
+    return f"{len(plan.segments)} segments by {plan.planner}{note}"
+
+
+def load_plan(store: SceneStore) -> Any:
+    """The stored Plan (raises KeyError when the plan step has not completed)."""
+    from wonderverse.planning import Plan
+
+    attrs = store.attrs("plan")
+    if attrs.get("complete") is not True:
+        raise KeyError("plan")
+    return Plan.model_validate(attrs["plan"])
+
+
+STEP = Step("plan", 1, (), _params, run, "camera moves from the prompt (LLM or rules)")

@@ -1,0 +1,57 @@
+"""Reading segments back from the store: accepted attempts, reference frames, the stitched video."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from wonderverse.store import SceneStore
+
+
+def segment_ids(store: SceneStore) -> list[str]:
+    return store.children("segments")
+
+
+def attempt_ids(store: SceneStore, seg: str) -> list[int]:
+    return sorted(int(a) for a in store.children(f"segments/{seg}/attempts") if a.isdigit())
+
+
+def accepted_attempt(store: SceneStore, seg: str) -> int:
+    """The attempt later steps follow: the `accepted` pointer when the check step set one, else 0."""
+    a = store.attrs(f"segments/{seg}/accepted")
+    return int(a["attempt"]) if a.get("complete") is True and a.get("attempt") is not None else 0
+
+
+def attempt_path(store: SceneStore, seg: str, attempt: int | None = None) -> str:
+    k = accepted_attempt(store, seg) if attempt is None else attempt
+    return f"segments/{seg}/attempts/{k}"
+
+
+def frames(store: SceneStore, seg: str, attempt: int | None = None) -> np.ndarray:
+    """(T,H,W,3) uint8 frames of an attempt (the accepted one by default), in generation order."""
+    return store.array(f"{attempt_path(store, seg, attempt)}/frames")
+
+
+def stitched_frame_index(reversed_: bool, n_frames: int, which: str) -> int:
+    """Generation-order index of the `which` ('first'|'last') frame a segment shows in the stitched video."""
+    first, last = (n_frames - 1, 0) if reversed_ else (0, n_frames - 1)
+    return first if which == "first" else last
+
+
+def stitched(store: SceneStore) -> tuple[np.ndarray, list[tuple[str, int]]]:
+    """The stitched video: frames (N,H,W,3) and, per frame, (segment id, generation-order index).
+
+    Left extensions play reversed; every extension's frame 0 repeats its reference frame and is
+    dropped so the video never stalls at a seam."""
+    order = store.attrs("segments").get("order") or segment_ids(store)
+    out, index = [], []
+    for seg in order:
+        attrs = store.attrs(f"segments/{seg}")
+        f = frames(store, seg)
+        idx = np.arange(len(f))
+        if attrs.get("role", "init") != "init":
+            idx = idx[1:]
+        if attrs.get("reversed"):
+            idx = idx[::-1]
+        out.append(f[idx])
+        index += [(seg, int(i)) for i in idx]
+    return np.concatenate(out) if out else np.zeros((0, 1, 1, 3), np.uint8), index

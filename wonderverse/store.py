@@ -1,0 +1,229 @@
+"""The scene store: one zarr v3 group per scene, written by cached, atomically committed steps.
+
+Commit protocol (`SceneStore.staged`): a step writes its group under `_staging/<uuid>`, the directory
+is renamed into place (replacing any stale version), and only then are `cache_key` and
+`complete=true` written to the group's attributes. A reader trusts a group only when `complete` is
+true and the key matches, so a run killed at any instant leaves nothing half-written that counts.
+
+Cache keys form a Merkle chain: sha256 over the step name, its version, the parameters it reads
+and the keys of its inputs (`cache_key`).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import shutil
+import uuid
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zarr
+from pydantic import BaseModel
+
+from wonderverse import STORE_FORMAT, __version__
+from wonderverse.errors import StoreError
+
+STORE_NAME = "scene.zarr"
+_STAGING = "_staging"
+_TRASH = "_trash"
+
+
+def _canonical(obj: Any) -> Any:
+    if isinstance(obj, BaseModel):
+        return _canonical(obj.model_dump(mode="json"))
+    if isinstance(obj, dict):
+        return {str(k): _canonical(v) for k, v in sorted(obj.items(), key=lambda kv: str(kv[0]))}
+    if isinstance(obj, list | tuple):
+        return [_canonical(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _canonical(obj.tolist())
+    if isinstance(obj, np.generic):
+        return obj.item()
+    return obj
+
+
+def cache_key(step: str, version: int, params: Any, inputs: list[str] | tuple[str, ...] = ()) -> str:
+    """sha256 hex digest of (step, version, params, input keys); params may be pydantic models."""
+    payload = json.dumps(
+        {"step": step, "version": version, "params": _canonical(params), "inputs": list(inputs)},
+        sort_keys=True,
+        separators=(",", ":"),
+        allow_nan=True,
+    )
+    return hashlib.sha256(payload.encode()).hexdigest()
+
+
+class SceneStore:
+    """A scene directory holding `scene.zarr` (the source of truth) and exported files beside it."""
+
+    def __init__(self, scene_dir: Path, root: zarr.Group):
+        self.scene_dir = Path(scene_dir)
+        self.root = root
+
+    @property
+    def path(self) -> Path:
+        return self.scene_dir / STORE_NAME
+
+    # -- opening -------------------------------------------------------------------------------
+
+    @classmethod
+    def open_or_create(cls, scene_dir: Path | str, spec: dict[str, Any] | None = None) -> SceneStore:
+        """Open the store in `scene_dir`, creating it (and the folder) when absent.
+
+        Refuses a non-empty folder that is not a scene, an unwritable folder, and a store written
+        by a newer format. `spec` (the SceneSpec as JSON) is recorded in the root attributes.
+        """
+        scene_dir = Path(scene_dir)
+        store_path = scene_dir / STORE_NAME
+        if store_path.exists():
+            store = cls.open(scene_dir, mode="r+")
+        else:
+            if scene_dir.exists() and not scene_dir.is_dir():
+                raise StoreError(f"output path {scene_dir} exists and is not a folder")
+            if scene_dir.is_dir() and any(scene_dir.iterdir()):
+                raise StoreError(
+                    f"output folder {scene_dir} is not empty and holds no scene; choose another --out"
+                )
+            try:
+                scene_dir.mkdir(parents=True, exist_ok=True)
+                probe = scene_dir / f".write-probe-{uuid.uuid4().hex}"
+                probe.touch()
+                probe.unlink()
+                root = zarr.open_group(str(store_path), mode="w-", zarr_format=3)
+            except OSError as e:
+                raise StoreError(f"cannot write to output folder {scene_dir}: {e.strerror or e}") from None
+            root.attrs.update({"format": STORE_FORMAT, "wonderverse_version": __version__})
+            store = cls(scene_dir, root)
+        if spec is not None:
+            store.root.attrs["spec"] = spec
+        return store
+
+    @classmethod
+    def open(cls, scene_dir: Path | str, mode: str = "r") -> SceneStore:
+        """Open an existing scene; `mode` 'r' or 'r+'."""
+        scene_dir = Path(scene_dir)
+        store_path = scene_dir / STORE_NAME
+        if not (store_path / "zarr.json").is_file():
+            raise StoreError(f"{scene_dir} holds no scene store ({STORE_NAME} is missing)")
+        if mode != "r" and not os.access(store_path, os.W_OK):
+            raise StoreError(f"scene store {store_path} is not writable")
+        try:
+            root = zarr.open_group(str(store_path), mode=mode, use_consolidated=False)
+        except Exception as e:  # zarr raises several types for corrupt metadata
+            raise StoreError(f"cannot open scene store {store_path}: {e}") from None
+        fmt = root.attrs.get("format")
+        if not isinstance(fmt, int) or fmt > STORE_FORMAT:
+            raise StoreError(
+                f"scene store {store_path} was written by a newer WonderVerse "
+                f"(store format {fmt!r}, this version reads up to {STORE_FORMAT}); upgrade WonderVerse"
+            )
+        return cls(scene_dir, root)
+
+    # -- groups and completeness ---------------------------------------------------------------
+
+    def _dir(self, group_path: str) -> Path:
+        return self.path / group_path
+
+    def exists(self, group_path: str) -> bool:
+        return (self._dir(group_path) / "zarr.json").is_file()
+
+    def group(self, group_path: str) -> zarr.Group:
+        """An existing group (read-write if the store was opened so)."""
+        if not self.exists(group_path):
+            raise KeyError(group_path)
+        mode = "r" if self.root.store.read_only else "r+"
+        return zarr.open_group(self.root.store, path=group_path, mode=mode, use_consolidated=False)
+
+    def attrs(self, group_path: str) -> dict[str, Any]:
+        """The attributes of a group, or {} when it is absent or its metadata is unreadable."""
+        try:
+            return dict(self.group(group_path).attrs)
+        except Exception:
+            return {}
+
+    def cache_key_of(self, group_path: str) -> str | None:
+        """The key of a complete group, else None."""
+        a = self.attrs(group_path)
+        return a.get("cache_key") if a.get("complete") is True else None
+
+    def is_complete(self, group_path: str, key: str) -> bool:
+        return self.cache_key_of(group_path) == key
+
+    def children(self, group_path: str) -> list[str]:
+        """Names of the sub-groups and arrays directly under a group, sorted."""
+        d = self._dir(group_path)
+        if not d.is_dir():
+            return []
+        return sorted(
+            p.name for p in d.iterdir() if (p / "zarr.json").is_file() and not p.name.startswith("_")
+        )
+
+    def remove(self, group_path: str) -> None:
+        """Delete a group: moved aside first so a crash never leaves a half-deleted group in place."""
+        target = self._dir(group_path)
+        if target.exists():
+            trash = self.path / _TRASH / uuid.uuid4().hex
+            trash.parent.mkdir(parents=True, exist_ok=True)
+            os.replace(target, trash)
+            shutil.rmtree(trash, ignore_errors=True)
+
+    def mark_complete(self, group_path: str, key: str, **attrs: Any) -> None:
+        """Write extra attributes, then `cache_key`, then `complete=true` (last)."""
+        g = self.group(group_path)
+        g.attrs.update({**attrs, "cache_key": key, "complete": False})
+        g.attrs["complete"] = True
+
+    def _ensure_parents(self, group_path: str) -> None:
+        parts = group_path.strip("/").split("/")[:-1]
+        for i in range(1, len(parts) + 1):
+            zarr.open_group(self.root.store, path="/".join(parts[:i]), mode="a", zarr_format=3)
+
+    @contextmanager
+    def staged(self, group_path: str, key: str, **attrs: Any) -> Iterator[zarr.Group]:
+        """Write a group atomically: yields a fresh staging group; on success it replaces
+        `group_path` and is marked complete with `key` (and `attrs`). On error nothing changes."""
+        staging_path = f"{_STAGING}/{uuid.uuid4().hex}"
+        g = zarr.open_group(self.root.store, path=staging_path, mode="w", zarr_format=3)
+        try:
+            yield g
+        except BaseException:
+            shutil.rmtree(self._dir(staging_path), ignore_errors=True)
+            raise
+        self._ensure_parents(group_path)
+        self.remove(group_path)
+        os.replace(self._dir(staging_path), self._dir(group_path))
+        self.mark_complete(group_path, key, **attrs)
+
+    def clean_staging(self) -> None:
+        """Remove leftovers of killed runs (staging and trash folders)."""
+        for name in (_STAGING, _TRASH):
+            shutil.rmtree(self.path / name, ignore_errors=True)
+
+    # -- small helpers for steps ---------------------------------------------------------------
+
+    def array(self, path: str) -> np.ndarray:
+        """Read a whole array."""
+        return np.asarray(zarr.open_array(self.root.store, path=path, mode="r")[...])
+
+    def size_bytes(self, group_path: str = "") -> int:
+        d = self._dir(group_path) if group_path else self.path
+        return sum(f.stat().st_size for f in d.rglob("*") if f.is_file())
+
+
+def write_array(
+    group: zarr.Group, name: str, data: np.ndarray, chunks: tuple[int, ...] | None = None
+) -> zarr.Array:
+    """Create `name` in `group` with an explicit dtype, shape and chunking and write `data`.
+
+    Default chunking is one leading index per chunk (one frame), which suits per-frame access."""
+    data = np.asarray(data)
+    if chunks is None:
+        chunks = (1, *data.shape[1:]) if data.ndim >= 3 else data.shape or (1,)
+    arr = group.create_array(name, shape=data.shape, dtype=data.dtype, chunks=chunks, overwrite=True)
+    arr[...] = data
+    return arr

@@ -1,0 +1,26 @@
+"""Video backends behind one protocol (`VideoModel`), and the factory that picks one."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from wonderverse.config import SceneSpec
+from wonderverse.video.base import GroundTruth, Video, VideoModel
+
+__all__ = ["GroundTruth", "Video", "VideoModel", "initial_pose", "make_video_model"]
+
+
+def make_video_model(scene: SceneSpec) -> VideoModel:
+    """The backend named in `scene.video`, built for this scene (its world, size and options)."""
+    v = scene.video
+    if v.backend == "procedural":
+        from wonderverse.video.procedural import ProceduralVideo
+
+        return ProceduralVideo(scene.prompt, scene.seed, v.width, v.height, v.fov_deg, v.options)
+    raise ValueError(f"unknown video backend {v.backend!r}")
+
+
+def initial_pose(model: VideoModel) -> np.ndarray:
+    """W2C pose the initial video starts from: the backend's own when it has a world, else identity."""
+    start = getattr(model, "start_pose", None)
+    return np.asarray(start(), dtype=np.float64) if callable(start) else np.eye(4)
