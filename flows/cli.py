@@ -132,7 +132,7 @@ def inspect(
 
 @app.command()
 def preview(scene_dir: Annotated[Path, typer.Argument(help="scene folder")]) -> None:
-    """Write the stitched video (preview.mp4) and a contact sheet (contact_sheet.png) into the scene folder."""
+    """Write the stitched video (preview.mp4) and a contact sheet (contact_sheet.png) beside the store."""
     from tasks.segments import stitched
     from wonderverse.media import contact_sheet, write_mp4
     from wonderverse.store import SceneStore

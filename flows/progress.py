@@ -43,7 +43,8 @@ class RichReporter(Reporter):
         )
 
 
-current: ContextVar[Reporter] = ContextVar("reporter", default=Reporter())
+_SILENT = Reporter()
+current: ContextVar[Reporter] = ContextVar("reporter", default=_SILENT)
 
 
 def results_table(results: list[StepResult]) -> Table:
