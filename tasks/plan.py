@@ -12,14 +12,22 @@ from wonderverse.store import SceneStore
 def _params(cfg: RunConfig) -> dict[str, Any]:
     s = cfg.scene
     # The API key itself is never part of the config; only the variable's name is.
-    return {"prompt": s.prompt, "extensions": s.extensions, "planner": s.planner, "plan": cfg.steps.plan}
+    return {
+        "prompt": s.prompt,
+        "extensions": s.extensions,
+        "planner": s.planner,
+        "plan": cfg.steps.plan,
+        "fov_deg": s.video.fov_deg,
+    }
 
 
 def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     from wonderverse.planning import make_planner
 
     planner = make_planner(cfg.scene.planner)
-    plan = planner.plan_scene(cfg.scene.prompt, cfg.scene.extensions, cfg.steps.plan)
+    plan = planner.plan_scene(
+        cfg.scene.prompt, cfg.scene.extensions, cfg.steps.plan, fov_deg=cfg.scene.video.fov_deg
+    )
     with store.staged(
         "plan",
         key,

@@ -83,10 +83,14 @@ class SceneSpec(Model):
 class PlanParams(Model):
     """Step `plan`: the initial camera move and the sizes of rule-planned extension moves."""
 
-    initial_move: str = Field("right 30, up 0, forward 2", description="paper format, for the initial video")
+    initial_move: str = Field("up 0, right 30, forward 2", description="paper format, for the initial video")
     yaw_step_deg: float = Field(35.0, gt=0, le=180)
     pitch_step_deg: float = Field(15.0, gt=0, le=89)
     forward_step_m: float = Field(2.0, gt=0, le=100)
+    yaw_forward_m: float = Field(0.5, gt=0, le=100, description="forward travel added to each turn")
+    step_variation_ratio: float = Field(0.15, ge=0, lt=1, description="shrink of a repeated move on one side")
+    max_pitch_deg: float = Field(60.0, gt=0, le=89, description="pitch limit of each extension chain")
+    min_turn_deg: float = Field(1.0, gt=0, description="less room than this: the direction is exhausted")
     strafe_m_per_deg: float = Field(
         0.04, ge=0, le=1, description="sideways travel per degree of yaw, so turns keep parallax for SfM"
     )

@@ -12,7 +12,6 @@ from __future__ import annotations
 import re
 
 from wonderverse.config import Direction, PlanParams
-from wonderverse.planning.limits import plan_param
 from wonderverse.planning.moves import (
     ANGLE_UNITS,
     AXIS_LIMIT,
@@ -71,7 +70,7 @@ def interpret_intent(words: str, default_direction: Direction, params: PlanParam
             f"{words!r}: {direction} {magnitude:g} is out of range "
             f"(more than 0, at most {AXIS_LIMIT[axis]:g})"
         )
-    forward_m = plan_param(params, "yaw_forward_m") if axis == "yaw" else 0.0
+    forward_m = params.yaw_forward_m if axis == "yaw" else 0.0
     return CameraMove.toward(direction, magnitude, forward_m)
 
 

@@ -16,20 +16,8 @@ from wonderverse.planning.moves import DECIMALS, DIRECTION_AXIS, CameraMove, Pla
 from wonderverse.planning.segments import PlannedSegment, Role, reference_kind
 
 FULL_TURN_DEG = 360.0
-# PlanParams fields this module reads; until config.py has them these defaults apply.
-PENDING_PARAM_DEFAULTS = {
-    "yaw_forward_m": 0.5,  # travel added to each turn so the camera explores, not just pans
-    "step_variation_ratio": 0.15,  # shrink a move that would repeat the previous move of its side
-    "max_pitch_deg": 60.0,  # cumulative tilt limit of each chain
-    "min_turn_deg": 1.0,  # less view left than this (and than the move asks) exhausts a direction
-}
 # Moves are rounded to DECIMALS, so a fitted move may overshoot a limit by half a quantum.
 _TOLERANCE = 10.0**-DECIMALS
-
-
-def plan_param(params: PlanParams, name: str) -> float:
-    """`params.name`, or its pending default while PlanParams lacks the field."""
-    return float(getattr(params, name, PENDING_PARAM_DEFAULTS[name]))
 
 
 def yaw_span_deg(segments: Sequence[PlannedSegment], fov_deg: float) -> float:
@@ -49,7 +37,7 @@ def headroom(segments: Sequence[PlannedSegment], role: Role, params: PlanParams,
     if axis == "yaw":
         return max(0.0, FULL_TURN_DEG - yaw_span_deg(segments, fov_deg))
     if axis == "pitch":
-        return max(0.0, plan_param(params, "max_pitch_deg") - sign * chain_pitch_deg(segments, role))
+        return max(0.0, params.max_pitch_deg - sign * chain_pitch_deg(segments, role))
     return math.inf
 
 
@@ -64,7 +52,7 @@ def move_problem(
     if span > FULL_TURN_DEG + _TOLERANCE:
         return f"the views would span {format_number(span)}° (more than 360°, so they would repeat)"
     pitch = chain_pitch_deg(segments, role) + move.pitch_deg
-    limit = plan_param(params, "max_pitch_deg")
+    limit = params.max_pitch_deg
     if abs(pitch) > limit + _TOLERANCE:
         way = "up" if pitch > 0 else "down"
         return f"the camera would tilt {format_number(abs(pitch))}° {way} (limit {limit:g}°)"
@@ -79,13 +67,13 @@ def fit_move(
     PlanError if that direction is exhausted: less view is left than both `min_turn_deg` and the move asks.
     """
     room = headroom(segments, role, params, fov_deg)
-    if room + _TOLERANCE < min(plan_param(params, "min_turn_deg"), move.component(role)):
+    if room + _TOLERANCE < min(params.min_turn_deg, move.component(role)):
         raise PlanError(_exhausted(segments, role, params, fov_deg))
     magnitude = min(move.component(role), room)
     fitted = move.with_component(role, magnitude)
     previous = next((s.move for s in reversed(segments) if s.role == role), None)
     if fitted == previous:
-        fitted = move.with_component(role, magnitude * (1.0 - plan_param(params, "step_variation_ratio")))
+        fitted = move.with_component(role, magnitude * (1.0 - params.step_variation_ratio))
     return fitted
 
 
@@ -98,5 +86,5 @@ def _exhausted(segments: Sequence[PlannedSegment], role: Role, params: PlanParam
     pitch = chain_pitch_deg(segments, role)
     return (
         f"cannot extend {role}: the camera already tilts {format_number(abs(pitch))}° "
-        f"{'up' if pitch > 0 else 'down'} (limit {plan_param(params, 'max_pitch_deg'):g}°)"
+        f"{'up' if pitch > 0 else 'down'} (limit {params.max_pitch_deg:g}°)"
     )

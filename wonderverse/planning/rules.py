@@ -6,7 +6,7 @@ from collections.abc import Sequence
 
 from wonderverse.config import Direction, ExtensionSpec, PlanParams, VideoSpec
 from wonderverse.planning.intents import intent_direction, interpret_intent
-from wonderverse.planning.limits import FULL_TURN_DEG, fit_move, plan_param
+from wonderverse.planning.limits import FULL_TURN_DEG, fit_move
 from wonderverse.planning.moves import DIRECTION_AXIS, CameraMove, PlanError, PlanParseError, parse_move
 from wonderverse.planning.segments import Plan, PlannedSegment, next_segment
 
@@ -37,7 +37,7 @@ def initial_segment(params: PlanParams, fov_deg: float) -> PlannedSegment:
     except PlanParseError as e:
         raise PlanParseError(f"steps.plan.initial_move {params.initial_move!r}: {e}") from None
     max_yaw = FULL_TURN_DEG - fov_deg
-    max_pitch = plan_param(params, "max_pitch_deg")
+    max_pitch = params.max_pitch_deg
     clamped = CameraMove(
         yaw_deg=min(max(move.yaw_deg, -max_yaw), max_yaw),
         pitch_deg=min(max(move.pitch_deg, -max_pitch), max_pitch),
@@ -125,7 +125,7 @@ def _fitting_steps(
     """`params` with the yaw and pitch steps shrunk so that every planned turn and tilt fits the limits."""
     count = {d: directions.count(d) for d in DIRECTION_AXIS}
     yaw_room = FULL_TURN_DEG - fov_deg - abs(init.yaw_deg)
-    max_pitch = plan_param(params, "max_pitch_deg")
+    max_pitch = params.max_pitch_deg
     yaw_step = min([params.yaw_step_deg] + ([yaw_room / n] if (n := count["left"] + count["right"]) else []))
     pitch_step = min(
         [params.pitch_step_deg]
