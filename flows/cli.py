@@ -41,18 +41,12 @@ def _default_out(prompt: str) -> Path:
 
 @app.command()
 def generate(
-    prompt: Annotated[
-        str | None, typer.Argument(help="what the scene shows (or scene.prompt in --config)")
-    ] = None,
+    prompt: Annotated[str | None, typer.Argument(help="what the scene shows (or scene.prompt in --config)")] = None,
     preset: Annotated[str | None, typer.Option(help="preview | standard | high")] = None,
     config: Annotated[Path | None, typer.Option(help="scene spec YAML (see configs/scenes/)")] = None,
-    out_dir: Annotated[
-        Path | None, typer.Option("--out", help="scene folder (default scenes/<prompt>)")
-    ] = None,
+    out_dir: Annotated[Path | None, typer.Option("--out", help="scene folder (default scenes/<prompt>)")] = None,
     until: Annotated[str | None, typer.Option(help="run only the steps this step needs")] = None,
-    engine: Annotated[
-        str, typer.Option(help="prefect (default) or local (plain in-process calls)")
-    ] = "prefect",
+    engine: Annotated[str, typer.Option(help="prefect (default) or local (plain in-process calls)")] = "prefect",
     seed: Annotated[int | None, typer.Option(help="scene seed (overrides the config)")] = None,
 ) -> None:
     """Plan, render and store a scene; cached steps are skipped."""
@@ -85,9 +79,7 @@ def generate(
 @app.command()
 def inspect(
     scene_dir: Annotated[Path, typer.Argument(help="scene folder")],
-    as_json: Annotated[
-        bool, typer.Option("--json", help="machine-readable output (schema in README)")
-    ] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="machine-readable output (schema in README)")] = False,
 ) -> None:
     """Steps with status and cache key, segments with attempts and checks, arrays and sizes."""
     from rich.table import Table
@@ -154,7 +146,7 @@ def main() -> None:
     try:
         app(standalone_mode=False)
     except WonderError as e:  # StepFailed included
-        console.print(f"error: {e}", highlight=False, markup=False)
+        print(f"error: {' '.join(str(e).split())}", file=sys.stderr)
         sys.exit(2)
     except (typer.Exit, SystemExit) as e:
         code = getattr(e, "exit_code", getattr(e, "code", 0))

@@ -34,9 +34,7 @@ def _direct(step: Step, scene_dir: str, cfg: RunConfig, key: str) -> str:
     return step.run_in(scene_dir, cfg, key)
 
 
-def execute(
-    scene_dir: Path | str, cfg: RunConfig, until: str | None = None, call: Call = _direct
-) -> list[StepResult]:
+def execute(scene_dir: Path | str, cfg: RunConfig, until: str | None = None, call: Call = _direct) -> list[StepResult]:
     """Run the steps `until` needs (all by default); returns one StepResult per step."""
     try:
         steps = steps_until(until)
@@ -83,9 +81,7 @@ def generate_flow() -> Any:
     if "generate" not in _flows:
         from prefect import flow
 
-        _flows["generate"] = flow(name="generate", log_prints=False, validate_parameters=False)(
-            _generate_flow
-        )
+        _flows["generate"] = flow(name="generate", log_prints=False, validate_parameters=False)(_generate_flow)
     return _flows["generate"]
 
 

@@ -37,8 +37,7 @@ class RichReporter(Reporter):
         style = {"ran": "green", "cached": "cyan", "failed": "red"}[result.status]
         detail = f" — {result.detail}" if result.detail else ""
         self.console.print(
-            f"[{self.done}/{self.total}] {result.step}: [{style}]{result.status}[/] "
-            f"({result.seconds:.1f} s){detail}",
+            f"[{self.done}/{self.total}] {result.step}: [{style}]{result.status}[/] ({result.seconds:.1f} s){detail}",
             highlight=False,
         )
 

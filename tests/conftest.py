@@ -1,0 +1,43 @@
+"""Shared fixtures: tiny configs that keep end-to-end runs fast on a 2-core machine."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+from wonderverse.config import RunConfig, build_config
+
+ROOT = Path(__file__).resolve().parents[1]
+DATA = ROOT.parent / "shared" / "data"
+TINY_VIDEO = {"width": 96, "height": 64, "frames_per_segment": 6}
+
+
+def tiny_config(prompt: str = "a small house decorated for Christmas", **scene: Any) -> RunConfig:
+    """Preview preset shrunk to 96x64, 6 frames per segment, no faults unless asked."""
+    video = {**TINY_VIDEO, "options": {"fault_probability": 0.0}, **scene.pop("video", {})}
+    return build_config(prompt, preset="preview", overrides={"scene": {"video": video, **scene}})
+
+
+def run_cli(*args: str, env: dict[str, str] | None = None, timeout: float = 300) -> subprocess.CompletedProcess:
+    """Run `wonderverse ARGS` in a fresh interpreter, as a user would."""
+    full_env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
+    return subprocess.run(
+        [sys.executable, "-m", "flows.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=full_env,
+        cwd=ROOT,
+    )
+
+
+@pytest.fixture
+def data_dir() -> Path:
+    if not DATA.is_dir():
+        pytest.skip(f"shared data folder {DATA} is absent (tests with real footage need it)")
+    return DATA
