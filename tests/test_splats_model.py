@@ -82,9 +82,7 @@ def test_quaternions_match_scipy_and_zero_is_identity() -> None:
     np.testing.assert_allclose(R, ref, atol=1e-12)
     np.testing.assert_allclose(quat_to_rotmat(torch.zeros(1, 4)).numpy()[0], np.eye(3))
     for Rm in ref[:10]:
-        np.testing.assert_allclose(
-            quat_to_rotmat(torch.from_numpy(rotmat_to_quat(Rm))).numpy(), Rm, atol=1e-12
-        )
+        np.testing.assert_allclose(quat_to_rotmat(torch.from_numpy(rotmat_to_quat(Rm))).numpy(), Rm, atol=1e-12)
     a, b = Rotation.random(2, random_state=3)
     qa, qb = (r.as_quat()[[3, 0, 1, 2]] for r in (a, b))
     qab = torch.from_numpy(quat_multiply(qa, qb))
@@ -190,9 +188,7 @@ def test_normalization_preserves_projection(seed: int, offset: float, spread: fl
         uv_n, z_n = _project(w2c_n[i], K, pts_n)
         np.testing.assert_allclose(uv_n, uv, rtol=1e-6, atol=1e-6 * np.abs(uv).max())
         np.testing.assert_allclose(z_n, norm.scale * z, rtol=1e-6, atol=1e-9 * np.abs(z).max())
-    np.testing.assert_allclose(
-        norm.invert_w2c(w2c_n), w2c, rtol=1e-9, atol=1e-9 * max(1.0, np.abs(w2c).max())
-    )
+    np.testing.assert_allclose(norm.invert_w2c(w2c_n), w2c, rtol=1e-9, atol=1e-9 * max(1.0, np.abs(w2c).max()))
     np.testing.assert_allclose(norm.invert_points(pts_n), pts, rtol=1e-9, atol=1e-9 * np.abs(pts).max())
     again = SceneNormalization.from_dict(norm.to_dict())
     np.testing.assert_array_equal(again.apply_points(pts), pts_n)
