@@ -23,8 +23,14 @@ app = typer.Typer(
     help="WonderVerse: text prompt -> extendable 3D scene.",
     pretty_exceptions_enable=False,
 )
-console = Console(stderr=True)
-out = Console()
+# Piped output is not cut to 80 columns: tables stay one row per line in logs and CI.
+console = Console(stderr=True, width=None if sys.stderr.isatty() else 140)
+out = Console(width=None if sys.stdout.isatty() else 140)
+
+
+def _quiet_libraries() -> None:
+    # COLMAP's glog lines would bury the progress display.
+    os.environ.setdefault("GLOG_minloglevel", "2")
 
 
 def _quiet_prefect() -> None:
@@ -143,6 +149,7 @@ def preview(scene_dir: Annotated[Path, typer.Argument(help="scene folder")]) -> 
 
 def main() -> None:
     """Entry point: user errors become one line on stderr and exit code 2."""
+    _quiet_libraries()
     try:
         app(standalone_mode=False)
     except WonderError as e:  # StepFailed included

@@ -53,9 +53,7 @@ def plan_paths(cfg: RunConfig, plan: Any, start_w2c: np.ndarray) -> dict[str, di
         ref_idx = stitched_frame_index(parent["reversed"], T, s.reference) if parent else None
         start = parent["path"][ref_idx] if parent else start_w2c
         m = s.move
-        path = move_path(
-            start, np.radians(m.yaw_deg), np.radians(m.pitch_deg), m.forward_m, strafe * m.yaw_deg, T
-        )
+        path = move_path(start, np.radians(m.yaw_deg), np.radians(m.pitch_deg), m.forward_m, strafe * m.yaw_deg, T)
         key = cache_key(
             "segment",
             SEGMENT_VERSION,
@@ -72,6 +70,31 @@ def plan_paths(cfg: RunConfig, plan: Any, start_w2c: np.ndarray) -> dict[str, di
             "wave": parent["wave"] + 1 if parent else 0,
         }
     return out
+
+
+def render_attempt(store: SceneStore, cfg: RunConfig, model: Any, seg: str, attempt: int) -> tuple[Any, int]:
+    """Render attempt `attempt` of a segment whose plan (path, reference) is already in the store.
+
+    The reference frame comes from the parent's accepted attempt; the seed is new for every attempt."""
+    a = store.attrs(f"segments/{seg}")
+    parent = a.get("reference_segment")
+    ref = frames(store, parent)[a["reference_frame"]] if parent else None
+    seed = attempt_seed(cfg.scene.seed, seg, attempt)
+    path = store.array(f"segments/{seg}/path")
+    video = model.generate(segment_prompt(cfg.scene.prompt, a["role"], a.get("intent", "")), path, seed, ref)
+    return video, seed
+
+
+def write_attempt(group: Any, video: Any, seed: int, source: str) -> None:
+    """Frames (and ground truth when the backend has it) of one attempt into `group`."""
+    group.attrs.update({"seed": seed, "source": source})
+    write_array(group, "frames", video.frames)
+    if video.gt is not None:
+        gt = group.create_group("gt")
+        write_array(gt, "poses", video.gt.poses.astype(np.float64), chunks=video.gt.poses.shape)
+        write_array(gt, "depth", video.gt.depth.astype(np.float32))
+        write_array(gt, "normals", video.gt.normals.astype(np.float16))
+        gt.attrs["faults"] = video.gt.faults
 
 
 def _generate_one(store: SceneStore, cfg: RunConfig, model: Any, seg: str, info: dict[str, Any]) -> None:
@@ -92,15 +115,7 @@ def _generate_one(store: SceneStore, cfg: RunConfig, model: Any, seg: str, info:
     with store.staged(f"segments/{seg}", info["key"], **seg_attrs) as g:
         write_array(g, "path", info["path"], chunks=info["path"].shape)
         write_array(g, "K", np.asarray(K, np.float64), chunks=(3, 3))
-        a = g.create_group("attempts/0")
-        a.attrs.update({"seed": seed, "source": v.backend})
-        write_array(a, "frames", video.frames)
-        if video.gt is not None:
-            gt = a.create_group("gt")
-            write_array(gt, "poses", video.gt.poses.astype(np.float64), chunks=video.gt.poses.shape)
-            write_array(gt, "depth", video.gt.depth.astype(np.float32))
-            write_array(gt, "normals", video.gt.normals.astype(np.float16))
-            gt.attrs["faults"] = video.gt.faults
+        write_attempt(g.create_group("attempts/0"), video, seed, v.backend)
 
 
 def run(store: SceneStore, cfg: RunConfig, key: str) -> str:

@@ -25,9 +25,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     from wonderverse.planning import make_planner
 
     planner = make_planner(cfg.scene.planner)
-    plan = planner.plan_scene(
-        cfg.scene.prompt, cfg.scene.extensions, cfg.steps.plan, fov_deg=cfg.scene.video.fov_deg
-    )
+    plan = planner.plan_scene(cfg.scene.prompt, cfg.scene.extensions, cfg.steps.plan, fov_deg=cfg.scene.video.fov_deg)
     with store.staged(
         "plan",
         key,

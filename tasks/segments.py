@@ -15,14 +15,20 @@ def attempt_ids(store: SceneStore, seg: str) -> list[int]:
     return sorted(int(a) for a in store.children(f"segments/{seg}/attempts") if a.isdigit())
 
 
-def accepted_attempt(store: SceneStore, seg: str) -> int:
-    """The attempt later steps follow: the `accepted` pointer when the check step set one, else 0."""
+def accepted_attempt(store: SceneStore, seg: str) -> int | None:
+    """The attempt later steps follow: the check step's `accepted` pointer (None: segment dropped);
+    before any check, attempt 0."""
     a = store.attrs(f"segments/{seg}/accepted")
-    return int(a["attempt"]) if a.get("complete") is True and a.get("attempt") is not None else 0
+    if a.get("complete") is not True:
+        return 0
+    return None if a.get("attempt") is None else int(a["attempt"])
 
 
 def attempt_path(store: SceneStore, seg: str, attempt: int | None = None) -> str:
+    """Group of an attempt (the accepted one by default; KeyError when the segment was dropped)."""
     k = accepted_attempt(store, seg) if attempt is None else attempt
+    if k is None:
+        raise KeyError(f"segment {seg} was dropped by the check")
     return f"segments/{seg}/attempts/{k}"
 
 
@@ -41,10 +47,12 @@ def stitched(store: SceneStore) -> tuple[np.ndarray, list[tuple[str, int]]]:
     """The stitched video: frames (N,H,W,3) and, per frame, (segment id, generation-order index).
 
     Left extensions play reversed; every extension's frame 0 repeats its reference frame and is
-    dropped so the video never stalls at a seam."""
+    dropped so the video never stalls at a seam. Segments the check dropped are left out."""
     order = store.attrs("segments").get("order") or segment_ids(store)
     out, index = [], []
     for seg in order:
+        if accepted_attempt(store, seg) is None:
+            continue
         attrs = store.attrs(f"segments/{seg}")
         f = frames(store, seg)
         idx = np.arange(len(f))

@@ -12,7 +12,9 @@ from typing import Any, Literal
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
+from wonderverse.check import CheckParams
 from wonderverse.errors import ConfigError
+from wonderverse.sfm import SfmParams
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 PRESET_DIR = CONFIG_DIR / "presets"
@@ -30,9 +32,7 @@ class Model(BaseModel):
 class ExtensionSpec(Model):
     """How the scene grows beyond the initial video (the paper repeats left+right `rounds` times)."""
 
-    rounds: int = Field(
-        1, ge=0, le=16, description="extension iterations n; each adds one segment per direction"
-    )
+    rounds: int = Field(1, ge=0, le=16, description="extension iterations n; each adds one segment per direction")
     directions: tuple[Direction, ...] = Field(("left", "right"), min_length=1)
     intents: tuple[str, ...] = Field((), description="the user's words for each extension, in order")
 
@@ -102,9 +102,34 @@ class GenerateParams(Model):
     max_workers: int = Field(1, ge=1, le=64, description="segments rendered concurrently")
 
 
+class CheckStepParams(Model):
+    """Step `check`: per-segment SfM, the abnormal-sequence decision, and regeneration."""
+
+    sfm: SfmParams = SfmParams(max_image_size_px=480, num_threads=1)
+    rules: CheckParams = CheckParams()
+    max_attempts: int = Field(4, ge=1, le=50, description="attempts per segment, the first included")
+    on_failure: Literal["fail", "drop", "keep_best"] = Field(
+        "keep_best", description="when every attempt fails: stop the run, drop the segment, or keep the best"
+    )
+    workers: int = Field(2, ge=1, le=256, description="segments checked at once (Dask LocalCluster workers)")
+    dask_address: str | None = Field(None, description="existing Dask scheduler, e.g. tcp://host:8786")
+
+
+class PosesParams(Model):
+    """Step `poses`: one camera path for the whole stitched video."""
+
+    source: Literal["sfm", "conditioning"] = Field(
+        "sfm", description="sfm: one reconstruction over all accepted frames; conditioning: the planned path"
+    )
+    frame_stride: int = Field(1, ge=1, le=100, description="use every Nth stitched frame for SfM")
+    sfm: SfmParams = SfmParams(max_image_size_px=480, num_threads=2)
+
+
 class StepsConfig(Model):
     plan: PlanParams = PlanParams()
     generate: GenerateParams = GenerateParams()
+    check: CheckStepParams = CheckStepParams()
+    poses: PosesParams = PosesParams()
 
 
 class RunConfig(Model):
@@ -188,9 +213,7 @@ def build_config(
         merged = deep_merge(merged, {"scene": {"prompt": prompt}})
     merged = deep_merge(merged, overrides or {})
     if "prompt" not in merged.get("scene", {}):
-        raise ConfigError(
-            "scene.prompt: no prompt given (pass PROMPT or set scene.prompt in the config file)"
-        )
+        raise ConfigError("scene.prompt: no prompt given (pass PROMPT or set scene.prompt in the config file)")
     return validate_config(merged)
 
 

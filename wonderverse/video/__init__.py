@@ -21,6 +21,7 @@ def make_video_model(scene: SceneSpec) -> VideoModel:
 
 
 def initial_pose(model: VideoModel) -> np.ndarray:
-    """W2C pose the initial video starts from: the backend's own when it has a world, else identity."""
-    start = getattr(model, "start_pose", None)
-    return np.asarray(start(), dtype=np.float64) if callable(start) else np.eye(4)
+    """W2C pose the initial video starts from: its world's start pose when the backend has a world
+    (the procedural one), else identity (real video models start wherever their first frame is)."""
+    world = getattr(model, "world", None)
+    return np.asarray(world.start_pose(), dtype=np.float64) if world is not None else np.eye(4)

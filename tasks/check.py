@@ -1,0 +1,137 @@
+"""Step `check`: the paper's geometric correction. Each segment's camera path is estimated with
+SfM and judged (T1/T2, registration); a failed segment is regenerated whole with a new seed (a new
+attempt group) until one passes or attempts run out. Segments are checked in parallel on Dask.
+
+Writes, per segment: `attempts/<k>/sfm` (poses, registered, points, colors), `attempts/<k>/check`
+(decision, reasons, per-frame steps) and `accepted` (the attempt later steps follow). The step's own
+group `check` holds the summary (extra trials per segment, dropped segments).
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+import numpy as np
+
+from tasks.base import Step
+from tasks.generate_segments import render_attempt, write_attempt
+from tasks.parallel import map_segments
+from tasks.segments import attempt_ids, segment_ids
+from wonderverse.config import RunConfig
+from wonderverse.errors import WonderError
+from wonderverse.store import SceneStore, cache_key, write_array
+
+log = logging.getLogger("wonderverse.check")
+VERSION = 1
+
+
+def _params(cfg: RunConfig) -> dict[str, Any]:
+    return {"check": cfg.steps.check.model_dump(exclude={"workers", "dask_address"})}
+
+
+def segment_key(cfg: RunConfig, seg_key: str) -> str:
+    return cache_key("check_segment", VERSION, _params(cfg), [seg_key])
+
+
+def _judge(store: SceneStore, cfg: RunConfig, seg: str, k: int, key: str) -> dict[str, Any]:
+    """SfM + check of one attempt (cached in its `sfm` and `check` groups); returns the check attrs."""
+    from wonderverse.check import check_trajectory
+    from wonderverse.sfm import reconstruct
+
+    ap = f"segments/{seg}/attempts/{k}"
+    if store.is_complete(f"{ap}/check", key):
+        return store.attrs(f"{ap}/check")
+    p = cfg.steps.check
+    sfm = reconstruct(store.array(f"{ap}/frames"), p.sfm, K_prior=store.array(f"segments/{seg}/K"))
+    result = check_trajectory(sfm.poses, sfm.registered, p.rules, sfm.problems, points=sfm.points)
+    with store.staged(
+        f"{ap}/sfm",
+        key,
+        mapper=sfm.mapper,
+        reproj_error_px=sfm.reproj_error_px,
+        n_points=sfm.n_points,
+        timings=sfm.timings,
+        problems=sfm.problems,
+    ) as g:
+        write_array(g, "poses", sfm.poses, chunks=sfm.poses.shape)
+        write_array(g, "registered", sfm.registered, chunks=sfm.registered.shape)
+        write_array(g, "K", sfm.K, chunks=(3, 3))
+        write_array(g, "points", sfm.points.reshape(-1, 3), chunks=(max(1, len(sfm.points)), 3))
+        write_array(g, "colors", sfm.colors.reshape(-1, 3), chunks=(max(1, len(sfm.points)), 3))
+    with store.staged(f"{ap}/check", key, **result.to_attrs(), sfm_seconds=sum(sfm.timings.values())):
+        pass
+    return store.attrs(f"{ap}/check")
+
+
+def _badness(check: dict[str, Any]) -> tuple[int, float]:
+    """Order attempts for `keep_best`: fewer reasons, then more frames registered."""
+    return len(check.get("reasons", [])), -float(check.get("registered_frac", 0.0))
+
+
+def check_segment(seg: str, scene_dir: str, cfg: RunConfig) -> dict[str, Any]:
+    """Check (and regenerate) one segment until an attempt passes; writes `segments/<seg>/accepted`."""
+    store = SceneStore.open(scene_dir, mode="r+")
+    seg_key = store.cache_key_of(f"segments/{seg}")
+    if seg_key is None:
+        raise WonderError(f"segment {seg} is not complete; run generate_segments first")
+    key = segment_key(cfg, seg_key)
+    if store.is_complete(f"segments/{seg}/accepted", key):
+        return store.attrs(f"segments/{seg}/accepted")
+    p = cfg.steps.check
+    model = None
+    checks: dict[int, dict[str, Any]] = {}
+    for k in range(p.max_attempts):
+        if k not in attempt_ids(store, seg):
+            if model is None:
+                from wonderverse.video import make_video_model
+
+                model = make_video_model(cfg.scene)
+            video, seed = render_attempt(store, cfg, model, seg, k)
+            with store.staged(
+                f"segments/{seg}/attempts/{k}", cache_key("attempt", VERSION, {"seed": seed}, [seg_key])
+            ) as g:
+                write_attempt(g, video, seed, cfg.scene.video.backend)
+        checks[k] = _judge(store, cfg, seg, k, cache_key("attempt_check", VERSION, {"k": k}, [key]))
+        if checks[k]["accepted"]:
+            break
+    passed = [k for k, c in checks.items() if c["accepted"]]
+    summary: dict[str, Any] = {"segment": seg, "attempts": len(checks), "extra_trials": len(checks) - 1}
+    if passed:
+        summary |= {"attempt": passed[0], "dropped": False, "reasons": []}
+    else:
+        best = min(checks, key=lambda k: _badness(checks[k]))
+        reasons = checks[best]["reasons"]
+        if p.on_failure == "fail":
+            raise WonderError(f"segment {seg} failed all {len(checks)} attempts; last reasons: {'; '.join(reasons)}")
+        if p.on_failure == "drop":
+            summary |= {"attempt": None, "dropped": True, "reasons": reasons}
+            log.warning("segment %s dropped after %d attempts: %s", seg, len(checks), "; ".join(reasons))
+        else:
+            summary |= {"attempt": best, "dropped": False, "reasons": reasons}
+            log.warning("segment %s kept its best failing attempt %d: %s", seg, best, "; ".join(reasons))
+    with store.staged(f"segments/{seg}/accepted", key, **summary):
+        pass
+    return summary
+
+
+def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
+    p = cfg.steps.check
+    segs = segment_ids(store)
+    summaries = map_segments(check_segment, segs, str(store.scene_dir), cfg, workers=p.workers, address=p.dask_address)
+    extra = [s["extra_trials"] for s in summaries]
+    dropped = [s["segment"] for s in summaries if s["dropped"]]
+    failing = [s["segment"] for s in summaries if s["reasons"] and not s["dropped"]]
+    with store.staged(
+        "check", key, segments=summaries, mean_extra_trials=float(np.mean(extra)), dropped=dropped, kept_failing=failing
+    ):
+        pass
+    msg = f"{len(segs)} segments, {sum(extra)} regenerated (mean extra trials {np.mean(extra):.2f})"
+    return (
+        msg
+        + (f", dropped {', '.join(dropped)}" if dropped else "")
+        + (f", kept failing {', '.join(failing)}" if failing else "")
+    )
+
+
+STEP = Step("check", 1, ("generate_segments",), _params, run, "SfM pose check, regenerate abnormal segments")
