@@ -1,0 +1,219 @@
+"""align_scale_shift: exact recovery of known scale/shift (with outliers, in both spaces, dense or (u,v,z)
+references, float16, 1e-3..1e4), and every degenerate case returning ok=False with a finite depth map."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from wonderverse.priors import AlignParams, align_scale_shift, reference_samples
+
+H, W = 40, 60
+
+
+def scene_depth(rng: np.random.Generator, lo: float = 1.0, hi: float = 20.0) -> np.ndarray:
+    """(H,W) camera z, log-uniform in [lo, hi]."""
+    return np.exp(rng.uniform(np.log(lo), np.log(hi), (H, W)))
+
+
+def sparse_reference(z: np.ndarray, rng: np.random.Generator, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """A dense map with NaN except at n random pixels, and the same points as (u, v, z) samples."""
+    idx = rng.choice(z.size, n, replace=False)
+    rows, cols = np.unravel_index(idx, z.shape)
+    dense = np.full(z.shape, np.nan)
+    dense[rows, cols] = z[rows, cols]
+    uvz = np.stack([cols + rng.uniform(0, 1, n), rows + rng.uniform(0, 1, n), z[rows, cols]], axis=1)
+    return dense, uvz
+
+
+def add_outliers(ref: np.ndarray, rng: np.random.Generator, frac: float) -> np.ndarray:
+    out = ref.copy()
+    known = np.flatnonzero(np.isfinite(out))
+    bad = rng.choice(known, int(frac * known.size), replace=False)
+    out.flat[bad] *= rng.uniform(2.0, 5.0, bad.size)  # gross errors, all too far
+    return out
+
+
+def test_lstsq_recovers_scale_and_shift_in_depth_space() -> None:
+    rng = np.random.default_rng(0)
+    z = scene_depth(rng)
+    a, b = 2.5, 0.7
+    prior = (z - b) / a
+    dense, _ = sparse_reference(z, rng, 300)
+    r = align_scale_shift(prior, dense, space="depth", method="lstsq")
+    assert r.ok and r.reason == ""
+    assert r.scale == pytest.approx(a, rel=1e-9) and r.shift == pytest.approx(b, rel=1e-9)
+    assert r.n_used == 300 and r.residual < 1e-6  # float32 output
+    assert r.aligned_depth.dtype == np.float32 and r.aligned_depth.shape == (H, W)
+    np.testing.assert_allclose(r.aligned_depth, z, rtol=1e-6)
+
+
+@pytest.mark.parametrize("method", ["trimmed", "ransac"])
+@pytest.mark.parametrize("space", ["depth", "inverse_depth"])
+def test_robust_methods_ignore_outliers(method: str, space: str) -> None:
+    rng = np.random.default_rng(1)
+    z = scene_depth(rng)
+    a, b = (3.0, -0.2) if space == "depth" else (0.8, 0.05)
+    target = z if space == "depth" else 1.0 / z
+    prior = (target - b) / a
+    dense, _ = sparse_reference(z, rng, 400)
+    noisy = add_outliers(dense, rng, 0.2)
+    plain = align_scale_shift(prior, noisy, space=space, method="lstsq")
+    r = align_scale_shift(prior, noisy, space=space, method=method, params=AlignParams(trim_fraction=0.3))
+    assert r.ok
+    assert r.scale == pytest.approx(a, rel=1e-6)
+    assert r.shift == pytest.approx(b, rel=1e-6, abs=1e-9)
+    np.testing.assert_allclose(r.aligned_depth, z, rtol=1e-5)
+    assert r.residual < 1e-6 and plain.residual > 1e-3  # the outliers do hurt plain least squares
+    assert 0.6 * 400 <= r.n_used <= 0.8 * 400 + 1
+
+
+def test_dense_and_uvz_references_agree() -> None:
+    rng = np.random.default_rng(2)
+    z = scene_depth(rng)
+    prior = 1.0 / z * 3.0 + 0.1
+    dense, uvz = sparse_reference(z, rng, 200)
+    r1 = align_scale_shift(prior, dense, space="inverse_depth", method="lstsq")
+    r2 = align_scale_shift(prior, uvz, space="inverse_depth", method="lstsq")
+    assert r1.ok and r2.ok and r1.n_used == r2.n_used == 200
+    assert r1.scale == pytest.approx(r2.scale, rel=1e-12) and r1.shift == pytest.approx(r2.shift, abs=1e-12)
+    np.testing.assert_allclose(r1.aligned_depth, z, rtol=1e-5)
+    # samples off the image or without a positive depth are dropped
+    junk = np.array([[-1.0, 5.0, 2.0], [W + 0.5, 5.0, 2.0], [3.2, 4.7, np.nan], [3.2, 4.7, -1.0], [3.2, 4.7, 0.0]])
+    rows, _, _ = reference_samples(np.vstack([uvz, junk]), (H, W))
+    assert rows.size == 200
+    rows1, cols1, _ = reference_samples(uvz[:1], (H, W))
+    assert (rows1[0], cols1[0]) == (int(uvz[0, 1]), int(uvz[0, 0]))
+
+
+def test_mask_excludes_pixels_from_the_fit() -> None:
+    rng = np.random.default_rng(3)
+    z = scene_depth(rng)
+    prior = z / 4.0
+    ref = z.copy()
+    ref[:, :10] *= 3.0  # wrong reference where the mask says "do not use" (e.g. sky, moving objects)
+    mask = np.ones((H, W), dtype=bool)
+    mask[:, :10] = False
+    r = align_scale_shift(prior, ref, mask=mask, method="lstsq")
+    assert r.ok and r.scale == pytest.approx(4.0, rel=1e-9) and r.shift == pytest.approx(0.0, abs=1e-9)
+    assert r.n_used == H * (W - 10)
+    np.testing.assert_allclose(r.aligned_depth, z, rtol=1e-6)  # masked pixels are still aligned
+
+
+def test_float16_prior() -> None:
+    rng = np.random.default_rng(4)
+    z = scene_depth(rng, 1.0, 50.0)
+    prior16 = (1.0 / z * 7.0).astype(np.float16)
+    a, b = 1.0 / 7.0, 0.002
+    z_true = 1.0 / (a * prior16.astype(np.float64) + b)  # what the float16 values encode exactly
+    dense, _ = sparse_reference(z_true, rng, 300)
+    r = align_scale_shift(prior16, dense, space="inverse_depth", method="trimmed")
+    assert r.ok
+    assert r.scale == pytest.approx(a, rel=1e-6) and r.shift == pytest.approx(b, rel=1e-5)
+    np.testing.assert_allclose(r.aligned_depth, z_true, rtol=1e-5)
+
+
+@pytest.mark.parametrize("space", ["depth", "inverse_depth"])
+def test_depths_from_1e_minus3_to_1e4(space: str) -> None:
+    rng = np.random.default_rng(5)
+    z = scene_depth(rng, 1e-3, 1e4)
+    a, b = (5e-3, 2e-4) if space == "depth" else (40.0, 1e-5)
+    target = z if space == "depth" else 1.0 / z
+    prior = (target - b) / a
+    _, uvz = sparse_reference(z, rng, 500)
+    for method in ("lstsq", "trimmed", "ransac"):
+        r = align_scale_shift(prior, uvz, space=space, method=method)
+        assert r.ok, r.reason
+        assert r.scale == pytest.approx(a, rel=1e-6) and r.shift == pytest.approx(b, rel=1e-5)
+        np.testing.assert_allclose(r.aligned_depth, z, rtol=1e-4)
+
+
+def test_too_few_points_falls_back_to_median_ratio() -> None:
+    rng = np.random.default_rng(6)
+    z = scene_depth(rng)
+    prior = z / 2.0
+    dense, _ = sparse_reference(z, rng, 5)
+    r = align_scale_shift(prior, dense, params=AlignParams(min_points=20))
+    assert not r.ok and "5 usable reference points" in r.reason
+    assert r.scale == pytest.approx(2.0, rel=1e-9) and r.shift == 0.0
+    assert np.isfinite(r.aligned_depth).all() and (r.aligned_depth > 0).all()
+
+
+def test_constant_prior_is_degenerate() -> None:
+    rng = np.random.default_rng(7)
+    z = scene_depth(rng)
+    r = align_scale_shift(np.full((H, W), 0.5), z, space="inverse_depth")
+    assert not r.ok and "constant" in r.reason
+    assert np.isfinite(r.aligned_depth).all() and (r.aligned_depth > 0).all()
+
+
+def test_all_sky_prior_and_empty_reference() -> None:
+    rng = np.random.default_rng(8)
+    z = scene_depth(rng)
+    # DA-V2 gives zero disparity to sky: an all-sky frame is a constant zero prior.
+    r = align_scale_shift(np.zeros((H, W), np.float32), z, space="inverse_depth")
+    assert not r.ok and np.isfinite(r.aligned_depth).all() and (r.aligned_depth > 0).all()
+    assert r.aligned_depth.max() <= z.max() * AlignParams().depth_clamp_ratio * (1 + 1e-6)
+    # no reference at all (nothing registered, all sky in the SfM view)
+    for ref in (np.full((H, W), np.nan), np.full((H, W), np.inf), np.zeros((0, 3))):
+        r = align_scale_shift(rng.uniform(0.1, 1, (H, W)), ref, space="inverse_depth")
+        assert not r.ok and "0 usable" in r.reason
+        assert np.isfinite(r.aligned_depth).all() and (r.aligned_depth > 0).all()
+        assert r.n_used == 0 and r.residual == np.inf
+
+
+def test_negative_scale_is_refused() -> None:
+    rng = np.random.default_rng(9)
+    z = scene_depth(rng)
+    prior = -z + 30.0  # anti-correlated: a depth map handed over as if it were disparity
+    r = align_scale_shift(prior, z, space="depth", method="lstsq")
+    assert not r.ok and "negative scale" in r.reason
+    assert r.scale > 0 and r.shift == 0.0
+    assert np.isfinite(r.aligned_depth).all() and (r.aligned_depth > 0).all()
+
+
+def test_non_positive_inverse_depth_goes_to_the_far_clamp() -> None:
+    rng = np.random.default_rng(10)
+    z = scene_depth(rng, 2.0, 10.0)
+    prior = 1.0 / z
+    prior[:5] = -0.3  # sky region that the fit maps to negative disparity
+    ref = z.copy()
+    ref[:5] = np.nan
+    r = align_scale_shift(prior, ref, space="inverse_depth", method="lstsq")
+    assert r.ok
+    far = z[5:].max() * AlignParams().depth_clamp_ratio
+    np.testing.assert_allclose(r.aligned_depth[:5], far, rtol=1e-6)
+    assert r.n_clamped >= 5 * W
+    np.testing.assert_allclose(r.aligned_depth[5:], z[5:], rtol=1e-5)
+
+
+def test_bad_arguments() -> None:
+    with pytest.raises(ValueError):
+        align_scale_shift(np.ones((H, W)), np.ones((H, W)), space="disparity")  # type: ignore[arg-type]
+    with pytest.raises(ValueError):
+        align_scale_shift(np.ones((H, W)), np.ones((H + 1, W + 1)))
+    with pytest.raises(ValueError):
+        align_scale_shift(np.ones((H, W)), np.ones((H, W)), mask=np.ones((3, 3), bool))
+
+
+@settings(max_examples=60, deadline=None)
+@given(
+    seed=st.integers(0, 2**31 - 1),
+    space=st.sampled_from(["depth", "inverse_depth"]),
+    method=st.sampled_from(["lstsq", "trimmed", "ransac"]),
+    n_ref=st.integers(0, 60),
+    junk=st.floats(0.0, 1.0),
+)
+def test_never_nan(seed: int, space: str, method: str, n_ref: int, junk: float) -> None:
+    rng = np.random.default_rng(seed)
+    h, w = 12, 16
+    prior = rng.normal(0, 1, (h, w)) * 10 ** rng.uniform(-3, 4)
+    prior[rng.random((h, w)) < junk * 0.5] = rng.choice([np.nan, np.inf, -np.inf, 0.0])
+    uvz = np.stack([rng.uniform(-2, w + 2, n_ref), rng.uniform(-2, h + 2, n_ref), rng.normal(5, 5, n_ref)], 1)
+    uvz[rng.random(n_ref) < junk * 0.3, 2] = np.nan
+    r = align_scale_shift(prior, uvz, space=space, method=method, params=AlignParams(min_points=3))
+    assert np.isfinite(r.aligned_depth).all() and (r.aligned_depth > 0).all()
+    assert np.isfinite(r.scale) and np.isfinite(r.shift) and not np.isnan(r.residual)
+    assert r.ok == (r.reason == "")
