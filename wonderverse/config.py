@@ -14,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from wonderverse.check import CheckParams
 from wonderverse.errors import ConfigError
+from wonderverse.priors.params import PriorsParams
 from wonderverse.sfm import SfmParams
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
@@ -125,11 +126,20 @@ class PosesParams(Model):
     sfm: SfmParams = SfmParams(max_image_size_px=480, num_threads=2)
 
 
+class PriorsStepParams(Model):
+    """Step `priors`. The embedded default (the procedural world has no monocular network to run
+    offline) is the oracle with realistic degradation; real video uses Depth Anything V2."""
+
+    models: PriorsParams = PriorsParams(depth_backend="oracle", normal_backend="from_depth")
+    workers: int = Field(2, ge=1, le=256, description="segments processed at once (Dask)")
+
+
 class StepsConfig(Model):
     plan: PlanParams = PlanParams()
     generate: GenerateParams = GenerateParams()
     check: CheckStepParams = CheckStepParams()
     poses: PosesParams = PosesParams()
+    priors: PriorsStepParams = PriorsStepParams()
 
 
 class RunConfig(Model):

@@ -1,0 +1,115 @@
+"""Step `priors`: per segment, a depth and a normal prior for every accepted frame, the depth aligned
+per image (scale and shift) to the global SfM points seen in that frame. Segments run in parallel.
+
+Writes `priors/<seg>/`: depth (T,H,W) f32 (aligned depth in SfM units where the alignment held, else
+the prior turned into depth), normals (T,H,W,3) f16 camera space, scale/shift/aligned (T,) and attrs
+with the prior kind and the alignment reasons."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from tasks.base import Step
+from tasks.parallel import map_segments
+from tasks.segments import accepted_attempt, attempt_path, segment_ids
+from wonderverse.config import RunConfig
+from wonderverse.errors import WonderError
+from wonderverse.store import SceneStore, cache_key, write_array
+
+VERSION = 1
+
+
+def _params(cfg: RunConfig) -> dict[str, Any]:
+    return {"models": cfg.steps.priors.models}
+
+
+def _ground_truth(store: SceneStore, ap: str) -> Any:
+    from wonderverse.video import GroundTruth
+
+    if not store.exists(f"{ap}/gt"):
+        return None
+    return GroundTruth(
+        poses=store.array(f"{ap}/gt/poses"),
+        depth=store.array(f"{ap}/gt/depth"),
+        normals=store.array(f"{ap}/gt/normals"),
+    )
+
+
+def segment_poses(store: SceneStore, seg: str, n_frames: int) -> np.ndarray:
+    """Global W2C poses (from `sfm/`) of a segment's frames in generation order; NaN where unknown."""
+    out = np.full((n_frames, 4, 4), np.nan)
+    segs = store.attrs("sfm").get("segments", [])
+    if seg in segs:
+        fi = store.array("sfm/frame_index")
+        rows = np.flatnonzero(fi[:, 0] == segs.index(seg))
+        out[fi[rows, 1]] = store.array("sfm/poses")[rows]
+    return out
+
+
+def project_points(points: np.ndarray, w2c: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(N,3) world points -> (N,3) (u, v, z) pixel samples (pixel centres at +0.5) in front of the camera."""
+    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
+    z = cam[:, 2]
+    front = z > 1e-6
+    uv = cam[front, :2] / z[front, None] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+    return np.column_stack([uv, z[front]])
+
+
+def priors_segment(seg: str, scene_dir: str, cfg: RunConfig, step_key: str) -> dict[str, Any]:
+    from wonderverse.priors import align_scale_shift, make_depth_model, make_normal_model
+
+    store = SceneStore.open(scene_dir, mode="r+")
+    ap = attempt_path(store, seg)
+    key = cache_key("priors_segment", VERSION, {"seg": seg, "attempt": ap}, [step_key])
+    if store.is_complete(f"priors/{seg}", key):
+        return store.attrs(f"priors/{seg}")
+    p = cfg.steps.priors.models
+    frames = store.array(f"{ap}/frames")
+    K = store.array("sfm/K") if store.exists("sfm") else store.array(f"segments/{seg}/K")
+    gt = _ground_truth(store, ap)
+    if "oracle" in (p.depth_backend, p.normal_backend) and gt is None:
+        raise WonderError(f"segment {seg}: the oracle prior needs procedural ground truth; use depth_anything")
+    pred = make_depth_model(p, gt).predict(frames)
+    poses = segment_poses(store, seg, len(frames))
+    points = store.array("sfm/points3d") if store.exists("sfm/points3d") else np.zeros((0, 3))
+    depth = np.empty(frames.shape[:3], np.float32)
+    scale, shift, ok, reasons = np.full(len(frames), np.nan), np.full(len(frames), np.nan), [], []
+    for t in range(len(frames)):
+        ref = project_points(points, poses[t], K) if np.isfinite(poses[t]).all() else np.zeros((0, 3))
+        r = align_scale_shift(pred.depth[t], ref, space=pred.kind, params=p.align)
+        depth[t], scale[t], shift[t] = r.aligned_depth, r.scale, r.shift
+        ok.append(r.ok)
+        if not r.ok:
+            reasons.append(f"frame {t}: {r.reason}")
+    normals = make_normal_model(p, gt).predict(frames, K=K, depth=depth).normals
+    summary = {
+        "segment": seg,
+        "kind": pred.kind,
+        "aligned_frames": int(sum(ok)),
+        "frames": len(frames),
+        "reasons": reasons[:20],
+    }
+    with store.staged(f"priors/{seg}", key, **summary) as g:
+        write_array(g, "depth", depth)
+        write_array(g, "normals", normals.astype(np.float16))
+        for name, arr in (("scale", scale), ("shift", shift), ("aligned", np.array(ok))):
+            write_array(g, name, arr, chunks=arr.shape)
+        if pred.confidence is not None:
+            write_array(g, "confidence", pred.confidence.astype(np.float16))
+    return summary
+
+
+def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
+    segs = [s for s in segment_ids(store) if accepted_attempt(store, s) is not None]
+    out = map_segments(priors_segment, segs, str(store.scene_dir), cfg, key, workers=cfg.steps.priors.workers)
+    for stale in set(store.children("priors")) - set(segs):
+        store.remove(f"priors/{stale}")
+    store.mark_complete("priors", key)
+    aligned = sum(s["aligned_frames"] for s in out)
+    total = sum(s["frames"] for s in out)
+    return f"{len(segs)} segments, {aligned}/{total} frames aligned to SfM ({out[0]['kind'] if out else '-'})"
+
+
+STEP = Step("priors", 1, ("poses",), _params, run, "depth and normal priors, aligned to SfM")
