@@ -23,8 +23,11 @@ from wonderverse.video import initial_pose, make_video_model
 def main() -> None:
     args = parse_args(__doc__ or "")
     n = 10 if args.quick else 49
-    cfg = build_config("a small house decorated for Christmas", preset="standard",
-                       overrides={"scene": {"video": {"options": {"fault_probability": 0.0}}}})
+    cfg = build_config(
+        "a small house decorated for Christmas",
+        preset="standard",
+        overrides={"scene": {"video": {"options": {"fault_probability": 0.0}}}},
+    )
     model = make_video_model(cfg.scene)
     from wonderverse.camera import move_path
 
@@ -53,8 +56,15 @@ def main() -> None:
         assert all(r.status == "cached" for r in results), results
         rows.append({"what": "cached re-run (all steps)", "frames": 0, "seconds": rerun_s, "rate": float("nan")})
 
-    report("render", rows, {"render_fps": round(n / render_s, 2), "store_write_mb_s": round(mb / write_s, 1),
-                            "cached_rerun_s": round(rerun_s, 3)})
+    report(
+        "render",
+        rows,
+        {
+            "render_fps": round(n / render_s, 2),
+            "store_write_mb_s": round(mb / write_s, 1),
+            "cached_rerun_s": round(rerun_s, 3),
+        },
+    )
 
 
 if __name__ == "__main__":
