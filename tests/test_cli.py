@@ -30,7 +30,7 @@ def tree_digest(folder: Path) -> str:
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> Path:
     d = tmp_path_factory.mktemp("cli") / "scene"
-    execute(d, tiny_config())
+    execute(d, tiny_config(), until="generate_segments")
     return d
 
 
@@ -82,7 +82,7 @@ def test_bad_config_files_and_folders_lose_nothing(tmp_path: Path, scene: Path):
 
 def test_store_from_a_newer_version_is_refused_untouched(tmp_path: Path):
     d = tmp_path / "future"
-    execute(d, tiny_config())
+    execute(d, tiny_config(), until="generate_segments")
     SceneStore.open(d, mode="r+").root.attrs["format"] = STORE_FORMAT + 1
     before = tree_digest(d)
     for args in (
@@ -98,8 +98,15 @@ def test_inspect_json_and_preview(scene: Path):
     r = run_cli("inspect", str(scene), "--json")
     assert r.returncode == 0, r.stderr
     info = json.loads(r.stdout)
-    assert [s["status"] for s in info["steps"]] == ["complete", "complete"]
-    assert all(len(s["cache_key"]) == 64 for s in info["steps"])
+    status = {s["name"]: s["status"] for s in info["steps"]}
+    assert status == {
+        "plan": "complete",
+        "generate_segments": "complete",
+        "check": "missing",
+        "poses": "missing",
+        "priors": "missing",
+    }
+    assert all(len(s["cache_key"]) == 64 for s in info["steps"] if s["status"] == "complete")
     assert len(info["segments"]) == 3 and info["spec"]["prompt"].startswith("a small house")
     seg = info["segments"][0]
     assert seg["attempts"][0]["arrays"]["frames"]["shape"] == [6, 64, 96, 3]
@@ -121,11 +128,12 @@ def test_generate_through_prefect_engine(tmp_path: Path):
     """The default engine: a real Prefect flow (ephemeral local API, no server to start)."""
     env = {"PREFECT_HOME": str(tmp_path / "prefect"), "PREFECT_SERVER_ANALYTICS_ENABLED": "false"}
     cfg = tiny_file(tmp_path, prompt="a cosy reading room with shelves", extensions={"rounds": 0})
-    r = run_cli("generate", "--config", str(cfg), "--out", str(tmp_path / "s"), env=env, timeout=400)
+    args = ("generate", "--config", str(cfg), "--out", str(tmp_path / "s"), "--until", "generate_segments")
+    r = run_cli(*args, env=env, timeout=400)
     assert r.returncode == 0, r.stderr[-3000:]
     assert "generate_segments" in r.stderr and "ran" in r.stderr
     store = SceneStore.open(tmp_path / "s")
     assert store.children("segments") == ["s000"]
-    r = run_cli("generate", "--config", str(cfg), "--out", str(tmp_path / "s"), env=env, timeout=400)
+    r = run_cli(*args, env=env, timeout=400)
     assert r.returncode == 0 and r.stderr.count("cached") >= 2, r.stderr[-3000:]
     assert os.listdir(tmp_path / "prefect")  # Prefect really ran (its local database lives here)

@@ -24,7 +24,7 @@ def statuses(results) -> dict[str, str]:
 
 def test_generate_stores_every_segment_and_reruns_cached(tmp_path: Path):
     cfg = tiny_config()
-    first = execute(tmp_path / "s", cfg)
+    first = execute(tmp_path / "s", cfg, until="generate_segments")
     assert statuses(first) == {"plan": "ran", "generate_segments": "ran"}
     store = SceneStore.open(tmp_path / "s")
     order = store.attrs("segments")["order"]
@@ -46,31 +46,34 @@ def test_generate_stores_every_segment_and_reruns_cached(tmp_path: Path):
     frames, index = stitched(store)
     assert len(frames) == 6 + 2 * 5 and index[0][0] == left and index[5][0] == init
 
-    again = execute(tmp_path / "s", cfg)
+    again = execute(tmp_path / "s", cfg, until="generate_segments")
     assert statuses(again) == {"plan": "cached", "generate_segments": "cached"}
     assert [r.cache_key for r in again] == [r.cache_key for r in first]
 
 
 def test_changed_parameter_reruns_that_step_and_dependants_only(tmp_path: Path):
     cfg = tiny_config()
-    execute(tmp_path / "s", cfg)
+    execute(tmp_path / "s", cfg, until="generate_segments")
     store = SceneStore.open(tmp_path / "s")
     init_key = store.cache_key_of("segments/s000")
 
     # a video setting: the plan is upstream and stays cached; segments re-render
     wider = tiny_config(video={"width": 112})
-    assert statuses(execute(tmp_path / "s", wider)) == {"plan": "cached", "generate_segments": "ran"}
+    assert statuses(execute(tmp_path / "s", wider, until="generate_segments")) == {
+        "plan": "cached",
+        "generate_segments": "ran",
+    }
     assert SceneStore.open(tmp_path / "s").array("segments/s000/attempts/0/frames").shape[2] == 112
 
     # a planner setting that only changes the extensions: plan re-runs, init segment stays cached
-    execute(tmp_path / "s", cfg)
+    execute(tmp_path / "s", cfg, until="generate_segments")
     assert SceneStore.open(tmp_path / "s").cache_key_of("segments/s000") == init_key
     steeper = cfg.model_copy(
         update={
             "steps": cfg.steps.model_copy(update={"plan": cfg.steps.plan.model_copy(update={"yaw_step_deg": 20.0})})
         }
     )
-    results = execute(tmp_path / "s", steeper)
+    results = execute(tmp_path / "s", steeper, until="generate_segments")
     assert statuses(results) == {"plan": "ran", "generate_segments": "ran"}
     assert results[1].detail == "2 rendered, 1 cached"
 
@@ -103,6 +106,8 @@ def test_sigkill_during_generation_resumes_from_last_complete_segment(tmp_path: 
         str(scene),
         "--engine",
         "local",
+        "--until",
+        "generate_segments",
     ]
     child = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 240
@@ -126,7 +131,7 @@ def test_sigkill_during_generation_resumes_from_last_complete_segment(tmp_path: 
 
     from wonderverse.config import build_config
 
-    results = execute(scene, build_config(config_file=cfg_file))
+    results = execute(scene, build_config(config_file=cfg_file), until="generate_segments")
     assert statuses(results) == {"plan": "cached", "generate_segments": "ran"}
     rendered, cached = (int(x.split()[0]) for x in results[1].detail.split(", "))
     assert cached == len(committed) and rendered == 5 - len(committed)

@@ -1,0 +1,124 @@
+"""Geometric correction end to end on the real store: SfM per segment, the abnormal-sequence check,
+whole-segment regeneration with a new seed, global poses and aligned priors. Ground truth comes from
+the procedural world's injected faults and exact poses/depth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import tiny_config
+
+from flows.pipeline import StepFailed, execute
+from tasks.generate_segments import attempt_seed
+from wonderverse.metrics import ate, depth_errors
+from wonderverse.store import SceneStore
+from wonderverse.video.procedural import ProceduralOptions, draw_fault
+
+VIDEO = {"width": 240, "height": 160, "frames_per_segment": 14}
+
+
+def scene_seed_where(wanted: dict[tuple[str, int], bool], opts: ProceduralOptions) -> int:
+    """A scene seed whose (segment, attempt) fault draws are as wanted (True = faulty)."""
+    for seed in range(500):
+        draws = {k: draw_fault(seed, attempt_seed(seed, k[0], k[1]), VIDEO["frames_per_segment"], opts) for k in wanted}
+        if all((draws[k] is not None) == v for k, v in wanted.items()):
+            return seed
+    raise AssertionError("no seed found")
+
+
+@pytest.fixture(scope="module")
+def corrected(tmp_path_factory) -> tuple[Path, int]:
+    opts = {"fault_probability": 0.5, "fault_types": ["teleport"]}
+    seed = scene_seed_where(
+        {("s000", 0): True, ("s000", 1): False, ("s001", 0): False, ("s002", 0): False}, ProceduralOptions(**opts)
+    )
+    cfg = tiny_config(seed=seed, video={**VIDEO, "options": opts})
+    scene = tmp_path_factory.mktemp("corr") / "scene"
+    results = execute(scene, cfg)
+    assert [r.status for r in results] == ["ran"] * 5
+    return scene, seed
+
+
+def test_faulty_segment_is_regenerated_whole_with_a_new_seed(corrected):
+    store = SceneStore.open(corrected[0])
+    a0, a1 = (store.attrs(f"segments/s000/attempts/{k}") for k in (0, 1))
+    assert a0["seed"] != a1["seed"]
+    assert store.attrs("segments/s000/attempts/0/gt")["faults"]["type"] == "teleport"
+    c0, c1 = store.attrs("segments/s000/attempts/0/check"), store.attrs("segments/s000/attempts/1/check")
+    assert not c0["accepted"] and any("translation" in r for r in c0["reasons"]), c0["reasons"]
+    assert c1["accepted"], c1["reasons"]
+    assert store.attrs("segments/s000/accepted")["attempt"] == 1
+    summary = store.attrs("check")
+    assert summary["mean_extra_trials"] == pytest.approx(1 / 3)
+    assert [s["extra_trials"] for s in summary["segments"]] == [1, 0, 0]
+    # per-frame values are stored beside the decision
+    assert len(c0["rot_steps"]) == VIDEO["frames_per_segment"] - 1
+
+
+def test_global_poses_match_ground_truth(corrected):
+    store = SceneStore.open(corrected[0])
+    poses, idx = store.array("sfm/poses"), store.array("sfm/frame_index")
+    segs = store.attrs("sfm")["segments"]
+    acc = {s: store.attrs(f"segments/{s}/accepted")["attempt"] for s in segs}
+    gt = np.stack([store.array(f"segments/{segs[a]}/attempts/{acc[segs[a]]}/gt/poses")[b] for a, b in idx])
+    assert len(poses) == 14 + 2 * 13 and np.isfinite(poses).all()
+    assert ate(poses, gt)["rmse_frac"] < 0.02
+    assert len(store.array("sfm/points3d")) > 100
+
+
+def test_priors_are_aligned_to_sfm_scale(corrected):
+    store = SceneStore.open(corrected[0])
+    poses, idx = store.array("sfm/poses"), store.array("sfm/frame_index")
+    segs = store.attrs("sfm")["segments"]
+    gt_poses = np.stack(
+        [store.array(f"segments/{segs[a]}/attempts/{1 if segs[a] == 's000' else 0}/gt/poses")[b] for a, b in idx]
+    )
+    from wonderverse.camera import camera_centers, umeyama
+
+    s = umeyama(camera_centers(gt_poses), camera_centers(poses)).s  # metres -> SfM units
+    for seg in segs:
+        prior = store.array(f"priors/{seg}/depth")
+        k = store.attrs(f"segments/{seg}/accepted")["attempt"]
+        gt = store.array(f"segments/{seg}/attempts/{k}/gt/depth") * s
+        assert np.isfinite(prior).all() and prior.dtype == np.float32
+        aligned = store.array(f"priors/{seg}/aligned")
+        assert aligned.mean() > 0.8
+        err = depth_errors(prior[aligned], gt[aligned])
+        assert err["absrel"] < 0.2, (seg, err)
+        n = store.array(f"priors/{seg}/normals").astype(np.float32)
+        norm = np.linalg.norm(n, axis=-1)
+        assert np.all((np.abs(norm - 1) < 1e-2) | (norm == 0))
+
+
+def test_rerun_is_cached_and_changing_t2_reruns_check_and_downstream_only(corrected):
+    scene, seed = corrected
+    opts = {"fault_probability": 0.5, "fault_types": ["teleport"]}
+    cfg = tiny_config(seed=seed, video={**VIDEO, "options": opts})
+    assert [r.status for r in execute(scene, cfg)] == ["cached"] * 5
+    rules = cfg.steps.check.rules.model_copy(update={"rot_thresh_rad": 0.45})
+    cfg2 = cfg.model_copy(
+        update={"steps": cfg.steps.model_copy(update={"check": cfg.steps.check.model_copy(update={"rules": rules})})}
+    )
+    assert [r.status for r in execute(scene, cfg2, until="check")] == ["cached", "cached", "ran"]
+
+
+@pytest.mark.parametrize("policy", ["drop", "fail"])
+def test_segment_failing_every_attempt_follows_policy(tmp_path: Path, policy: str):
+    cfg = tiny_config(
+        video={**VIDEO, "options": {"force_fault": "rotation", "sudden_rotation_deg": [40, 50]}},
+        extensions={"rounds": 0},
+    )
+    check = cfg.steps.check.model_copy(update={"max_attempts": 2, "on_failure": policy})
+    cfg = cfg.model_copy(update={"steps": cfg.steps.model_copy(update={"check": check})})
+    if policy == "fail":
+        with pytest.raises(StepFailed, match=r"segment s000 failed all 2 attempts.*rotation"):
+            execute(tmp_path / "s", cfg, until="check")
+        store = SceneStore.open(tmp_path / "s")
+        assert len(store.children("segments/s000/attempts")) == 2  # the work done is kept
+        return
+    execute(tmp_path / "s", cfg, until="check")
+    store = SceneStore.open(tmp_path / "s")
+    assert store.attrs("segments/s000/accepted")["dropped"] is True
+    assert store.attrs("check")["dropped"] == ["s000"]
