@@ -130,21 +130,12 @@ def inspect(
 
 @app.command()
 def preview(scene_dir: Annotated[Path, typer.Argument(help="scene folder")]) -> None:
-    """Write the stitched video (preview.mp4) and a contact sheet (contact_sheet.png) beside the store."""
-    from tasks.segments import stitched
-    from wonderverse.media import contact_sheet, write_mp4
-    from wonderverse.store import SceneStore
+    """Write preview.mp4 (the stitched video), contact_sheet.png and plots/ (check plots, top views)."""
+    from flows.preview import write_preview
 
-    store = SceneStore.open(scene_dir)
-    frames, index = stitched(store)
-    if len(frames) == 0:
-        raise WonderError(f"{scene_dir} has no rendered segments yet; run `wonderverse generate` first")
-    fps = float((store.root.attrs.get("spec") or {}).get("video", {}).get("fps", 8))
-    mp4 = write_mp4(frames, Path(scene_dir) / "preview.mp4", fps)
-    pick = sorted(set(range(0, len(frames), max(1, len(frames) // 32))))
-    png = Path(scene_dir) / "contact_sheet.png"
-    png.write_bytes(contact_sheet(frames[pick], [f"{index[i][0]}:{index[i][1]}" for i in pick]))
-    out.print(f"wrote {mp4} ({len(frames)} frames) and {png}", highlight=False)
+    files = write_preview(scene_dir)
+    for f in files:
+        out.print(f"wrote {f}", highlight=False)
 
 
 def main() -> None:

@@ -122,3 +122,17 @@ def test_segment_failing_every_attempt_follows_policy(tmp_path: Path, policy: st
     store = SceneStore.open(tmp_path / "s")
     assert store.attrs("segments/s000/accepted")["dropped"] is True
     assert store.attrs("check")["dropped"] == ["s000"]
+
+
+def test_preview_writes_check_plots_for_every_attempt(corrected):
+    from PIL import Image
+
+    from flows.preview import write_preview
+
+    files = {p.name for p in write_preview(corrected[0])}
+    assert {"preview.mp4", "contact_sheet.png", "trajectory_topview.png"} <= files
+    # the rejected attempt and the regenerated one both get a check plot and a top view
+    for k in (0, 1):
+        for kind in ("check", "topview"):
+            assert f"s000_attempt{k}_{kind}.png" in files
+            assert Image.open(corrected[0] / "plots" / f"s000_attempt{k}_{kind}.png").size[0] >= 400
