@@ -180,7 +180,7 @@ def test_pixel_centres_at_half_integers() -> None:
     _, _, alpha, _, info = run_torch(scene)
     a = alpha[..., 0]
     assert tuple(np.unravel_index(int(a.argmax()), a.shape)) == (13, 20)
-    np.testing.assert_allclose(info["means2d"][0].detach().numpy(), [20.5, 13.5], atol=1e-12)
+    np.testing.assert_allclose(info["means2d"][0, 0].detach().numpy(), [20.5, 13.5], atol=1e-12)
     # Peak alpha = opacity; one pixel away the 2D variance is 1.2^2 px^2 plus eps2d = 0.3 px^2.
     assert a[13, 20].item() == pytest.approx(0.9, rel=1e-12)
     for v, u in ((13, 19), (13, 21), (12, 20), (14, 20)):
@@ -296,8 +296,8 @@ def test_means2d_gradient_is_exposed() -> None:
     )
     info["means2d"].retain_grad()
     rgb.sum().backward()
-    g2d = info["means2d"].grad
-    assert g2d is not None and g2d.shape == (50, 2)
+    assert info["means2d"].grad is not None and info["means2d"].grad.shape == (1, 50, 2)
+    g2d = info["means2d"].grad[0]
     assert (g2d[info["visible"]].abs().sum(1) > 0).float().mean() > 0.8
     assert torch.all(g2d[~info["visible"]] == 0)
 
@@ -376,3 +376,16 @@ def test_extremes_stay_finite(case: str) -> None:
         assert not info["visible"][:49].any()  # z < 0.01 culled
     if case in ("far_coords", "far_coords_normalised", "zero_quats", "saturated_opacity", "tiny_scales"):
         assert outs[2].mean() > 0.01  # still renders something
+
+
+def test_make_renderer_backends_on_the_cpu() -> None:
+    from wonderverse.errors import WonderError
+    from wonderverse.splats.renderer import make_renderer
+
+    assert make_renderer("torch").name == "torch"
+    if not torch.cuda.is_available():
+        assert make_renderer("auto").name == "torch"
+        with pytest.raises(WonderError, match="gsplat"):
+            make_renderer("gsplat")
+    with pytest.raises(WonderError):
+        make_renderer("vulkan")  # type: ignore[arg-type]

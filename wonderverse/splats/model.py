@@ -330,9 +330,7 @@ class GaussianModel(nn.Module):
 
     def to_numpy(self) -> dict[str, np.ndarray]:
         """float32 arrays by parameter name (for the scene store)."""
-        return {
-            name: getattr(self, name).detach().cpu().numpy().astype(np.float32) for name in self.PARAM_NAMES
-        }
+        return {name: getattr(self, name).detach().cpu().numpy().astype(np.float32) for name in self.PARAM_NAMES}
 
     @staticmethod
     def from_numpy(arrays: dict[str, np.ndarray], sh_degree: int | None = None) -> GaussianModel:
@@ -362,9 +360,7 @@ def voxel_downsample(
     if voxel_size <= 0 or len(points) == 0:
         return points, cols
     keys = np.floor(points / voxel_size).astype(np.int64)
-    _, first, inverse, counts = np.unique(
-        keys, axis=0, return_index=True, return_inverse=True, return_counts=True
-    )
+    _, first, inverse, counts = np.unique(keys, axis=0, return_index=True, return_inverse=True, return_counts=True)
     inverse = inverse.reshape(-1)
     order = np.argsort(first)  # keep first-occurrence order so the result does not depend on np.unique's sort
     rank = np.empty_like(order)

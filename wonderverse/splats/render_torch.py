@@ -413,7 +413,8 @@ def render(
     Returns rgb (H,W,3) with `background` (3,) composited behind (black if None); depth (H,W,1) = Σ w_i z_i,
     camera z, not normalised (expected depth = depth / alpha); alpha (H,W,1); normals (H,W,3) = Σ w_i n_i
     with camera-space unit normals facing the camera (not normalised); and info with radii (N,2) int32,
-    means2d (N,2) (a graph node: call `retain_grad()` on it before backward for view-space gradients),
+    means2d (1,N,2) pixels (gsplat's meta layout for one camera; a graph node: call `retain_grad()` on it
+    before backward to read view-space gradients),
     depths (N,), visible (N,) bool, conics (N,3), width, height, n_cameras = 1.
     Computed in the dtype of `means` (float32 normally; float64 for gradient checks).
     """
@@ -437,15 +438,17 @@ def render(
     cand_gid, cand_x, cand_y = _candidate_pairs(
         proj.means2d.detach(), proj.conics.detach(), opacities.detach(), gid, tile, tile_size, tiles_x
     )
+    # The (1,N,2) node gsplat's strategies read view-space gradients from (one camera, like gsplat's meta).
+    means2d_node = proj.means2d[None]
     acc, trans, n_drawn = composite(
-        proj.means2d, proj.conics, opacities, features, cand_gid, cand_x, cand_y, width, height
+        means2d_node[0], proj.conics, opacities, features, cand_gid, cand_x, cand_y, width, height
     )
     rgb = acc[:, :3]
     if background is not None:
         rgb = rgb + trans[:, None] * torch.as_tensor(background, dtype=dtype, device=device)
     info = {
         "radii": proj.radii,
-        "means2d": proj.means2d,
+        "means2d": means2d_node,
         "depths": proj.depths,
         "conics": proj.conics,
         "visible": proj.visible,
