@@ -24,7 +24,7 @@ def machine() -> str:
 
 def report(title: str, rows: list[dict[str, Any]], headline: dict[str, float | int]) -> None:
     """Print `rows` as a table, then the headline figures as the last line (JSON)."""
-    console = Console()
+    console = Console(width=160)
     t = Table(title=f"{title} — {machine()}")
     for col in rows[0] if rows else []:
         t.add_column(col)

@@ -205,3 +205,26 @@ def test_model_wrapper_needs_K_and_depth() -> None:
         NormalsFromDepth().predict(frames, K=None, depth=z)
     with pytest.raises(WonderError):
         NormalsFromDepth().predict(frames, K=K, depth=None)
+
+
+def test_smoothing_tames_per_pixel_noise_and_keeps_sky() -> None:
+    from wonderverse.camera import intrinsics
+    from wonderverse.priors.from_depth import NormalsFromDepth, smooth_depth
+    from wonderverse.priors.params import FromDepthParams
+
+    K = intrinsics(96, 64, 60.0)
+    v = np.arange(64)[:, None] + 0.5
+    b = (v - K[1, 2]) / K[1, 1] + 0 * np.arange(96)[None, :]
+    ground = np.where(b > 0.02, 1.5 / np.maximum(b, 1e-6), np.inf).astype(np.float32)  # floor 1.5 m below
+    noisy = ground * (1 + 0.02 * np.random.default_rng(0).standard_normal(ground.shape)).astype(np.float32)
+    frames = np.zeros((1, 64, 96, 3), np.uint8)
+    truth = np.array([0.0, -1.0, 0.0])  # floor normal points up: -y in OpenCV camera axes
+
+    def mean_err(smooth: float) -> float:
+        n = NormalsFromDepth(FromDepthParams(smooth_px=smooth)).predict(frames, K=K, depth=noisy[None]).normals[0]
+        ok = np.isfinite(ground)
+        return float(np.degrees(np.arccos(np.clip(n[ok] @ truth, -1, 1))).mean())
+
+    assert mean_err(1.5) < 0.5 * mean_err(0.0)
+    sm = smooth_depth(noisy, 1.5)
+    assert np.array_equal(np.isinf(sm), np.isinf(noisy)) and np.isfinite(sm[np.isfinite(noisy)]).all()

@@ -148,6 +148,24 @@ def normals_from_depth(
     return normals, valid
 
 
+def smooth_depth(depth: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Gaussian smoothing of log-depth over known pixels only (normalised convolution), per frame, so sky
+    and holes neither bleed in nor get filled; (..., H, W) float32 in, same shape out."""
+    if sigma_px <= 0:
+        return depth
+    from scipy.ndimage import gaussian_filter
+
+    z = np.asarray(depth, dtype=np.float32)
+    known = np.isfinite(z) & (z > 0)
+    logz = np.where(known, np.log(np.where(known, z, 1.0)), 0.0).astype(np.float32)
+    sigma = (0,) * (z.ndim - 2) + (sigma_px, sigma_px)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        num = gaussian_filter(logz, sigma, mode="nearest")
+        den = gaussian_filter(known.astype(np.float32), sigma, mode="nearest")
+        out = np.exp(num / den).astype(np.float32)
+    return np.where(known, out, z)
+
+
 class NormalsFromDepth:
     """NormalModel that back-projects a depth map (the default; needs K and depth, no weights).
 
@@ -167,5 +185,5 @@ class NormalsFromDepth:
             raise WonderError("normal prior 'from_depth' needs the intrinsics K and a depth map for each frame")
         if depth.shape != (b, h, w):
             raise ValueError(f"depth must be ({b},{h},{w}), got {depth.shape}")
-        normals, valid = normals_from_depth(depth, K, self.params.max_rel_step)
+        normals, valid = normals_from_depth(smooth_depth(depth, self.params.smooth_px), K, self.params.max_rel_step)
         return NormalPrediction(normals=normals, confidence=valid.astype(np.float32))

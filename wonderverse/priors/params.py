@@ -43,6 +43,12 @@ class FromDepthParams(_Model):
     max_rel_step: float | None = Field(
         None, gt=0, description="pixels whose smallest neighbour step |dz|/z exceeds this are invalid; None: off"
     )
+    smooth_px: float = Field(
+        1.5,
+        ge=0,
+        description="Gaussian sigma (px) applied to log-depth first: a network's depth is smooth, "
+        "per-pixel noise is not, and differentiating amplifies it; 0: off",
+    )
 
 
 class OracleDegradation(_Model):
