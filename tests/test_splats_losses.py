@@ -1,0 +1,174 @@
+"""The paper's splat loss: SSIM, depth alignment and log-L1, normal L1 + TV, and their weighted sum."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from pydantic import ValidationError
+
+from wonderverse.metrics import ssim as ssim_metric
+from wonderverse.splats.losses import (
+    LossParams,
+    depth_loss,
+    fit_scale_shift,
+    normal_loss,
+    normal_tv,
+    ssim,
+    ssim_map,
+    total_loss,
+)
+
+H, W = 24, 32
+
+
+def _images(seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(seed)
+    a = torch.rand(H, W, 3, generator=g, dtype=torch.float64)
+    b = (a + 0.2 * torch.randn(H, W, 3, generator=g, dtype=torch.float64)).clamp(0, 1)
+    return a, b
+
+
+def test_ssim_interior_matches_the_metrics_module() -> None:
+    # wonderverse.metrics.ssim averages the map where the window fits; the padded loss map agrees there.
+    a, b = _images()
+    m = ssim_map(a, b)
+    assert m.shape == (H, W, 3)
+    ref = ssim_metric(a.numpy(), b.numpy())
+    assert float(m[5:-5, 5:-5].mean()) == pytest.approx(ref, abs=1e-10)
+    assert float(ssim(a, a)) == pytest.approx(1.0, abs=1e-12)
+    assert float(ssim(a, b)) < 0.9
+
+
+def test_ssim_is_differentiable() -> None:
+    a, b = _images(1)
+    a8, b8 = a[:12, :12].clone().requires_grad_(), b[:12, :12]
+    assert torch.autograd.gradcheck(lambda x: ssim(x, b8), (a8,), eps=1e-6, atol=1e-6)
+
+
+def test_fit_scale_shift_recovers_an_affine_map() -> None:
+    g = torch.Generator().manual_seed(2)
+    prior = torch.rand(H, W, generator=g, dtype=torch.float64) * 5 + 1
+    target = 0.37 * prior + 1.25
+    mask = torch.ones(H, W, dtype=torch.bool)
+    a, b = fit_scale_shift(prior, target, mask)
+    assert (a, b) == (pytest.approx(0.37, rel=1e-12), pytest.approx(1.25, rel=1e-12))
+    noisy = target + 0.05 * torch.randn(H, W, generator=g, dtype=torch.float64)
+    mask[:5] = False
+    a, b = fit_scale_shift(prior, noisy, mask)
+    ref = np.polyfit(prior[mask].numpy(), noisy[mask].numpy(), 1)
+    np.testing.assert_allclose([a, b], ref, rtol=1e-10)
+    assert fit_scale_shift(torch.full((4, 4), 2.0), torch.full((4, 4), 6.0), torch.ones(4, 4, dtype=bool)) == (3.0, 0.0)
+    assert fit_scale_shift(prior, target, torch.zeros(H, W, dtype=torch.bool)) == (1.0, 0.0)
+
+
+def test_depth_loss_value_mask_and_gradient() -> None:
+    g = torch.Generator().manual_seed(3)
+    params = LossParams()
+    rendered = (torch.rand(H, W, 1, generator=g, dtype=torch.float64) * 4 + 2).requires_grad_()
+    alpha = torch.ones(H, W, 1, dtype=torch.float64)
+    alpha[:, :4] = 0.1  # below the alpha threshold
+    prior = (rendered.detach()[..., 0] - 0.5) / 2.0  # affine in the render: the aligned prior is exact
+    prior[0, 10] = math.inf  # sky
+    prior[1, 10] = math.nan
+    prior[2, 10] = -1.0
+    prior[3, 10:] = 123.0  # excluded by the validity mask
+    valid = torch.ones(H, W, dtype=torch.bool)
+    valid[3] = False
+    loss, info = depth_loss(rendered, alpha, prior, valid, params)
+    assert float(loss.detach()) == pytest.approx(0.0, abs=1e-12)
+    assert (info["depth_scale"], info["depth_shift"]) == (pytest.approx(2.0), pytest.approx(0.5))
+    n_valid = H * (W - 4) - 3 - (W - 4)
+    assert info["depth_valid_frac"] == pytest.approx(n_valid / (H * W))
+    # A known residual: +0.3 on a valid block shifts the fit a little; check the value by hand.
+    shifted = rendered.detach().clone()
+    shifted[10:14, 10:14] += 0.3
+    shifted.requires_grad_()
+    loss, info = depth_loss(shifted, alpha, prior, valid, params)
+    mask = torch.isfinite(prior) & (prior > 0) & (alpha[..., 0] > 0.5) & valid
+    aligned = info["depth_scale"] * prior + info["depth_shift"]
+    r = (shifted.detach()[..., 0] - aligned)[mask]
+    assert float(loss.detach()) == pytest.approx(float(torch.log1p(r.abs()).mean()), rel=1e-12)
+    loss.backward()
+    expect = torch.zeros(H, W, dtype=torch.float64)
+    expect[mask] = torch.sign(r) / (1 + r.abs()) / mask.sum()  # (a, b) are held fixed
+    np.testing.assert_allclose(shifted.grad[..., 0].numpy(), expect.numpy(), atol=1e-15)
+    assert torch.isfinite(shifted.grad).all()
+
+
+def test_depth_loss_without_valid_pixels_is_zero_and_differentiable() -> None:
+    rendered = torch.ones(H, W, 1, requires_grad=True)
+    loss, info = depth_loss(rendered, torch.zeros(H, W, 1), torch.ones(H, W), None, LossParams())
+    loss.backward()
+    assert float(loss.detach()) == 0.0 and info["depth_valid_frac"] == 0.0 and torch.all(rendered.grad == 0)
+
+
+def test_depth_use_expected_divides_by_alpha() -> None:
+    depth = torch.full((H, W, 1), 3.0, dtype=torch.float64)
+    alpha = torch.full((H, W, 1), 0.75, dtype=torch.float64)
+    prior = torch.linspace(1, 2, H * W, dtype=torch.float64).reshape(H, W)
+    prior_const = torch.full((H, W), 2.0, dtype=torch.float64)
+    _, info = depth_loss(depth, alpha, prior_const, None, LossParams(depth_use_expected=True))
+    assert info["depth_scale"] == pytest.approx(2.0)  # 3 / 0.75 = 4 = 2 * 2
+    loss, _ = depth_loss(depth, alpha, prior, None, LossParams())
+    assert float(loss) == pytest.approx(0.0, abs=1e-12)  # a constant render: a = 0, b = 3
+
+
+def test_normal_loss_l1_and_tv() -> None:
+    params = LossParams(lambda_normal_tv=0.5)
+    prior = torch.zeros(H, W, 3, dtype=torch.float64)
+    prior[..., 2] = -1.0
+    rendered = prior.clone()
+    rendered[:, W // 2 :, 0] = 0.2  # a vertical step of 0.2 in x
+    alpha = torch.ones(H, W, 1, dtype=torch.float64)
+    prior[0, 0] = 0.0  # invalid prior normal
+    loss, info = normal_loss(rendered, alpha, prior, None, params)
+    n_valid = H * W - 1
+    l1 = 0.2 * H * (W - W // 2) / n_valid
+    tv = 0.2 * H / (H * (W - 1))  # one step per row, averaged over all horizontal pairs; no vertical change
+    assert info["normal_l1"] == pytest.approx(l1, rel=1e-12)
+    assert info["normal_tv"] == pytest.approx(tv, rel=1e-12)
+    assert float(loss) == pytest.approx(l1 + 0.5 * tv, rel=1e-12)
+    assert float(normal_tv(prior[1:, 1:])) == 0.0
+    # TV is a mean: the same step at twice the resolution has half the per-pair mean, not twice the sum.
+    big = torch.zeros(2 * H, 2 * W, 3, dtype=torch.float64)
+    big[:, W:, 0] = 0.2
+    assert float(normal_tv(big)) == pytest.approx(0.2 / (2 * W - 1), rel=1e-12)
+
+
+def test_total_is_the_weighted_sum_and_each_weight_acts_alone() -> None:
+    a, b = _images(4)
+    g = torch.Generator().manual_seed(5)
+    depth = torch.rand(H, W, 1, generator=g, dtype=torch.float64) + 2
+    alpha = torch.full((H, W, 1), 0.9, dtype=torch.float64)
+    normals = torch.nn.functional.normalize(torch.randn(H, W, 3, generator=g, dtype=torch.float64), dim=-1)
+    prior_d = torch.rand(H, W, generator=g, dtype=torch.float64) + 1
+    prior_n = torch.nn.functional.normalize(torch.randn(H, W, 3, generator=g, dtype=torch.float64), dim=-1)
+
+    def run(**kw) -> tuple[torch.Tensor, dict]:
+        return total_loss(a, b, depth, alpha, normals, LossParams(**kw), prior_depth=prior_d, prior_normals=prior_n)
+
+    total, t = run()
+    p = LossParams()
+    assert t["rgb"] == pytest.approx((1 - p.lambda_ssim) * t["rgb_l1"] + p.lambda_ssim * (1 - t["ssim"]), rel=1e-12)
+    assert float(total) == pytest.approx(t["rgb"] + p.lambda_depth * t["depth"] + p.lambda_normal * t["normal"])
+    assert t["normal"] == pytest.approx(t["normal_l1"] + p.lambda_normal_tv * t["normal_tv"], rel=1e-12)
+    for key, term in (("lambda_depth", "depth"), ("lambda_normal", "normal")):
+        _, t2 = run(**{key: 3.0})
+        assert t2["total"] - t["total"] == pytest.approx((3.0 - getattr(p, key)) * t[term], rel=1e-9)
+    _, t0 = run(lambda_depth=0.0, lambda_normal=0.0)
+    assert t0["total"] == pytest.approx(t["rgb"]) and "depth" not in t0 and "normal" not in t0
+    _, t3 = total_loss(a, b, depth, alpha, normals, p)
+    assert t3["total"] == pytest.approx(t["rgb"])
+
+
+def test_loss_params_are_strict() -> None:
+    with pytest.raises(ValidationError):
+        LossParams(lambda_dpeth=1.0)  # type: ignore[call-arg]
+    with pytest.raises(ValidationError):
+        LossParams(lambda_ssim=1.5)
+    p = LossParams()
+    with pytest.raises(ValidationError):
+        p.lambda_depth = 2.0  # type: ignore[misc]

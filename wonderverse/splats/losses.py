@@ -1,0 +1,192 @@
+"""The reconstruction loss of the paper (sec. "Geometric-Aware 3D Scene Reconstruction"):
+
+    L = L_rgb + λ_d L_depth + λ_n L_normal
+
+  L_rgb    = (1 - λ_ssim) mean|Ĉ - C| + λ_ssim (1 - SSIM(Ĉ, C))       (the 3DGS photometric loss)
+  L_depth  = mean_valid log(1 + |D̂ - (a D + b)|)                       (log-L1, as DN-Splatter)
+  L_normal = mean_valid ||N̂ - N||_1 + λ_s TV(N̂)
+
+Ĉ, D̂, N̂ are rendered colour, depth and camera-space normals (D̂ = Σ w_i z_i and N̂ = Σ w_i n_i exactly as
+the paper's equations: alpha-composited, not divided by alpha; `depth_use_expected` divides D̂ by alpha
+instead). C is the frame, D the monocular depth prior and N the prior normals (OpenCV camera axes,
+facing the camera). (a, b) is the per-image least-squares fit of the prior to the render,
+argmin Σ_valid (a D + b - D̂)², computed without gradient: the loss is measured in the render's own depth
+units, so the scene scale is set by the cameras and never pulled towards the prior's arbitrary scale.
+(The paper writes the fit the other way round, (a D̂ + b) ≈ D; aligning the prior keeps the target
+fixed while the gradient flows into D̂ alone.) Valid pixels: prior finite and positive (depth) or of
+non-zero length (normals), the optional validity mask, and rendered alpha > `alpha_threshold`.
+||·||_1 sums the three channels; "mean_valid" averages over valid pixels (0 when there are none).
+
+TV(N̂) = mean over horizontally adjacent pixel pairs of Σ_c |N̂[y,x+1,c] - N̂[y,x,c]|
+       + mean over vertically adjacent pixel pairs of Σ_c |N̂[y+1,x,c] - N̂[y,x,c]|,
+over the whole image: the paper's sum Σ_ij |∇_i N̂| + |∇_j N̂| divided by the number of pairs, so λ_s
+does not depend on the resolution. The total is exactly the weighted sum above: λ_d and λ_n multiply
+their terms and nothing else (no (1 + λ) factors).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from pydantic import BaseModel, ConfigDict, Field
+from torch import Tensor
+
+
+class LossParams(BaseModel):
+    """Weights of the splat loss. The paper gives no values; these follow 3DGS (λ_ssim) and DN-Splatter."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    lambda_ssim: float = Field(0.2, ge=0, le=1, description="share of (1 - SSIM) in L_rgb (3DGS: 0.2)")
+    lambda_depth: float = Field(0.2, ge=0, description="λ_d, weight of the log-L1 depth term")
+    lambda_normal: float = Field(0.1, ge=0, description="λ_n, weight of the normal term")
+    lambda_normal_tv: float = Field(0.1, ge=0, description="λ_s, weight of TV(N̂) inside the normal term")
+    alpha_threshold: float = Field(0.5, ge=0, lt=1, description="rendered alpha above which depth/normal count")
+    ssim_window_px: int = Field(11, ge=3, description="Gaussian SSIM window size (odd)")
+    ssim_sigma_px: float = Field(1.5, gt=0, description="Gaussian SSIM window standard deviation")
+    depth_min_valid_px: int = Field(16, ge=2, description="fewer valid pixels: no depth fit, L_depth = 0")
+    depth_use_expected: bool = Field(False, description="compare D̂/alpha instead of D̂ = Σ w z")
+
+
+def _gaussian_window(size: int, sigma: float, dtype: torch.dtype, device: torch.device) -> Tensor:
+    x = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2
+    g = torch.exp(-(x * x) / (2 * sigma * sigma))
+    g = g / g.sum()
+    return g[:, None] * g[None, :]
+
+
+def ssim_map(img: Tensor, ref: Tensor, window: int = 11, sigma: float = 1.5) -> Tensor:
+    """Per-pixel SSIM (H,W,C) of images (H,W,C) in [0,1], the INRIA 3DGS formulation: Gaussian window,
+    zero padding at the borders, C1 = 0.01², C2 = 0.03², channels separately. Differentiable."""
+    c = img.shape[-1]
+    x = img.permute(2, 0, 1)[None]
+    y = ref.permute(2, 0, 1)[None]
+    w = _gaussian_window(window, sigma, img.dtype, img.device).expand(c, 1, window, window)
+    pad = window // 2
+
+    def blur(t: Tensor) -> Tensor:
+        return F.conv2d(t, w, padding=pad, groups=c)
+
+    mu_x, mu_y = blur(x), blur(y)
+    sxx = blur(x * x) - mu_x * mu_x
+    syy = blur(y * y) - mu_y * mu_y
+    sxy = blur(x * y) - mu_x * mu_y
+    c1, c2 = 0.01**2, 0.03**2
+    s = ((2 * mu_x * mu_y + c1) * (2 * sxy + c2)) / ((mu_x * mu_x + mu_y * mu_y + c1) * (sxx + syy + c2))
+    return s[0].permute(1, 2, 0)
+
+
+def ssim(img: Tensor, ref: Tensor, window: int = 11, sigma: float = 1.5) -> Tensor:
+    """Mean SSIM of (H,W,C) images (see `ssim_map`)."""
+    return ssim_map(img, ref, window, sigma).mean()
+
+
+@torch.no_grad()
+def fit_scale_shift(prior: Tensor, target: Tensor, mask: Tensor) -> tuple[float, float]:
+    """(a, b) minimising Σ_mask (a prior + b - target)² (float64 closed form).
+
+    A prior that is constant over the mask gives a pure shift (a = 0 would erase it, so the scale is
+    taken from the means instead: a = mean(target) / mean(prior), b = 0). Fewer than 2 pixels: (1, 0).
+    """
+    p = prior[mask].double()
+    t = target[mask].double()
+    if p.numel() < 2:
+        return 1.0, 0.0
+    pm, tm = p.mean(), t.mean()
+    var = ((p - pm) ** 2).mean()
+    if var <= 1e-12 * max(float(pm * pm), 1e-30):
+        a = float(tm / pm) if abs(float(pm)) > 1e-30 else 1.0
+        return a, 0.0
+    a = ((p - pm) * (t - tm)).mean() / var
+    return float(a), float(tm - a * pm)
+
+
+def depth_loss(
+    depth: Tensor,
+    alpha: Tensor,
+    prior_depth: Tensor,
+    valid: Tensor | None,
+    params: LossParams,
+) -> tuple[Tensor, dict[str, float]]:
+    """L_depth (see the module docstring) for depth, alpha (H,W,1), prior (H,W) or (H,W,1), valid (H,W) bool."""
+    d = depth[..., 0]
+    a_r = alpha[..., 0]
+    prior = prior_depth.reshape(d.shape).to(d.dtype)
+    mask = torch.isfinite(prior) & (prior > 0) & (a_r.detach() > params.alpha_threshold)
+    if valid is not None:
+        mask &= valid.reshape(d.shape).bool()
+    rendered = d / a_r.clamp_min(1e-10) if params.depth_use_expected else d
+    n = int(mask.sum())
+    if n < params.depth_min_valid_px:
+        return rendered.sum() * 0.0, {"depth_scale": math.nan, "depth_shift": math.nan, "depth_valid_frac": 0.0}
+    scale, shift = fit_scale_shift(prior, rendered.detach(), mask)
+    aligned = scale * torch.where(mask, prior, torch.zeros_like(prior)) + shift
+    loss = torch.log1p((rendered - aligned).abs())[mask].mean()
+    return loss, {"depth_scale": scale, "depth_shift": shift, "depth_valid_frac": n / mask.numel()}
+
+
+def normal_tv(normals: Tensor) -> Tensor:
+    """TV(N̂) of (H,W,3): mean over adjacent pairs of the L1 channel difference, x then y (module docstring)."""
+    tv = normals.new_zeros(())
+    if normals.shape[1] > 1:
+        tv = tv + (normals[:, 1:] - normals[:, :-1]).abs().sum(-1).mean()
+    if normals.shape[0] > 1:
+        tv = tv + (normals[1:] - normals[:-1]).abs().sum(-1).mean()
+    return tv
+
+
+def normal_loss(
+    normals: Tensor,
+    alpha: Tensor,
+    prior_normals: Tensor,
+    valid: Tensor | None,
+    params: LossParams,
+) -> tuple[Tensor, dict[str, float]]:
+    """L_normal = mean_valid ||N̂ - N||_1 + λ_s TV(N̂) for normals (H,W,3), alpha (H,W,1), prior (H,W,3)."""
+    prior = prior_normals.to(normals.dtype)
+    norm = prior.norm(dim=-1)
+    mask = torch.isfinite(norm) & (norm > 0.5) & (alpha[..., 0].detach() > params.alpha_threshold)
+    if valid is not None:
+        mask &= valid.reshape(mask.shape).bool()
+    tv = normal_tv(normals)
+    diff = (normals - torch.nan_to_num(prior)).abs().sum(-1)
+    l1 = diff[mask].mean() if bool(mask.any()) else normals.sum() * 0.0
+    return l1 + params.lambda_normal_tv * tv, {
+        "normal_l1": float(l1.detach()),
+        "normal_tv": float(tv.detach()),
+        "normal_valid_frac": float(mask.float().mean()),
+    }
+
+
+def total_loss(
+    rgb: Tensor,
+    gt_rgb: Tensor,
+    depth: Tensor,
+    alpha: Tensor,
+    normals: Tensor,
+    params: LossParams,
+    prior_depth: Tensor | None = None,
+    prior_normals: Tensor | None = None,
+    depth_valid: Tensor | None = None,
+    normal_valid: Tensor | None = None,
+) -> tuple[Tensor, dict[str, float]]:
+    """L = L_rgb + λ_d L_depth + λ_n L_normal for one view. Images (H,W,C) float in [0,1]; see the module
+    docstring for every term. A missing prior drops its term. Returns (total, {term: float}) with keys
+    rgb_l1, ssim, rgb, depth, normal, total and the fit/validity diagnostics."""
+    l1 = (rgb - gt_rgb).abs().mean()
+    s = ssim(rgb, gt_rgb, params.ssim_window_px, params.ssim_sigma_px)
+    l_rgb = (1.0 - params.lambda_ssim) * l1 + params.lambda_ssim * (1.0 - s)
+    terms: dict[str, float] = {"rgb_l1": float(l1.detach()), "ssim": float(s.detach()), "rgb": float(l_rgb.detach())}
+    total = l_rgb
+    if prior_depth is not None and params.lambda_depth > 0:
+        l_d, extra = depth_loss(depth, alpha, prior_depth, depth_valid, params)
+        total = total + params.lambda_depth * l_d
+        terms.update(extra, depth=float(l_d.detach()))
+    if prior_normals is not None and params.lambda_normal > 0:
+        l_n, extra = normal_loss(normals, alpha, prior_normals, normal_valid, params)
+        total = total + params.lambda_normal * l_n
+        terms.update(extra, normal=float(l_n.detach()))
+    terms["total"] = float(total.detach())
+    return total, terms
