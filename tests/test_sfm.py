@@ -1,0 +1,209 @@
+"""pycolmap wrapper: accuracy on real RealEstate10K clips against their pose files, bad inputs that must
+not raise, reproducibility, priors and gates."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from pydantic import ValidationError
+
+from wonderverse.sfm import SfmParams, SfmResult, _gate_problems, reconstruct, reconstruct_from_images
+
+RE10K = Path("/work/shared/data/cameractrl_re10k")
+FOX = Path("/work/shared/data/instant_ngp_fox")
+BEDROOM = Path("/work/shared/data/viewcrafter_re10k_bedroom/images/00.png")
+
+
+def need(path: Path) -> Path:
+    if not path.exists():
+        pytest.skip(f"test data not found: {path}")
+    return path
+
+
+def re10k_clip(clip_id: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(frames (16,256,384,3) uint8, W2C poses (16,4,4), normalised fx/fy/cx/cy per frame) of one clip."""
+    import imageio.v3 as iio
+
+    frames = iio.imread(need(RE10K / "reference_videos" / f"{clip_id}.mp4"))
+    rows = [line.split() for line in (RE10K / "pose_files" / f"{clip_id}.txt").read_text().splitlines()[1:]]
+    vals = np.array([[float(x) for x in r] for r in rows])
+    poses = np.tile(np.eye(4), (len(vals), 1, 1))
+    poses[:, :3, :] = vals[:, 7:19].reshape(-1, 3, 4)  # world-to-camera, OpenCV axes (SOURCE.md)
+    return frames, poses, vals[:, 1:5]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("clip_id", ["0bf152ef84195293", "0f68374b76390082", "3c35b868a8ec3433"])
+def test_real_estate_clips_register_fully_and_match_their_poses(clip_id: str) -> None:
+    from wonderverse.metrics import ate
+
+    frames, gt, _ = re10k_clip(clip_id)
+    res = reconstruct(frames, SfmParams())
+    assert res.registered.all(), res.problems
+    assert res.gates_passed, res.problems
+    assert res.poses.shape == (16, 4, 4) and res.poses.dtype == np.float64
+    np.testing.assert_allclose(res.poses[:, 3], np.tile([0, 0, 0, 1.0], (16, 1)))
+    err = ate(res.poses, gt)
+    assert err["rmse_frac"] < 0.05, err
+    assert res.n_points == len(res.points) == len(res.colors) >= 100
+    assert res.colors.dtype == np.uint8
+    assert 0 < res.reproj_error_px < 2.0
+    assert {"write", "extract", "match", "total"} <= set(res.timings)
+    assert any(k.startswith("map_") for k in res.timings)
+    assert res.mapper in ("incremental", "global")
+
+
+@pytest.mark.slow
+def test_same_seed_single_thread_is_reproducible_and_workdir_is_reusable(tmp_path: Path) -> None:
+    frames, _, _ = re10k_clip("0f68374b76390082")
+    params = SfmParams(num_threads=1, random_seed=3)
+    a = reconstruct(frames[:10], params, workdir=tmp_path)
+    b = reconstruct(frames[:10], params, workdir=tmp_path)  # reuses the folder: must not append to it
+    assert a.registered.all() and b.registered.all()
+    np.testing.assert_array_equal(a.poses, b.poses)
+    np.testing.assert_array_equal(a.points, b.points)
+    assert (tmp_path / "database.db").is_file() and len(list((tmp_path / "images").glob("*.png"))) == 10
+
+
+@pytest.mark.slow
+def test_focal_prior_reaches_colmap_and_focal_is_estimated(tmp_path: Path) -> None:
+    import pycolmap
+
+    frames, _, intr = re10k_clip("0bf152ef84195293")
+    W = frames.shape[2]
+    fx = intr[0, 0] * W  # the clip's horizontal focal in pixels of these frames
+    K = np.array([[fx, 0, W / 2], [0, fx, frames.shape[1] / 2], [0, 0, 1.0]])
+    res = reconstruct(frames[:10], SfmParams(mapper="global"), K_prior=K, workdir=tmp_path)
+    db = pycolmap.Database.open(tmp_path / "database.db")
+    cams = db.read_all_cameras()
+    db.close()
+    assert len(cams) == 1  # one shared camera
+    cam = cams[0]
+    assert cam.model_name == "SIMPLE_PINHOLE" and cam.has_prior_focal_length
+    assert cam.params[0] == pytest.approx(fx)
+    assert res.registered.all(), res.problems
+    assert res.K[0, 0] == pytest.approx(fx, rel=0.1)
+
+
+def test_textureless_frames_register_nothing_and_say_why() -> None:
+    frames = np.full((8, 96, 128, 3), 128, dtype=np.uint8)
+    res = reconstruct(frames)
+    assert isinstance(res, SfmResult)
+    assert not res.registered.any() and not res.gates_passed
+    assert np.isnan(res.poses).all() and res.n_points == 0 and res.points.shape == (0, 3)
+    assert "COLMAP registered no frames" in res.problems
+    assert "too little texture: median 0 SIFT features per frame" in res.problems
+
+
+def test_single_frame_and_no_frames() -> None:
+    rng = np.random.default_rng(0)
+    res = reconstruct(rng.integers(0, 255, (1, 64, 64, 3), dtype=np.uint8))
+    assert res.registered.shape == (1,) and not res.registered.any()
+    assert res.problems == ["only 1 frame: SfM needs at least 2"]
+    assert reconstruct(np.zeros((0, 64, 64, 3), np.uint8)).problems == ["no frames given"]
+
+
+def test_frames_of_different_sizes_are_a_problem_not_an_error() -> None:
+    frames = [np.zeros((64, 96, 3), np.uint8), np.zeros((64, 96, 3), np.uint8), np.zeros((80, 96, 3), np.uint8)]
+    res = reconstruct(frames)
+    assert not res.registered.any() and res.registered.shape == (3,)
+    assert res.problems == ["frames have 2 different sizes (96x64, 96x80); one camera needs one size"]
+
+
+def test_invalid_arguments_raise_value_error() -> None:
+    with pytest.raises(ValueError, match="uint8"):
+        reconstruct(np.zeros((4, 32, 32, 3), np.float32))
+    with pytest.raises(ValueError, match="uint8"):
+        reconstruct(np.zeros((32, 32, 3), np.uint8))
+    with pytest.raises(ValueError, match="frame 1"):
+        reconstruct([np.zeros((32, 32, 3), np.uint8), np.zeros((32, 32), np.uint8)])
+    with pytest.raises(ValueError, match="K_prior"):
+        reconstruct(np.zeros((4, 32, 32, 3), np.uint8), K_prior=np.eye(2))
+
+
+def _pure_rotation_video(n: int = 12) -> np.ndarray:
+    """A camera turning about its own centre: a real photo warped by K R K^-1 (exact for pure rotation,
+    whatever the scene depth), then one fixed crop (a shifted principal point, the same for all frames)."""
+    from PIL import Image
+
+    src = Image.open(need(BEDROOM)).convert("RGB").resize((480, 270), Image.LANCZOS)
+    f = 400.0
+    K = np.array([[f, 0, 240.0], [0, f, 135.0], [0, 0, 1.0]])
+    frames = []
+    for a in np.radians(np.linspace(-8.0, 8.0, n)):
+        R = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+        back = np.linalg.inv(K @ R @ np.linalg.inv(K))  # PIL maps output pixels back to input pixels
+        back /= back[2, 2]
+        warped = src.transform((480, 270), Image.PERSPECTIVE, tuple(back.ravel()[:8]), Image.BICUBIC)
+        frames.append(np.asarray(warped)[45:225, 80:400])
+    return np.stack(frames)
+
+
+@pytest.mark.slow
+def test_pure_rotation_video_fails_the_gates_in_words() -> None:
+    res = reconstruct(_pure_rotation_video())
+    # Without parallax almost nothing triangulates: whatever registers, the model must not pass.
+    assert not res.gates_passed
+    assert res.problems and all(isinstance(p, str) and p for p in res.problems)
+    assert any("3D points" in p or "registered" in p for p in res.problems), res.problems
+
+
+@pytest.mark.slow
+def test_reconstruct_from_images_reports_k_in_full_size_pixels() -> None:
+    paths = sorted(need(FOX / "images").glob("*.jpg"))[:8]
+    res = reconstruct_from_images(paths, SfmParams(max_image_size_px=320, camera_model="PINHOLE"))
+    assert res.registered.all(), res.problems
+    # SIFT ran on 320 px copies; keypoints (and so K) are in pixels of the 1080x1920 files.
+    assert res.K[0, 0] == pytest.approx(1375.5, rel=0.15)  # transforms.json fl_x
+    assert res.K[0, 2] == pytest.approx(540.0, abs=1.0) and res.K[1, 2] == pytest.approx(960.0, abs=1.0)
+
+
+def test_reconstruct_from_images_missing_file_is_a_problem(tmp_path: Path) -> None:
+    res = reconstruct_from_images([tmp_path / "a.png", tmp_path / "b.png"])
+    assert not res.registered.any() and res.problems[0].startswith("cannot read image a.png")
+
+
+def _fake(K: np.ndarray, n_points: int, reproj: float, registered: np.ndarray) -> SfmResult:
+    n = len(registered)
+    return SfmResult(
+        poses=np.full((n, 4, 4), np.nan),
+        registered=registered,
+        points=np.zeros((n_points, 3)),
+        colors=np.zeros((n_points, 3), np.uint8),
+        K=K,
+        reproj_error_px=reproj,
+        n_points=n_points,
+        mapper="global",
+    )
+
+
+def test_gates_name_each_failure() -> None:
+    p = SfmParams()
+    K = np.array([[5030.0, 0, 360], [0, 5030.0, 240], [0, 0, 1]])
+    reg = np.zeros(16, bool)
+    reg[:3] = True
+    problems = _gate_problems(_fake(K, 0, 3.5, reg), [0, 4, 9], (720, 480), p)
+    assert problems == [
+        "only 3 of 16 frames registered",
+        "0 3D points (need 100)",
+        "a registered frame sees only 0 3D points (need 10)",
+        "focal 5030 px implausible for 720 px frame (expected 216-2160 px)",
+        "reprojection error 3.50 px > 2.0 px",
+    ]
+    good = np.array([[600.0, 0, 360], [0, 600.0, 240], [0, 0, 1]])
+    assert _gate_problems(_fake(good, 500, 0.5, np.ones(16, bool)), [40] * 16, (720, 480), p) == []
+
+
+def test_params_are_strict_and_frozen() -> None:
+    p = SfmParams()
+    assert p.mapper == "auto" and p.auto_order == ("global", "incremental")
+    with pytest.raises(ValidationError):
+        SfmParams(loop_detection=True)
+    with pytest.raises(ValidationError):
+        SfmParams(focal_range_frac=(3.0, 0.3))
+    with pytest.raises(ValidationError):
+        SfmParams(auto_order=("global", "global"))
+    with pytest.raises(ValidationError):
+        p.num_threads = 8  # type: ignore[misc]

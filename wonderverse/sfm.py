@@ -1,0 +1,507 @@
+"""Structure from motion on one video segment with pycolmap (CPU): SIFT, sequential matching, mapping.
+
+`reconstruct(frames, params)` returns camera poses (W2C, OpenCV axes, SfM units and an arbitrary world
+frame), the sparse points, the estimated intrinsics and quality gates in words. It never raises on bad
+video content (textureless, a single frame, frames of different sizes, nothing registered); it returns
+`registered` all False and says why in `problems`. Only invalid argument types or shapes raise ValueError.
+
+pycolmap is imported inside the functions so that importing this module (for `SfmParams`) stays cheap.
+Hazards we avoid (see COLMAP-FACTS.md): loop detection is never enabled (offline it aborts the process),
+incremental mapping is capped by `max_runtime_s`, "all frames registered" is not a pass on its own.
+
+Mapper choice (measured here, 16-frame 384x256 RealEstate10K clips against their pose files, one thread):
+global SfM (after `calibrate_view_graph`) reached ATE 0.2-2.0 % of path length on all 7 clips; incremental
+SfM passed every gate on 0c11dbe7 and 0c9b371c yet was 9.7 % and 7.0 % off (focal 0.72 and 1.85 x W
+instead of 0.47). So `auto` tries global first and falls back to incremental (relaxed initialisation) when
+the global model fails the gates; that fallback gave clip 0c9b371c its model (ATE 0.6 %) when global's
+weakest frame saw fewer than `min_points_per_image` points.
+Without a focal prior, global's view-graph calibration also writes its focal estimate into the database,
+which the incremental fallback then starts from. Reproducibility: with `num_threads=1` and a fixed
+`random_seed` two runs give bit-identical poses; with 2 threads they differ slightly (measured).
+"""
+
+from __future__ import annotations
+
+import tempfile
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+if TYPE_CHECKING:
+    import pycolmap
+
+
+class SfmParams(BaseModel):
+    """Step `sfm`: feature extraction, matching, mapper choice, resource caps and quality gates.
+
+    The relaxed incremental initialisation (`init_*`, `abs_pose_min_num_inliers`, `min_tri_angle_deg`) is
+    what COLMAP-FACTS measured to solve clips that COLMAP's defaults (16°, 100, 30, 1.5°) fail on; it is used
+    whenever the incremental mapper runs.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    max_image_size_px: int = Field(1024, ge=64, le=8192, description="SIFT runs on frames downscaled to this")
+    max_num_features: int = Field(4096, ge=64, le=65536, description="SIFT features per frame")
+    matcher_overlap: int = Field(10, ge=1, le=1000, description="each frame is matched to this many next ones")
+    quadratic_overlap: bool = Field(True, description="also match frames 2^k apart (cheap, links far frames)")
+    mapper: Literal["incremental", "global", "auto"] = Field(
+        "auto", description="auto: the mappers of `auto_order` in turn, until a model passes the gates"
+    )
+    init_min_tri_angle_deg: float = Field(4.0, gt=0, le=60)
+    init_min_num_inliers: int = Field(50, ge=8)
+    abs_pose_min_num_inliers: int = Field(15, ge=6)
+    min_tri_angle_deg: float = Field(1.0, gt=0, le=30, description="triangulation and filtering")
+    max_runtime_s: float = Field(
+        120.0, gt=0, le=86400, description="cap on incremental mapping (global has no cancel hook in 4.2.1)"
+    )
+    auto_order: tuple[Literal["incremental", "global"], Literal["incremental", "global"]] = Field(
+        ("global", "incremental"),
+        description="global first: more accurate on real clips (see module notes)",
+    )
+    num_threads: int = Field(
+        1, ge=1, le=256, description="every COLMAP stage; 1 is bit-reproducible with random_seed, >1 is not"
+    )
+    random_seed: int = Field(0, ge=0, lt=2**31)
+    camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE"] = Field(
+        "SIMPLE_PINHOLE", description="generated video has no lens distortion and square pixels"
+    )
+    min_registered_frac: float = Field(0.8, ge=0, le=1, description="gate: share of frames registered")
+    min_points: int = Field(100, ge=0, description="gate: 3D points in the model")
+    min_points_per_image: int = Field(10, ge=0, description="gate: 3D points seen by the weakest registered frame")
+    focal_range_frac: tuple[float, float] = Field(
+        (0.3, 3.0), description="gate: plausible focal as a multiple of max(W, H) (FOV ~118° .. ~19°)"
+    )
+    max_reproj_px: float = Field(2.0, gt=0, description="gate: mean reprojection error")
+
+    @model_validator(mode="after")
+    def _consistent(self) -> SfmParams:
+        lo, hi = self.focal_range_frac
+        if not 0 < lo < hi:
+            raise ValueError(f"focal_range_frac must be 0 < low < high, got {self.focal_range_frac}")
+        if self.auto_order[0] == self.auto_order[1]:
+            raise ValueError(f"auto_order must name two different mappers, got {self.auto_order}")
+        return self
+
+
+@dataclass
+class SfmResult:
+    """One segment's reconstruction.
+
+    poses: (T,4,4) float64 world-to-camera, OpenCV camera axes, SfM units; NaN rows where unregistered.
+    registered: (T,) bool. points: (P,3) float64 world. colors: (P,3) uint8. K: (3,3) estimated
+    intrinsics in pixels of the input frames (NaN if nothing was reconstructed). reproj_error_px: mean
+    reprojection error (NaN if none). mapper: which mapper produced the kept model ("" if none).
+    timings: seconds per stage. gates_passed: every quality gate held. problems: what failed, in words.
+    """
+
+    poses: np.ndarray
+    registered: np.ndarray
+    points: np.ndarray
+    colors: np.ndarray
+    K: np.ndarray
+    reproj_error_px: float
+    n_points: int
+    mapper: str
+    timings: dict[str, float] = field(default_factory=dict)
+    gates_passed: bool = False
+    problems: list[str] = field(default_factory=list)
+
+    @property
+    def n_registered(self) -> int:
+        return int(self.registered.sum())
+
+
+def empty_result(n_frames: int, problems: list[str], timings: dict[str, float] | None = None) -> SfmResult:
+    """A result with nothing registered, for inputs SfM cannot use."""
+    return SfmResult(
+        poses=np.full((n_frames, 4, 4), np.nan),
+        registered=np.zeros(n_frames, dtype=bool),
+        points=np.zeros((0, 3)),
+        colors=np.zeros((0, 3), dtype=np.uint8),
+        K=np.full((3, 3), np.nan),
+        reproj_error_px=float("nan"),
+        n_points=0,
+        mapper="",
+        timings=dict(timings or {}),
+        gates_passed=False,
+        problems=list(problems),
+    )
+
+
+def _validate_frames(frames: np.ndarray | Sequence[np.ndarray]) -> list[np.ndarray]:
+    """The frames as a list of (H,W,3) uint8 arrays; ValueError for wrong types, dtypes or ranks."""
+    if isinstance(frames, np.ndarray):
+        if frames.dtype != np.uint8 or frames.ndim != 4 or frames.shape[-1] != 3:
+            raise ValueError(f"frames must be a (T,H,W,3) uint8 array, got {frames.dtype} {frames.shape}")
+        return list(frames)
+    if not isinstance(frames, Sequence) or isinstance(frames, str | bytes):
+        raise ValueError(f"frames must be a (T,H,W,3) uint8 array or a list of (H,W,3) arrays, got {type(frames)}")
+    out = []
+    for i, f in enumerate(frames):
+        if not isinstance(f, np.ndarray) or f.dtype != np.uint8 or f.ndim != 3 or f.shape[-1] != 3:
+            desc = f"{f.dtype} {f.shape}" if isinstance(f, np.ndarray) else type(f).__name__
+            raise ValueError(f"frame {i} must be an (H,W,3) uint8 array, got {desc}")
+        out.append(f)
+    return out
+
+
+def _validate_K(K_prior: np.ndarray | None) -> np.ndarray | None:
+    if K_prior is None:
+        return None
+    K = np.asarray(K_prior, dtype=np.float64)
+    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+        raise ValueError(f"K_prior must be a finite (3,3) matrix with positive focal lengths, got {K_prior!r}")
+    return K
+
+
+def _input_problems(sizes: list[tuple[int, int]]) -> list[str]:
+    """Problems that make SfM pointless before it starts; sizes are (W,H) per frame."""
+    if len(sizes) == 0:
+        return ["no frames given"]
+    if len(sizes) == 1:
+        return ["only 1 frame: SfM needs at least 2"]
+    distinct = sorted(set(sizes))
+    if len(distinct) > 1:
+        shown = ", ".join(f"{w}x{h}" for w, h in distinct[:4])
+        more = f" and {len(distinct) - 4} more" if len(distinct) > 4 else ""
+        return [f"frames have {len(distinct)} different sizes ({shown}{more}); one camera needs one size"]
+    w, h = distinct[0]
+    if min(w, h) < 16:
+        return [f"frames of {w}x{h} px are too small for SIFT"]
+    return []
+
+
+def _camera_params_string(K: np.ndarray, model: str) -> str:
+    """COLMAP camera parameters for a prior K (COLMAP also puts pixel centres at +0.5, as we do)."""
+    fx, fy, cx, cy = (float(v) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
+    values = [0.5 * (fx + fy), cx, cy] if model == "SIMPLE_PINHOLE" else [fx, fy, cx, cy]
+    return ",".join(repr(v) for v in values)
+
+
+def _incremental_options(params: SfmParams) -> pycolmap.IncrementalPipelineOptions:
+    import pycolmap
+
+    opts = pycolmap.IncrementalPipelineOptions()
+    opts.num_threads = params.num_threads
+    opts.random_seed = params.random_seed
+    opts.max_runtime_seconds = int(np.ceil(params.max_runtime_s))
+    # A segment is short: a model of 3+ frames is worth keeping so that we can report how much registered.
+    opts.min_model_size = 3
+    opts.extract_colors = True
+    m = opts.mapper
+    m.num_threads = params.num_threads
+    m.random_seed = params.random_seed
+    m.init_min_tri_angle = params.init_min_tri_angle_deg
+    m.init_min_num_inliers = params.init_min_num_inliers
+    m.abs_pose_min_num_inliers = params.abs_pose_min_num_inliers
+    m.filter_min_tri_angle = params.min_tri_angle_deg
+    opts.triangulation.min_angle = params.min_tri_angle_deg
+    opts.triangulation.random_seed = params.random_seed
+    return opts
+
+
+def _global_options(params: SfmParams) -> pycolmap.GlobalPipelineOptions:
+    import pycolmap
+
+    opts = pycolmap.GlobalPipelineOptions()
+    opts.num_threads = params.num_threads
+    opts.random_seed = params.random_seed
+    opts.min_model_size = 3
+    m = opts.mapper
+    m.num_threads = params.num_threads
+    m.random_seed = params.random_seed
+    m.rotation_averaging.random_seed = params.random_seed
+    m.global_positioning.random_seed = params.random_seed
+    m.global_positioning.use_gpu = False
+    m.bundle_adjustment.ceres.use_gpu = False
+    m.bundle_adjustment.ceres.solver_options.num_threads = params.num_threads
+    m.retriangulation.random_seed = params.random_seed
+    return opts
+
+
+def _largest_model(models: dict[int, Any]) -> Any | None:
+    if not models:
+        return None
+    return max(models.values(), key=lambda r: (r.num_reg_images(), r.num_points3D()))
+
+
+def _result_from_model(
+    rec: Any, names: list[str], size_wh: tuple[int, int], mapper: str, params: SfmParams
+) -> SfmResult:
+    """Poses, points and intrinsics out of a pycolmap Reconstruction, with the quality gates applied."""
+    n = len(names)
+    index = {name: i for i, name in enumerate(names)}
+    poses = np.full((n, 4, 4), np.nan)
+    registered = np.zeros(n, dtype=bool)
+    per_image_points = []
+    camera = None
+    for image in rec.images.values():
+        if not image.has_pose or image.name not in index:
+            continue
+        i = index[image.name]
+        poses[i] = np.vstack([image.cam_from_world().matrix(), [0.0, 0.0, 0.0, 1.0]])
+        registered[i] = True
+        per_image_points.append(image.num_points3D)
+        camera = image.camera
+    pts = rec.points3D
+    points = np.array([p.xyz for p in pts.values()], dtype=np.float64).reshape(-1, 3)
+    colors = np.array([p.color for p in pts.values()], dtype=np.uint8).reshape(-1, 3)
+    K = np.asarray(camera.calibration_matrix(), dtype=np.float64) if camera is not None else np.full((3, 3), np.nan)
+    reproj = float(rec.compute_mean_reprojection_error()) if len(points) else float("nan")
+    res = SfmResult(
+        poses=poses,
+        registered=registered,
+        points=points,
+        colors=colors,
+        K=K,
+        reproj_error_px=reproj,
+        n_points=len(points),
+        mapper=mapper,
+    )
+    res.problems = _gate_problems(res, per_image_points, size_wh, params)
+    res.gates_passed = not res.problems
+    return res
+
+
+def _gate_problems(
+    res: SfmResult, per_image_points: list[int], size_wh: tuple[int, int], params: SfmParams
+) -> list[str]:
+    """Every quality gate that fails, in words (COLMAP-FACTS: "all frames registered" is not a pass)."""
+    n, k = len(res.registered), res.n_registered
+    problems = []
+    if k == 0:
+        return ["COLMAP registered no frames"]
+    if k < max(2, int(np.ceil(params.min_registered_frac * n))):
+        problems.append(f"only {k} of {n} frames registered")
+    if res.n_points < max(1, params.min_points):
+        problems.append(f"{res.n_points} 3D points (need {max(1, params.min_points)})")
+    weakest = min(per_image_points) if per_image_points else 0
+    if weakest < params.min_points_per_image:
+        problems.append(f"a registered frame sees only {weakest} 3D points (need {params.min_points_per_image})")
+    max_dim = max(size_wh)
+    focal = float(0.5 * (res.K[0, 0] + res.K[1, 1]))
+    lo, hi = params.focal_range_frac
+    if not lo * max_dim <= focal <= hi * max_dim:
+        problems.append(
+            f"focal {focal:.0f} px implausible for {max_dim} px frame "
+            f"(expected {lo * max_dim:.0f}-{hi * max_dim:.0f} px)"
+        )
+    if not res.reproj_error_px <= params.max_reproj_px:
+        problems.append(f"reprojection error {res.reproj_error_px:.2f} px > {params.max_reproj_px} px")
+    return problems
+
+
+def _feature_problems(db_path: Path, names: list[str], min_inliers: int) -> tuple[list[str], int]:
+    """Why mapping had little to work with (few features, unmatched neighbours), in words, and the number
+    of geometrically verified frame pairs."""
+    import pycolmap
+
+    db = pycolmap.Database.open(db_path)
+    try:
+        images = db.read_all_images()
+        n_kp = [db.num_keypoints_for_image(im.image_id) for im in images]
+        index = {im.image_id: names.index(im.name) for im in images if im.name in names}
+        pair_ids, inliers = db.read_two_view_geometry_num_inliers()
+    finally:
+        db.close()
+    verified = [pycolmap.pair_id_to_image_pair(p) for p, k in zip(pair_ids, inliers, strict=True) if k >= min_inliers]
+    neighbours = {
+        min(index[a], index[b]) for a, b in verified if a in index and b in index and abs(index[a] - index[b]) == 1
+    }
+    problems = []
+    median_kp = int(np.median(n_kp)) if n_kp else 0
+    if median_kp < 50:
+        problems.append(f"too little texture: median {median_kp} SIFT features per frame")
+    n = len(names)
+    if len(neighbours) < n - 1:
+        problems.append(f"only {len(neighbours)} of {n - 1} consecutive frame pairs matched geometrically")
+    return problems, len(verified)
+
+
+def _run_mapper(kind: str, db_path: Path, image_dir: Path, out_dir: Path, params: SfmParams) -> Any | None:
+    import pycolmap
+
+    pycolmap.set_random_seed(params.random_seed)
+    out = out_dir / kind
+    out.mkdir(parents=True, exist_ok=True)
+    if kind == "incremental":
+        models = pycolmap.incremental_mapping(db_path, image_dir, out, options=_incremental_options(params))
+    else:
+        models = pycolmap.global_mapping(db_path, image_dir, out, options=_global_options(params))
+    return _largest_model(models)
+
+
+def _reconstruct_dir(
+    image_dir: Path,
+    names: list[str],
+    size_wh: tuple[int, int],
+    params: SfmParams,
+    K_prior: np.ndarray | None,
+    work: Path,
+    timings: dict[str, float],
+) -> SfmResult:
+    """SIFT + sequential matching + mapping over `names` in `image_dir` (all of size `size_wh`)."""
+    import pycolmap
+
+    pycolmap.set_random_seed(params.random_seed)
+    db_path = work / "database.db"
+    db_path.unlink(missing_ok=True)  # a reused workdir must not append to an old database
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = params.camera_model
+    if K_prior is not None:
+        # The prior both fixes the initial focal and marks it as trusted (has_prior_focal_length).
+        reader.camera_params = _camera_params_string(K_prior, params.camera_model)
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = params.num_threads
+    extraction.use_gpu = False
+    extraction.max_image_size = params.max_image_size_px
+    extraction.sift.max_num_features = params.max_num_features
+    t = time.perf_counter()
+    pycolmap.extract_features(
+        db_path,
+        image_dir,
+        image_names=names,
+        camera_mode=pycolmap.CameraMode.SINGLE,
+        reader_options=reader,
+        extraction_options=extraction,
+        device=pycolmap.Device.cpu,
+    )
+    timings["extract"] = time.perf_counter() - t
+
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = params.num_threads
+    matching.use_gpu = False
+    pairing = pycolmap.SequentialPairingOptions()
+    pairing.overlap = params.matcher_overlap
+    pairing.quadratic_overlap = params.quadratic_overlap
+    pairing.num_threads = params.num_threads
+    pairing.loop_detection = False  # never: offline it tries to download a vocabulary tree and aborts
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = params.random_seed
+    t = time.perf_counter()
+    pycolmap.match_sequential(
+        db_path,
+        matching_options=matching,
+        pairing_options=pairing,
+        verification_options=verification,
+        device=pycolmap.Device.cpu,
+    )
+    timings["match"] = time.perf_counter() - t
+
+    feature_problems, n_verified = _feature_problems(db_path, names, verification.min_num_inliers)
+    if n_verified == 0:
+        return empty_result(len(names), ["COLMAP registered no frames", *feature_problems], timings)
+
+    def run(kind: str) -> SfmResult | None:
+        t0 = time.perf_counter()
+        if kind == "global" and K_prior is None:
+            # Without a focal prior the global mapper fails at random; calibrating the view graph fixes it.
+            calibration = pycolmap.ViewGraphCalibrationOptions()
+            calibration.random_seed = params.random_seed
+            pycolmap.calibrate_view_graph(db_path, calibration)
+        rec = _run_mapper(kind, db_path, image_dir, work, params)
+        timings[f"map_{kind}"] = time.perf_counter() - t0
+        return None if rec is None else _result_from_model(rec, names, size_wh, kind, params)
+
+    kinds = list(params.auto_order) if params.mapper == "auto" else [params.mapper]
+    tried: list[tuple[str, SfmResult | None]] = []
+    for kind in kinds:
+        res = run(kind)
+        tried.append((kind, res))
+        if res is not None and res.gates_passed:
+            break
+    results = [r for _, r in tried if r is not None]
+    if not results:
+        return empty_result(len(names), ["COLMAP registered no frames", *feature_problems], timings)
+    best = max(results, key=lambda r: (r.gates_passed, r.n_registered, r.n_points))
+    if not best.gates_passed:
+        # Say what each mapper got wrong, so a rejection can be diagnosed from the words alone.
+        best.problems = [
+            f"{kind}: {p}" if len(kinds) > 1 else p
+            for kind, r in tried
+            for p in (r.problems if r is not None else ["COLMAP registered no frames"])
+        ] + ([p for p in feature_problems if best.n_registered < len(names)])
+    best.timings = timings
+    return best
+
+
+def reconstruct(
+    frames: np.ndarray | Sequence[np.ndarray],
+    params: SfmParams | None = None,
+    K_prior: np.ndarray | None = None,
+    workdir: Path | None = None,
+) -> SfmResult:
+    """Reconstruct one segment: (T,H,W,3) uint8 frames (or a list of (H,W,3) uint8) -> SfmResult.
+
+    K_prior (3,3, pixels of these frames) seeds the shared camera's focal length; without it the
+    incremental mapper starts from COLMAP's 1.2·max(W,H) and the global one calibrates the view graph.
+    workdir keeps the images, database and models there (for debugging); otherwise a temp dir is used.
+    """
+    params = params or SfmParams()
+    frame_list = _validate_frames(frames)
+    K = _validate_K(K_prior)
+    t_start = time.perf_counter()
+    sizes = [(int(f.shape[1]), int(f.shape[0])) for f in frame_list]
+    problems = _input_problems(sizes)
+    if problems:
+        return empty_result(len(frame_list), problems)
+    import imageio.v3 as iio
+
+    with tempfile.TemporaryDirectory(prefix="wv-sfm-") as tmp:
+        work = Path(workdir) if workdir is not None else Path(tmp)
+        image_dir = work / "images"
+        image_dir.mkdir(parents=True, exist_ok=True)
+        timings: dict[str, float] = {}
+        t = time.perf_counter()
+        names = [f"{i:06d}.png" for i in range(len(frame_list))]
+        for name, f in zip(names, frame_list, strict=True):
+            iio.imwrite(image_dir / name, f)  # PNG: lossless, so SIFT sees exactly the frames
+        timings["write"] = time.perf_counter() - t
+        res = _reconstruct_dir(image_dir, names, sizes[0], params, K, work, timings)
+    res.timings["total"] = time.perf_counter() - t_start
+    return res
+
+
+def reconstruct_from_images(
+    paths: Sequence[Path | str],
+    params: SfmParams | None = None,
+    K_prior: np.ndarray | None = None,
+    workdir: Path | None = None,
+) -> SfmResult:
+    """Like `reconstruct`, over image files in the given order (frame i = paths[i]); files are not decoded
+    into memory, COLMAP reads them (downscaled to `max_image_size_px` for SIFT, K in full-size pixels)."""
+    from PIL import Image
+
+    params = params or SfmParams()
+    K = _validate_K(K_prior)
+    t_start = time.perf_counter()
+    paths = [Path(p) for p in paths]
+    sizes: list[tuple[int, int]] = []
+    for p in paths:
+        try:
+            with Image.open(p) as im:
+                sizes.append(im.size)
+        except OSError as e:
+            return empty_result(len(paths), [f"cannot read image {p.name}: {e}"])
+    problems = _input_problems(sizes)
+    if problems:
+        return empty_result(len(paths), problems)
+    with tempfile.TemporaryDirectory(prefix="wv-sfm-") as tmp:
+        work = Path(workdir) if workdir is not None else Path(tmp)
+        image_dir = work / "images"
+        image_dir.mkdir(parents=True, exist_ok=True)
+        names = [f"{i:06d}{p.suffix.lower()}" for i, p in enumerate(paths)]
+        for name, p in zip(names, paths, strict=True):
+            link = image_dir / name
+            if not link.exists():
+                link.symlink_to(p.resolve())
+        timings: dict[str, float] = {}
+        res = _reconstruct_dir(image_dir, names, sizes[0], params, K, work, timings)
+    res.timings["total"] = time.perf_counter() - t_start
+    return res
