@@ -1,0 +1,560 @@
+"""The default video model: ray-cast renders of a procedural world, with exact ground truth and faults.
+
+Every frame is a pure function of (world, pose, K): surfaces carry a solid 3D texture evaluated at
+the hit point, so what SIFT finds on a surface stays put when the camera moves. Like a real video
+model, a generation attempt sometimes goes wrong (`fault_probability`): the camera teleports or
+snaps round, objects move, or frames freeze; `GroundTruth.faults` says what and where.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from functools import lru_cache
+from typing import Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from wonderverse.camera import camera_centers, intrinsics, look_at
+from wonderverse.video.base import GroundTruth, Video
+from wonderverse.video.shadows import build_cascades
+from wonderverse.video.texture import (
+    Noise,
+    PatternParams,
+    part_tables,
+    rotate,
+    rowdot,
+    sky_colour,
+    surface_colour,
+)
+from wonderverse.video.world import World, WorldParams, build_world, make_scene
+
+FaultType = Literal["teleport", "rotation", "morph", "freeze"]
+Range = tuple[float, float]
+# Separates the fault stream from any other use of (scene_seed, seed).
+FAULT_STREAM = 0xFA017
+DEMO_PROMPT = "a quiet village with houses and trees"
+
+
+class ProceduralOptions(BaseModel):
+    """Everything the procedural video model can be told (`VideoSpec.options`)."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    world: Literal["auto", "outdoor", "indoor"] = "auto"
+    layout: WorldParams = WorldParams()
+    patterns: PatternParams = PatternParams()
+    # faults (per generation attempt)
+    fault_probability: float = Field(0.2, ge=0, le=1)
+    fault_types: tuple[FaultType, ...] = Field(("teleport", "rotation", "morph", "freeze"), min_length=1)
+    force_fault: FaultType | None = Field(None, description="always inject this fault (tests, benchmarks)")
+    fault_window: Range = Field((0.25, 0.75), description="the fault starts in this fraction of the segment")
+    teleport_m: Range = (0.8, 2.5)
+    teleport_vertical_share: float = Field(0.3, ge=0, le=1, description="vertical part of a jump, relative")
+    sudden_rotation_deg: Range = (10.0, 25.0)
+    morph_m: Range = (0.8, 2.0)
+    morph_scale: Range = (0.7, 1.4)
+    morph_objects: int = Field(3, ge=1)
+    morph_probe_stride_px: int = Field(4, ge=1, description="pixel stride of the pass finding visible objects")
+    freeze_frames: int = Field(5, ge=2)
+    # texture
+    texture_detail: float = Field(1.0, ge=0, description="contrast of the surface texture; 0 = flat colours")
+    texture_octaves: int = Field(4, ge=1, le=8)
+    octave_gain: float = Field(0.7, gt=0, lt=1, description="amplitude ratio of successive octaves")
+    octave_lacunarity: float = Field(2.5, gt=1, description="frequency ratio of octaves; not 2, so they do not line up")
+    noise_contrast: float = Field(2.0, gt=0, description="maps the noise sum onto the colour ramp")
+    brightness_variation: float = Field(0.3, ge=0, lt=1, description="texture-driven brightness swing")
+    lod_fade_px: Range = Field((1.5, 3.0), description="an octave fades out as its wavelength drops to these px")
+    min_cos_incidence: float = Field(0.15, gt=0, le=1, description="caps texture blur at grazing angles")
+    noise_seed: int = Field(7, ge=0)
+    chunk_px: int = Field(16384, ge=256, description="pixels shaded at once; small chunks stay in cache")
+    shading_threads: int = Field(2, ge=1, le=64, description="threads shading pixel chunks")
+    # lighting and atmosphere
+    shadows: bool = Field(True, description="sun shadows outdoors")
+    shadow_method: Literal["map", "rays"] = Field(
+        "map", description="shadow-map lookup (fast) or one shadow ray per pixel (exact reference)"
+    )
+    shadow_bias_m: float = Field(0.02, gt=0, description="shadow rays start this far off the surface")
+    shadow_map_px: int = Field(1024, ge=64, le=8192, description="texels per side of each cascade")
+    shadow_near_m: float = Field(20.0, gt=0, description="half-size of the fine cascade around the origin")
+    shadow_bias_texels: float = Field(1.5, ge=0)
+    fog_distance_m: float = Field(220.0, ge=0, description="e-folding distance of the haze; 0 = none")
+    cloud_height_m: float = Field(800.0, gt=0)
+    cloud_scale_m: float = Field(500.0, gt=0)
+    cloud_octaves: int = Field(4, ge=1, le=8)
+    sun_disc_cos: float = Field(0.9995, gt=0.9, lt=1)
+
+    @model_validator(mode="after")
+    def _ranges_ok(self) -> ProceduralOptions:
+        for name in (
+            "fault_window",
+            "teleport_m",
+            "sudden_rotation_deg",
+            "morph_m",
+            "morph_scale",
+            "lod_fade_px",
+        ):
+            lo, hi = getattr(self, name)
+            if not lo <= hi:
+                raise ValueError(f"{name}: lower bound {lo} exceeds upper bound {hi}")
+        if not 0 <= self.fault_window[0] < self.fault_window[1] <= 1:
+            raise ValueError("fault_window must lie within [0, 1]")
+        return self
+
+
+# ---------------------------------------------------------------- faults
+
+
+@dataclass(frozen=True)
+class FaultPlan:
+    """One drawn fault. frame: first affected frame k; magnitude in metres (teleport, morph), degrees
+    (rotation) or frames (freeze); detail_seed seeds the remaining choices (directions, objects)."""
+
+    type: FaultType
+    frame: int
+    magnitude: float
+    detail_seed: int
+
+    def frames(self, n_frames: int) -> list[int]:
+        """Frames where the video departs from the path: k for a jump, k..k+F-1 for a freeze."""
+        if self.type == "freeze":
+            return list(range(self.frame, min(n_frames, self.frame + int(self.magnitude))))
+        return [self.frame]
+
+
+def draw_fault(scene_seed: int, seed: int, n_frames: int, opts: ProceduralOptions) -> FaultPlan | None:
+    """The fault of one generation attempt, or None for a clean one; no rendering.
+
+    Drawn from a generator seeded by SeedSequence([FAULT_STREAM, scene_seed, seed]): the same inputs
+    always give the same answer, a new seed an independent draw. A segment of fewer than 2 frames
+    cannot hold a fault (raises ValueError when one is forced).
+    """
+    rng = np.random.default_rng(np.random.SeedSequence([FAULT_STREAM, scene_seed, seed]))
+    hit = rng.random() < opts.fault_probability
+    pick = opts.fault_types[int(rng.integers(len(opts.fault_types)))]
+    kind = opts.force_fault or (pick if hit else None)
+    if kind is None:
+        return None
+    if n_frames < 2:
+        if opts.force_fault:
+            raise ValueError(f"force_fault={opts.force_fault!r} needs a path of at least 2 frames, got {n_frames}")
+        return None
+    lo = max(1, int(np.floor(opts.fault_window[0] * n_frames)))
+    hi = min(n_frames, max(lo + 1, int(np.ceil(opts.fault_window[1] * n_frames))))
+    k = int(rng.integers(lo, hi))
+    if kind == "teleport":
+        magnitude = float(rng.uniform(*opts.teleport_m))
+    elif kind == "rotation":
+        magnitude = float(rng.uniform(*opts.sudden_rotation_deg))
+    elif kind == "morph":
+        magnitude = float(rng.uniform(*opts.morph_m))
+    else:  # freeze frames k..k+F-1; short clips move k earlier so the whole freeze fits
+        span = min(opts.freeze_frames, n_frames)
+        k = min(k, n_frames - span)
+        magnitude = float(span)
+    return FaultPlan(kind, k, magnitude, int(rng.integers(2**32)))
+
+
+def _rot_z(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def _rot_x(a: float) -> np.ndarray:
+    c, s = np.cos(a), np.sin(a)
+    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
+
+
+def apply_pose_fault(path: np.ndarray, plan: FaultPlan | None, opts: ProceduralOptions) -> tuple[np.ndarray, dict]:
+    """W2C poses (T,4,4) the camera really renders under `plan`, and the fault record (morph details
+    are added by `build_morph`)."""
+    poses = np.array(path, dtype=np.float64, copy=True)
+    if plan is None:
+        return poses, {}
+    T = len(poses)
+    rng = np.random.default_rng(plan.detail_seed)
+    record: dict[str, Any] = {"type": plan.type, "frames": plan.frames(T), "magnitude": plan.magnitude}
+    k = plan.frame
+    if plan.type == "teleport":
+        d = rng.normal(size=3) * [1.0, 1.0, opts.teleport_vertical_share]
+        d[2] = abs(d[2])  # a video model loses its place, it does not dive under the ground
+        offset = plan.magnitude * d / np.linalg.norm(d)
+        R = poses[k:, :3, :3]
+        poses[k:, :3, 3] -= np.einsum("tij,j->ti", R, offset)  # centre c -> c + offset
+        record |= {"unit": "m", "offset_m": [float(x) for x in offset]}
+    elif plan.type == "rotation":
+        phi = rng.uniform(0, 2 * np.pi)
+        yaw, pitch = np.radians(plan.magnitude) * np.cos(phi), np.radians(plan.magnitude) * np.sin(phi)
+        centres = camera_centers(poses[k:])
+        # yaw about the world's up axis, pitch about the camera's own x axis, centre kept
+        R = np.einsum("ij,tjk,kl->til", _rot_x(pitch).T, poses[k:, :3, :3], _rot_z(yaw).T)
+        poses[k:, :3, :3] = R
+        poses[k:, :3, 3] = -np.einsum("tij,tj->ti", R, centres)
+        rel = R[0] @ path[k, :3, :3].T
+        angle = float(np.degrees(np.arccos(np.clip((np.trace(rel) - 1) / 2, -1.0, 1.0))))
+        record |= {"unit": "deg", "magnitude": angle}
+        record |= {"yaw_deg": float(np.degrees(yaw)), "pitch_deg": float(np.degrees(pitch))}
+    elif plan.type == "freeze":
+        frames = record["frames"]
+        poses[frames] = poses[frames[0]]
+        record["unit"] = "frames"
+    else:
+        record["unit"] = "m"
+    return poses, record
+
+
+# ---------------------------------------------------------------- rendering
+
+
+@lru_cache(maxsize=8)
+def _camera_rays(width: int, height: int, k_key: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Camera-space ray directions through pixel centres (+0.5), row-major: (H*W,3) float32 with z = 1,
+    and their lengths (H*W,)."""
+    K = np.array(k_key, dtype=np.float64).reshape(3, 3)
+    u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
+    x = (u.ravel() - K[0, 2] - K[0, 1] * (v.ravel() - K[1, 2]) / K[1, 1]) / K[0, 0]
+    y = (v.ravel() - K[1, 2]) / K[1, 1]
+    d = np.stack([x, y, np.ones_like(x)], axis=1).astype(np.float32)
+    return d, np.sqrt(x * x + y * y + 1.0).astype(np.float32)
+
+
+def world_rays(K: np.ndarray, w2c: np.ndarray, width: int, height: int) -> np.ndarray:
+    """(H*W,6) float32 rays [origin, direction] in the world for every pixel; each direction has camera
+    z = 1, so a hit's ray parameter is its depth."""
+    dcam, _ = _camera_rays(width, height, tuple(np.asarray(K, dtype=np.float64).ravel()))
+    R = np.asarray(w2c[:3, :3], dtype=np.float64)
+    rays = np.empty((len(dcam), 6), dtype=np.float32)
+    rays[:, :3] = (-R.T @ w2c[:3, 3]).astype(np.float32)
+    rays[:, 3:] = rotate(dcam, R.T.astype(np.float32))  # world direction R^T d
+    return rays
+
+
+@lru_cache(maxsize=4)
+def _noise(seed: int) -> Noise:
+    return Noise(seed)
+
+
+@dataclass
+class Morph:
+    """Objects moved by a morph fault: the morphed world's scene and, per object id, how texture
+    coordinates map back to where the surface was built (p_tex = (p - new_pivot) / scale + old_pivot)."""
+
+    scene: Any
+    vertices: np.ndarray  # (V,3) float32 morphed mesh
+    moved: np.ndarray  # (n_objects+1,) bool
+    scale: np.ndarray  # (n_objects+1,) float32
+    new_pivot: np.ndarray  # (n_objects+1,3) float32
+    old_pivot: np.ndarray  # (n_objects+1,3) float32
+    cache: dict[Any, Any] = field(default_factory=dict)
+
+
+def _rays(origins: np.ndarray, dirs: np.ndarray) -> Any:
+    import open3d as o3d
+
+    rays = np.empty((len(dirs), 6), dtype=np.float32)
+    rays[:, :3] = origins
+    rays[:, 3:] = dirs
+    return o3d.core.Tensor.from_numpy(rays)
+
+
+def cast(scene: Any, rays: np.ndarray) -> dict[str, np.ndarray]:
+    """Open3D first hits of rays (n,6) [origin, direction]: t_hit (inf on a miss) in units of the
+    direction's length, primitive_ids, primitive_normals (world, by winding)."""
+    import open3d as o3d
+
+    ans = scene.cast_rays(o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays, dtype=np.float32)))
+    # copies: the arrays then own their memory, whatever Open3D does with its tensors
+    return {k: np.array(ans[k].numpy()) for k in ("t_hit", "primitive_ids", "primitive_normals")}
+
+
+def render_view(
+    world: World,
+    K: np.ndarray,
+    w2c: np.ndarray,
+    width: int,
+    height: int,
+    opts: ProceduralOptions,
+    morph: Morph | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Render one view with a real ray caster. Returns rgb (H,W,3) uint8, depth (H,W) float32 camera z
+    in metres (+inf for sky) and normals (H,W,3) float32 unit, camera space (OpenCV axes), facing the
+    camera, 0 for sky."""
+    fx = float(K[0, 0])
+    _, dnorm = _camera_rays(width, height, tuple(np.asarray(K, dtype=np.float64).ravel()))
+    rays = world_rays(K, w2c, width, height)
+    centre, dworld = rays[0, :3], rays[:, 3:]
+    Rf = np.asarray(w2c[:3, :3], dtype=np.float32)
+    scene = world.scene if morph is None else morph.scene
+    ans = cast(scene, rays)
+    depth = ans["t_hit"]  # camera z = 1 along every ray, so the ray parameter is the depth
+    noise, sky_noise = _noise(opts.noise_seed), _noise(opts.noise_seed + 1)
+    sunlight = _sunlight(world, opts, morph)
+
+    part_tables(world, opts, noise)  # build shared caches before the chunks run in parallel
+    n_pix = width * height
+    rgb = np.empty((n_pix, 3), dtype=np.uint8)
+    normals = np.zeros((n_pix, 3), dtype=np.float32)
+
+    def shade(s: int) -> None:
+        """Pixels s .. s+chunk: disjoint slices of rgb and normals, so chunks may run concurrently."""
+        sl = slice(s, min(n_pix, s + opts.chunk_px))
+        t_all = depth[sl]
+        hit_mask = np.isfinite(t_all)
+        hit = np.flatnonzero(hit_mask)
+        col = np.empty((len(t_all), 3), dtype=np.float32)
+        if len(hit):
+            if len(hit) == len(t_all):  # no sky in this chunk (the usual case): views, no copies
+                t, d, n_geo = t_all, dworld[sl], ans["primitive_normals"][sl]
+                tri, ray_len = ans["primitive_ids"][sl], dnorm[sl]
+            else:
+                t, d, n_geo = (
+                    t_all.take(hit),
+                    dworld[sl].take(hit, axis=0),
+                    ans["primitive_normals"][sl].take(hit, axis=0),
+                )
+                tri, ray_len = ans["primitive_ids"][sl].take(hit), dnorm[sl].take(hit)
+            n_dot_d = rowdot(n_geo, d)
+            n_face = np.where((n_dot_d > 0)[:, None], -n_geo, n_geo)
+            normals[s + hit] = rotate(n_face, Rf)
+            points = centre + t[:, None] * d
+            tex = _texture_points(world, points, tri, morph)
+            dist = t * ray_len
+            cos_inc = np.abs(n_dot_d) * t / dist
+            footprint = t * np.float32(1.0 / fx) / np.maximum(cos_inc, np.float32(opts.min_cos_incidence))
+            col[hit] = surface_colour(world, opts, noise, sunlight, points, tex, n_geo, n_face, dist, footprint, tri)
+        if len(hit) < len(t_all):
+            miss = np.flatnonzero(~hit_mask)
+            col[miss] = sky_colour(world, opts, sky_noise, dworld[sl].take(miss, axis=0), fx)
+        np.clip(col, 0.0, 1.0, out=col)
+        col *= np.float32(255.0)
+        col += np.float32(0.5)
+        rgb[sl] = col
+
+    starts = range(0, n_pix, opts.chunk_px)
+    if opts.shading_threads > 1 and len(starts) > 1:
+        # numpy releases the GIL inside its loops, so chunks shade in parallel on several cores
+        list(_pool(opts.shading_threads).map(shade, starts))
+    else:
+        for s in starts:
+            shade(s)
+    return rgb.reshape(height, width, 3), depth.reshape(height, width), normals.reshape(height, width, 3)
+
+
+def _pool(n_threads: int) -> ThreadPoolExecutor:
+    # keyed by process id: a forked child inherits the pool object but not its threads
+    return _pool_of(n_threads, os.getpid())
+
+
+@lru_cache(maxsize=4)
+def _pool_of(n_threads: int, pid: int) -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=n_threads, thread_name_prefix=f"wonderverse-shade-{pid}")
+
+
+def _sunlight(world: World, opts: ProceduralOptions, morph: Morph | None) -> Any:
+    """sunlight(points, normals) -> (n,) share of the sun reaching each point, or None without shadows."""
+    if not opts.shadows or world.kind != "outdoor":
+        return None
+    scene = world.scene if morph is None else morph.scene
+    sun = world.sky.sun_dir.astype(np.float32)
+    if opts.shadow_method == "rays":
+
+        def by_rays(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+            origins = points + normals * np.float32(opts.shadow_bias_m)
+            blocked = scene.test_occlusions(_rays(origins, np.broadcast_to(sun, origins.shape))).numpy()
+            return np.where(blocked.astype(bool), np.float32(0.0), np.float32(1.0))
+
+        return by_rays
+    cache = world.cache if morph is None else morph.cache
+    key = ("shadow", opts.shadow_map_px, opts.shadow_near_m)
+    if key not in cache:
+        verts = world.vertices if morph is None else morph.vertices
+        cache[key] = build_cascades(scene, sun, verts, opts.shadow_near_m, opts.shadow_map_px)
+    cascades = cache[key]
+    return lambda points, normals: cascades.light(points, normals, opts.shadow_bias_texels)
+
+
+def _texture_points(world: World, points: np.ndarray, tri: np.ndarray, morph: Morph | None) -> np.ndarray:
+    """Where the solid texture is read for each hit: the point where the surface was built (morphed
+    objects carry their texture along), shifted by the world's texture offset."""
+    tex = points + world.texture_offset
+    if morph is not None:
+        obj = world.tri_object.take(tri)
+        sel = np.flatnonzero(morph.moved.take(obj))
+        if len(sel):
+            o = obj.take(sel)
+            back = (points.take(sel, axis=0) - morph.new_pivot.take(o, axis=0)) / morph.scale.take(o)[:, None]
+            tex[sel] = back + morph.old_pivot.take(o, axis=0) + world.texture_offset
+    return tex
+
+
+# ---------------------------------------------------------------- morph fault
+
+
+def build_morph(
+    world: World,
+    K: np.ndarray,
+    w2c: np.ndarray,
+    width: int,
+    height: int,
+    plan: FaultPlan,
+    opts: ProceduralOptions,
+) -> tuple[Morph, dict[str, Any]]:
+    """Move and resize up to `morph_objects` objects seen from pose `w2c`; returns the morphed world's
+    scene with its texture mapping, and the record's details (object ids, scales, offset)."""
+    rng = np.random.default_rng(plan.detail_seed)
+    s = opts.morph_probe_stride_px
+    rays = world_rays(K, w2c, width, height).reshape(height, width, 6)[s // 2 :: s, s // 2 :: s].reshape(-1, 6)
+    centre = rays[0, :3]
+    ans = cast(world.scene, rays)
+    seen = ans["primitive_ids"][np.isfinite(ans["t_hit"])].astype(np.int64)
+    ids, counts = np.unique(world.tri_object[seen], return_counts=True)
+    keep = ids > 0
+    ids, counts = ids[keep], counts[keep]
+    if len(ids) == 0:  # nothing but ground in view: take the objects nearest the camera
+        pivots = np.array([o.pivot for o in world.objects])
+        ids = np.argsort(np.linalg.norm(pivots - centre, axis=1))[: opts.morph_objects] + 1
+        counts = np.ones(len(ids))
+    n_pick = min(opts.morph_objects, len(ids))
+    chosen = np.sort(rng.choice(ids, size=n_pick, replace=False, p=counts / counts.sum()))
+    n_obj = len(world.objects) + 1
+    moved = np.zeros(n_obj, dtype=bool)
+    scale = np.ones(n_obj, dtype=np.float32)
+    old_pivot = np.zeros((n_obj, 3), dtype=np.float32)
+    new_pivot = np.zeros((n_obj, 3), dtype=np.float32)
+    a = rng.uniform(0, 2 * np.pi)
+    offset = plan.magnitude * np.array([np.cos(a), np.sin(a), 0.0])
+    verts = world.vertices.copy()
+    scales = []
+    for oid in chosen:
+        pivot = np.array(world.objects[oid - 1].pivot, dtype=np.float32)
+        sc = float(rng.uniform(*opts.morph_scale))
+        sel = world.vert_object == oid
+        verts[sel] = pivot + offset.astype(np.float32) + sc * (verts[sel] - pivot)
+        moved[oid], scale[oid], old_pivot[oid], new_pivot[oid] = True, sc, pivot, pivot + offset
+        scales.append(sc)
+    morph = Morph(make_scene(verts, world.triangles), verts, moved, scale, new_pivot, old_pivot)
+    details = {"objects": [int(i) for i in chosen], "scales": scales, "offset_m": [float(x) for x in offset]}
+    return morph, details
+
+
+# ---------------------------------------------------------------- the video model
+
+
+def validate_path(path: np.ndarray) -> np.ndarray:
+    """The path as (T,4,4) float64 W2C rigid transforms; ValueError with the reason otherwise."""
+    arr = np.asarray(path, dtype=np.float64)
+    if arr.ndim != 3 or arr.shape[1:] != (4, 4):
+        raise ValueError(f"camera path must have shape (T, 4, 4), got {arr.shape}")
+    if len(arr) == 0:
+        raise ValueError("camera path has 0 frames; at least 1 is needed")
+    bad = ~np.isfinite(arr).all(axis=(1, 2))
+    if bad.any():
+        raise ValueError(f"camera path has NaN/inf entries at frames {np.flatnonzero(bad).tolist()}")
+    if not np.allclose(arr[:, 3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
+        raise ValueError("camera path poses must have a last row of [0, 0, 0, 1]")
+    R = arr[:, :3, :3]
+    err = np.abs(R @ np.swapaxes(R, 1, 2) - np.eye(3)).max(axis=(1, 2))
+    if (err > 1e-4).any() or (np.linalg.det(R) < 0).any():
+        raise ValueError(
+            f"camera path rotations are not proper rotations at frames {np.flatnonzero(err > 1e-4).tolist()}"
+        )
+    return arr
+
+
+class ProceduralVideo:
+    """VideoModel over a procedural world chosen by (scene_prompt, scene_seed), shared by all segments."""
+
+    def __init__(
+        self,
+        scene_prompt: str,
+        scene_seed: int,
+        width: int,
+        height: int,
+        fov_deg: float,
+        options: dict[str, Any] | ProceduralOptions | None = None,
+    ) -> None:
+        if width < 8 or height < 8:
+            raise ValueError(f"frame size {width}x{height} is too small; at least 8x8")
+        if not 5.0 < fov_deg < 170.0:
+            raise ValueError(f"fov_deg={fov_deg} must lie in (5, 170)")
+        if scene_seed < 0:
+            raise ValueError(f"scene_seed must be >= 0, got {scene_seed}")
+        self.scene_prompt = scene_prompt
+        self.scene_seed = int(scene_seed)
+        self.width, self.height, self.fov_deg = int(width), int(height), float(fov_deg)
+        self.options = (
+            options if isinstance(options, ProceduralOptions) else ProceduralOptions.model_validate(options or {})
+        )
+        self.K = intrinsics(self.width, self.height, self.fov_deg)
+        self._world: World | None = None
+
+    @property
+    def world(self) -> World:
+        """The scene's world (built on first use)."""
+        if self._world is None:
+            self._world = build_world(self.scene_prompt, self.scene_seed, self.options)
+        return self._world
+
+    def render(self, w2c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """One clean frame at a W2C pose: rgb (H,W,3) uint8, depth (H,W) f32, normals (H,W,3) f32."""
+        return render_view(self.world, self.K, validate_path(w2c[None])[0], self.width, self.height, self.options)
+
+    def generate(self, prompt: str, path: np.ndarray, seed: int, reference: np.ndarray | None) -> Video:
+        """Render `path` (T,4,4 W2C). `prompt` is not used (the world comes from the scene prompt);
+        `seed` (>= 0) decides the attempt's fault. Returns frames (T,H,W,3) uint8, K and GroundTruth."""
+        del prompt
+        path = validate_path(path)
+        if seed < 0:
+            raise ValueError(f"seed must be >= 0, got {seed}")
+        shape = (self.height, self.width, 3)
+        if reference is not None and np.shape(reference) != shape:
+            raise ValueError(f"reference frame has shape {np.shape(reference)}, this video renders {shape}")
+        plan = draw_fault(self.scene_seed, seed, len(path), self.options)
+        poses, record = apply_pose_fault(path, plan, self.options)
+        morph = None
+        if plan is not None and plan.type == "morph":
+            w2c_k = poses[plan.frame]
+            morph, details = build_morph(self.world, self.K, w2c_k, self.width, self.height, plan, self.options)
+            record |= details
+        T = len(poses)
+        frames = np.empty((T, *shape), dtype=np.uint8)
+        depth = np.empty((T, self.height, self.width), dtype=np.float32)
+        normals = np.empty((T, self.height, self.width, 3), dtype=np.float32)
+        frozen = set(record["frames"][1:]) if record.get("type") == "freeze" else set()
+        for i in range(T):
+            if i in frozen:  # the video holds the previous frame
+                frames[i], depth[i], normals[i] = frames[i - 1], depth[i - 1], normals[i - 1]
+                continue
+            m = morph if morph is not None and plan is not None and i >= plan.frame else None
+            frames[i], depth[i], normals[i] = render_view(
+                self.world, self.K, poses[i], self.width, self.height, self.options, m
+            )
+        return Video(frames=frames, K=self.K.copy(), gt=GroundTruth(poses, depth, normals, record))
+
+
+def demo_path(start: np.ndarray, n_frames: int, yaw_deg: float = 30.0, forward_m: float = 2.0) -> np.ndarray:
+    """(T,4,4) W2C path from `start`: turn right by yaw_deg while moving forward_m along the start's
+    view direction (kept level); a stand-in for the planner in tests and benchmarks."""
+    c0 = camera_centers(start[None])[0]
+    fwd = start[2, :3].copy()
+    level = np.array([fwd[0], fwd[1], 0.0]) / max(np.hypot(fwd[0], fwd[1]), 1e-9)
+    out = []
+    for s in np.linspace(0.0, 1.0, n_frames):
+        yaw = -np.radians(yaw_deg) * s  # negative about +z turns a +y-looking camera towards +x (right)
+        view = _rot_z(yaw) @ fwd
+        eye = c0 + forward_m * s * level
+        out.append(look_at(eye, eye + view))
+    return np.stack(out)
+
+
+def render_fps(width: int = 480, height: int = 320, frames: int = 25, prompt: str = DEMO_PROMPT) -> float:
+    """Frames per second of clean rendering at width x height (world build and warm-up excluded)."""
+    video = ProceduralVideo(prompt, 0, width, height, 60.0, {"fault_probability": 0.0})
+    path = demo_path(video.world.start_pose(), frames)
+    video.generate(prompt, path[:2], 0, None)  # builds the scene and caches the ray grid
+    t0 = time.perf_counter()
+    video.generate(prompt, path, 0, None)
+    return frames / (time.perf_counter() - t0)
