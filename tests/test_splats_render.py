@@ -14,6 +14,16 @@ from wonderverse.splats.render_torch import render
 W, H = 64, 48
 
 
+@pytest.fixture(autouse=True)
+def one_thread():
+    # On a shared 2-core machine two OpenMP threads spin-wait for each other: tiny images run much faster
+    # on one thread.
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 # ------------------------------------------------------------------------------------------- reference
 
 

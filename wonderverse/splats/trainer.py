@@ -1,0 +1,405 @@
+"""Optimising Gaussian splats on posed frames with the paper's RGB + depth + normal loss.
+
+`train(model, views, params, renderer)` works in whatever frame the model and the views share; the
+pipeline normalises both first (`SceneNormalization`, `normalize_views`) so that learning rates and the
+densification thresholds are scene-independent, and inverts it at export (`ply.write_ply`).
+
+Sky: pixels marked sky (or, with `sky_from_invalid_prior`, where the depth prior is invalid, e.g. +inf)
+are explained by a learnable background colour composited behind the Gaussians, rgb = Σ w c + T bg, and
+their rendered alpha is pushed to 0 (`sky_alpha_weight` * mean alpha over sky pixels), so the sky is not
+modelled by Gaussians at infinity. Depth/normal terms ignore sky pixels (their priors are invalid).
+
+Held-out views (every `holdout_every`-th, starting with view `holdout_every - 1`) are never trained on and
+give the evaluation metrics. A step whose loss or gradients are not finite is skipped (no optimiser or
+densification update) and logged.
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+
+from wonderverse.splats.losses import LossParams, total_loss
+from wonderverse.splats.model import GaussianModel, SceneNormalization
+from wonderverse.splats.renderer import Renderer
+from wonderverse.splats.strategy import DefaultStrategy, MCMCStrategy
+
+log = logging.getLogger(__name__)
+
+
+class DensifyParams(BaseModel):
+    """3DGS adaptive density control (`strategy.DefaultStrategy`); steps are optimisation iterations."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    prune_opacity: float = Field(0.005, gt=0, lt=1)
+    grow_grad2d_ndc: float = Field(0.0002, gt=0, description="mean view-space gradient (NDC) to grow")
+    grow_scale3d_rel: float = Field(0.01, gt=0, description="largest axis / scene scale below which to clone")
+    prune_scale3d_rel: float = Field(0.1, gt=0, description="largest axis / scene scale above which to prune")
+    start_iter: int = Field(500, ge=0)
+    stop_iter: int = Field(15_000, ge=0)
+    every_iters: int = Field(100, ge=1)
+    reset_opacity_every_iters: int = Field(3000, ge=0, description="0 disables the opacity reset")
+    reset_opacity: float = Field(0.01, gt=0, lt=1)
+
+
+class MCMCParams(BaseModel):
+    """3DGS-as-MCMC (`strategy.MCMCStrategy`): the budget is `TrainParams.max_gaussians`."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    noise_lr: float = Field(5e5, ge=0)
+    start_iter: int = Field(500, ge=0)
+    stop_iter: int = Field(25_000, ge=0)
+    every_iters: int = Field(100, ge=1)
+    min_opacity: float = Field(0.005, gt=0, lt=1)
+    opacity_reg: float = Field(0.01, ge=0)
+    scale_reg: float = Field(0.01, ge=0)
+
+
+class TrainParams(BaseModel):
+    """Splat optimisation. Learning rates are per iteration of Adam; lengths are in normalised-scene units."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    iterations: int = Field(7000, ge=0)
+    lr_means: float = Field(1.6e-4, ge=0, description="times scene_scale; decays exponentially")
+    lr_means_final_ratio: float = Field(0.01, gt=0, le=1, description="lr_means at the end / at the start")
+    lr_quats: float = Field(1e-3, ge=0)
+    lr_log_scales: float = Field(5e-3, ge=0)
+    lr_logit_opacities: float = Field(5e-2, ge=0)
+    lr_sh0: float = Field(2.5e-3, ge=0)
+    lr_shN: float = Field(2.5e-3 / 20, ge=0)
+    lr_background: float = Field(1e-2, ge=0)
+    sh_degree: int = Field(3, ge=0, le=3, description="largest SH degree used (the model may store more)")
+    sh_degree_interval_iters: int = Field(1000, ge=1, description="active degree += 1 this often")
+    loss: LossParams = LossParams()
+    strategy: Literal["default", "mcmc", "none"] = "default"
+    densify: DensifyParams = DensifyParams()
+    mcmc: MCMCParams = MCMCParams()
+    max_gaussians: int | None = Field(300_000, ge=1, description="Gaussian budget (cap of either strategy)")
+    scene_scale: float = Field(1.0, gt=0, description="scene extent the lengths above are relative to")
+    background_rgb: tuple[float, float, float] | None = Field(
+        None, description="initial background (sky) colour; None = median colour of the sky pixels, else black"
+    )
+    learn_background: bool = True
+    sky_from_invalid_prior: bool = Field(True, description="treat pixels with an invalid depth prior as sky")
+    sky_alpha_weight: float = Field(0.1, ge=0, description="weight of mean alpha over sky pixels")
+    holdout_every: int = Field(8, ge=0, description="every Nth view is held out for evaluation; 0 = none")
+    checkpoint_every_iters: int = Field(1000, ge=1)
+    near: float = Field(0.01, gt=0)
+    far: float = Field(1e10, gt=0)
+    seed: int = Field(0, ge=0)
+
+
+@dataclass
+class Views:
+    """Posed frames in the training frame. frames (T,H,W,3) uint8 or float in [0,1]; w2c (T,4,4) W2C;
+    K (3,3) or (T,3,3) pixels; prior_depth (T,H,W) camera z, any affine scale, +inf/NaN/<=0 invalid;
+    prior_normals (T,H,W,3) camera-space unit normals facing the camera (zero = invalid);
+    masks (T,H,W) bool, pixels whose priors may be used; sky (T,H,W) bool, pixels of sky."""
+
+    frames: np.ndarray
+    w2c: np.ndarray
+    K: np.ndarray
+    prior_depth: np.ndarray | None = None
+    prior_normals: np.ndarray | None = None
+    masks: np.ndarray | None = None
+    sky: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def K_of(self, i: int) -> np.ndarray:
+        return self.K if self.K.ndim == 2 else self.K[i]
+
+
+def normalize_views(views: Views, norm: SceneNormalization) -> Views:
+    """The same views in the normalised frame (poses mapped; depth priors scaled by norm.scale)."""
+    depth = None if views.prior_depth is None else views.prior_depth * norm.scale
+    return Views(views.frames, norm.apply_w2c(views.w2c), views.K, depth, views.prior_normals, views.masks, views.sky)
+
+
+def split_views(n_views: int, holdout_every: int) -> tuple[list[int], list[int]]:
+    """(train, test) view indices: test = every `holdout_every`-th view (indices N-1, 2N-1, ...)."""
+    if holdout_every <= 1 or n_views < 2:
+        return list(range(n_views)), []
+    test = [i for i in range(n_views) if i % holdout_every == holdout_every - 1]
+    return [i for i in range(n_views) if i not in test], test
+
+
+def _make_strategy(params: TrainParams) -> DefaultStrategy | MCMCStrategy | None:
+    if params.strategy == "default":
+        d = params.densify
+        return DefaultStrategy(
+            prune_opa=d.prune_opacity,
+            grow_grad2d=d.grow_grad2d_ndc,
+            grow_scale3d=d.grow_scale3d_rel,
+            prune_scale3d=d.prune_scale3d_rel,
+            refine_start_iter=d.start_iter,
+            refine_stop_iter=d.stop_iter,
+            refine_every=d.every_iters,
+            reset_every=d.reset_opacity_every_iters,
+            reset_opacity=d.reset_opacity,
+            max_gaussians=params.max_gaussians,
+        )
+    if params.strategy == "mcmc":
+        m = params.mcmc
+        return MCMCStrategy(
+            cap_max=params.max_gaussians or 1_000_000,
+            noise_lr=m.noise_lr,
+            refine_start_iter=m.start_iter,
+            refine_stop_iter=m.stop_iter,
+            refine_every=m.every_iters,
+            min_opacity=m.min_opacity,
+            opacity_reg=m.opacity_reg,
+            scale_reg=m.scale_reg,
+        )
+    return None
+
+
+def _lr_means(params: TrainParams, step: int) -> float:
+    t = min(step / max(params.iterations, 1), 1.0)
+    return params.lr_means * params.scene_scale * params.lr_means_final_ratio**t
+
+
+class _Data:
+    """The views as tensors on the renderer's device, with per-view sky and validity masks."""
+
+    def __init__(self, views: Views, params: TrainParams, device: str) -> None:
+        frames = np.asarray(views.frames)
+        frames = frames.astype(np.float32) / 255.0 if frames.dtype == np.uint8 else frames.astype(np.float32)
+        self.frames = torch.from_numpy(frames).to(device)
+        self.w2c = torch.from_numpy(np.asarray(views.w2c, dtype=np.float32)).to(device)
+        self.K = [torch.from_numpy(np.asarray(views.K_of(i), dtype=np.float32)).to(device) for i in range(len(views))]
+        t, h, w = frames.shape[:3]
+        self.depth = None if views.prior_depth is None else torch.from_numpy(views.prior_depth.astype(np.float32))
+        self.normals = None if views.prior_normals is None else torch.from_numpy(views.prior_normals.astype(np.float32))
+        sky = np.zeros((t, h, w), bool) if views.sky is None else np.asarray(views.sky, bool).copy()
+        if params.sky_from_invalid_prior and views.prior_depth is not None:
+            with np.errstate(invalid="ignore"):
+                sky |= ~(np.isfinite(views.prior_depth) & (views.prior_depth > 0))
+        self.sky = torch.from_numpy(sky).to(device)
+        valid = ~sky if views.masks is None else (np.asarray(views.masks, bool) & ~sky)
+        self.valid = torch.from_numpy(valid).to(device)
+        if self.depth is not None:
+            self.depth = self.depth.to(device)
+        if self.normals is not None:
+            self.normals = self.normals.to(device)
+        self.height, self.width = h, w
+
+    def sky_colour(self) -> np.ndarray | None:
+        if not bool(self.sky.any()):
+            return None
+        return self.frames[self.sky].median(dim=0).values.cpu().numpy()
+
+
+def _render_view(model: GaussianModel, data: _Data, i: int, renderer: Renderer, params: TrainParams, bg, sh: int):
+    return renderer(
+        model.means,
+        model.quats,
+        torch.exp(model.log_scales),
+        torch.sigmoid(model.logit_opacities),
+        torch.cat([model.sh0, model.shN], dim=1),
+        data.w2c[i],
+        data.K[i],
+        data.width,
+        data.height,
+        near=params.near,
+        far=params.far,
+        background=bg,
+        sh_degree=sh,
+    )
+
+
+def _grads_finite(tensors: list[tuple[str, torch.Tensor]]) -> str | None:
+    """Name of the first tensor whose gradient has a NaN or inf, else None."""
+    for name, t in tensors:
+        if t.grad is not None and not bool(torch.isfinite(t.grad).all()):
+            return name
+    return None
+
+
+@torch.no_grad()
+def evaluate(
+    model: GaussianModel, views: Views, indices: list[int], renderer: Renderer, params: TrainParams, background
+) -> dict[str, float]:
+    """Mean PSNR / SSIM (wonderverse.metrics) of the renders of `indices` against their frames."""
+    from wonderverse.metrics import psnr, ssim
+
+    if not indices:
+        return {}
+    data = _Data(views, params, renderer.device)
+    sh = min(params.sh_degree, model.sh_degree)
+    ps, ss = [], []
+    for i in indices:
+        rgb = _render_view(model, data, i, renderer, params, background, sh)[0].clamp(0, 1).cpu().numpy()
+        gt = data.frames[i].cpu().numpy()
+        ps.append(psnr(rgb, gt))
+        if min(rgb.shape[:2]) >= 11:
+            ss.append(ssim(rgb, gt))
+    out = {"psnr": float(np.mean(ps))}
+    if ss:
+        out["ssim"] = float(np.mean(ss))
+    return out
+
+
+def train(
+    model: GaussianModel,
+    views: Views,
+    params: TrainParams,
+    renderer: Renderer,
+    checkpoint_cb: Callable[[int, dict[str, Any]], None] | None = None,
+    resume_state: dict[str, Any] | None = None,
+) -> tuple[GaussianModel, dict[str, list[float]], dict[str, Any]]:
+    """Optimise `model` on `views` (see the module docstring). Returns (model, curves, metrics).
+
+    curves: per iteration lists of every loss term, n_gaussians and step seconds ("skipped" marks steps
+    with non-finite gradients). metrics: test/train PSNR and SSIM, view split, final Gaussian count, time.
+    checkpoint_cb(step, state) is called every `checkpoint_every_iters` iterations and at the end; passing
+    such a state as `resume_state` continues training from it (same views and params).
+    """
+    device = renderer.device
+    model = model.to(device)
+    data = _Data(views, params, device)
+    train_ids, test_ids = split_views(len(views), params.holdout_every)
+    if not train_ids:
+        raise ValueError("no views to train on")
+    gen = torch.Generator().manual_seed(params.seed)
+    torch.manual_seed(params.seed)
+    if params.background_rgb is not None:
+        bg0 = np.asarray(params.background_rgb, np.float32)
+    else:
+        sky = data.sky_colour()
+        bg0 = sky if sky is not None else np.zeros(3, np.float32)
+    background = torch.nn.Parameter(torch.tensor(bg0, dtype=torch.float32, device=device))
+    lrs = {
+        "means": _lr_means(params, 0),
+        "quats": params.lr_quats,
+        "log_scales": params.lr_log_scales,
+        "logit_opacities": params.lr_logit_opacities,
+        "sh0": params.lr_sh0,
+        "shN": params.lr_shN,
+    }
+    pdict = model.param_dict()
+    optimizers = {k: torch.optim.Adam([p], lr=lrs[k], eps=1e-15) for k, p in pdict.items()}
+    bg_opt = torch.optim.Adam([background], lr=params.lr_background if params.learn_background else 0.0)
+    strategy = _make_strategy(params)
+    strategy_state = strategy.initialize_state(params.scene_scale) if strategy is not None else {}
+    curves: dict[str, list[float]] = {}
+    start = 0
+    if resume_state is not None:
+        start = int(resume_state["step"])
+        restored = GaussianModel.from_numpy(resume_state["params"], sh_degree=model.sh_degree).to(device)
+        model.replace_params(restored.param_dict())
+        pdict = model.param_dict()
+        optimizers = {k: torch.optim.Adam([p], lr=lrs[k], eps=1e-15) for k, p in pdict.items()}
+        for k, sd in resume_state["optimizers"].items():
+            optimizers[k].load_state_dict(sd)
+        background.data.copy_(torch.as_tensor(resume_state["background"]))
+        bg_opt.load_state_dict(resume_state["bg_optimizer"])
+        strategy_state = dict(resume_state["strategy_state"])
+        curves = {k: list(v) for k, v in resume_state["curves"].items()}
+        gen.set_state(resume_state["rng_views"])
+        torch.set_rng_state(resume_state["rng_torch"])
+    order: list[int] = []
+    if resume_state is not None:
+        order = list(resume_state["order"])
+
+    def snapshot(step: int) -> dict[str, Any]:
+        return {
+            "step": step,
+            "params": model.to_numpy(),
+            # Deep copies: a state_dict holds the live moment tensors, which later steps update in place.
+            "optimizers": {k: copy.deepcopy(o.state_dict()) for k, o in optimizers.items()},
+            "background": background.detach().cpu().numpy().copy(),
+            "bg_optimizer": copy.deepcopy(bg_opt.state_dict()),
+            "strategy_state": {k: (v.clone() if torch.is_tensor(v) else v) for k, v in strategy_state.items()},
+            "curves": {k: list(v) for k, v in curves.items()},
+            "rng_views": gen.get_state(),
+            "rng_torch": torch.get_rng_state(),
+            "order": list(order),
+        }
+
+    t_start = time.perf_counter()
+    for step in range(start, params.iterations):
+        t0 = time.perf_counter()
+        if not order:
+            order = [train_ids[j] for j in torch.randperm(len(train_ids), generator=gen).tolist()]
+        i = order.pop()
+        lr_m = _lr_means(params, step)
+        for g in optimizers["means"].param_groups:
+            g["lr"] = lr_m
+        sh = min(step // params.sh_degree_interval_iters, params.sh_degree, model.sh_degree)
+        rgb, depth, alpha, normals, info = _render_view(model, data, i, renderer, params, background, sh)
+        if strategy is not None and model.num_gaussians:
+            strategy.step_pre_backward(pdict, optimizers, strategy_state, step, info)
+        loss, terms = total_loss(
+            rgb,
+            data.frames[i],
+            depth,
+            alpha,
+            normals,
+            params.loss,
+            prior_depth=None if data.depth is None else data.depth[i],
+            prior_normals=None if data.normals is None else data.normals[i],
+            depth_valid=data.valid[i],
+            normal_valid=data.valid[i],
+        )
+        sky = data.sky[i]
+        if params.sky_alpha_weight > 0 and bool(sky.any()):
+            sky_term = alpha[..., 0][sky].mean()
+            loss = loss + params.sky_alpha_weight * sky_term
+            terms["sky_alpha"] = float(sky_term.detach())
+        if strategy is not None:
+            loss = loss + strategy.regularization(pdict)
+        loss.backward()
+        bad = "loss" if not math.isfinite(float(loss.detach())) else None
+        bad = bad or _grads_finite([*pdict.items(), ("background", background)])
+        if bad is not None:
+            log.warning("splat training step %d (view %d): non-finite %s; step skipped", step, i, bad)
+            for o in [*optimizers.values(), bg_opt]:
+                o.zero_grad(set_to_none=True)
+            curves.setdefault("skipped", []).append(float(step))
+            continue
+        for o in [*optimizers.values(), bg_opt]:
+            o.step()
+            o.zero_grad(set_to_none=True)
+        if strategy is not None and model.num_gaussians:
+            n_before = model.num_gaussians
+            strategy.step_post_backward(pdict, optimizers, strategy_state, step, info, lr=lr_m)
+            model.replace_params(pdict)
+            pdict = model.param_dict()
+            if model.num_gaussians != n_before:
+                log.debug("step %d: %d -> %d Gaussians", step, n_before, model.num_gaussians)
+        terms["total"] = float(loss.detach())
+        for k, v in terms.items():
+            curves.setdefault(k, []).append(float(v))
+        curves.setdefault("n_gaussians", []).append(float(model.num_gaussians))
+        curves.setdefault("step_s", []).append(time.perf_counter() - t0)
+        if checkpoint_cb is not None and (step + 1) % params.checkpoint_every_iters == 0:
+            checkpoint_cb(step + 1, snapshot(step + 1))
+    if checkpoint_cb is not None and params.iterations % params.checkpoint_every_iters != 0:
+        checkpoint_cb(params.iterations, snapshot(params.iterations))
+    bg_final = background.detach()
+    metrics: dict[str, Any] = {
+        "train_views": train_ids,
+        "test_views": test_ids,
+        "n_gaussians": model.num_gaussians,
+        "seconds": time.perf_counter() - t_start,
+        "background_rgb": bg_final.cpu().tolist(),
+        "skipped_steps": len(curves.get("skipped", [])),
+    }
+    for name, ids in (("test", test_ids), ("train", train_ids[:8])):
+        for k, v in evaluate(model, views, ids, renderer, params, bg_final).items():
+            metrics[f"{name}_{k}"] = v
+    return model, curves, metrics
