@@ -148,3 +148,13 @@ def test_checkpoint_and_resume_reproduce_the_run(scene: dict) -> None:
     for k, v in full.param_dict().items():
         np.testing.assert_allclose(resumed.param_dict()[k].detach().numpy(), v.detach().numpy(), atol=1e-5, err_msg=k)
     np.testing.assert_allclose(curves2["total"], curves["total"], rtol=1e-4)
+
+
+def test_empty_model_trains_the_background_only(scene: dict) -> None:
+    from wonderverse.splats.model import GaussianModel
+
+    params = TrainParams(**{**FAST, "iterations": 10}, strategy="default", background_rgb=(0.0, 0.0, 0.0))
+    model, curves, metrics = train(GaussianModel.empty(1), scene["views"], params, make_renderer("torch"))
+    assert model.num_gaussians == 0 and metrics["skipped_steps"] == 0
+    assert np.isfinite(curves["total"]).all() and curves["rgb"][-1] < curves["rgb"][0]
+    assert min(metrics["background_rgb"]) > 0.05  # the background moved towards the frames' colours
