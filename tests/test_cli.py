@@ -119,7 +119,7 @@ def test_inspect_json_and_preview(scene: Path):
     r = run_cli("preview", str(scene))
     assert r.returncode == 0, r.stderr
     with imageio.get_reader(scene / "preview.mp4") as reader:
-        frames = list(reader)
+        frames = list(reader.iter_data())
     assert len(frames) == 16 and frames[0].shape == (64, 96, 3)
     assert Image.open(scene / "contact_sheet.png").size[0] > 100
 
