@@ -28,11 +28,6 @@ console = Console(stderr=True, width=None if sys.stderr.isatty() else 140)
 out = Console(width=None if sys.stdout.isatty() else 140)
 
 
-def _quiet_libraries() -> None:
-    # COLMAP's glog lines would bury the progress display.
-    os.environ.setdefault("GLOG_minloglevel", "2")
-
-
 def _quiet_prefect() -> None:
     # Local runs: keep Prefect's own chatter and telemetry out of the user's terminal and network.
     os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
@@ -140,7 +135,6 @@ def preview(scene_dir: Annotated[Path, typer.Argument(help="scene folder")]) -> 
 
 def main() -> None:
     """Entry point: user errors become one line on stderr and exit code 2."""
-    _quiet_libraries()
     try:
         app(standalone_mode=False)
     except WonderError as e:  # StepFailed included

@@ -22,6 +22,7 @@ which the incremental fallback then starts from. Reproducibility: with `num_thre
 
 from __future__ import annotations
 
+import os
 import tempfile
 import time
 from collections.abc import Sequence
@@ -34,6 +35,9 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 if TYPE_CHECKING:
     import pycolmap
+
+# COLMAP logs every mapper iteration through glog; keep warnings and errors only unless asked otherwise.
+os.environ.setdefault("GLOG_minloglevel", "2")
 
 
 class SfmParams(BaseModel):
