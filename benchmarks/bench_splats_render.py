@@ -11,8 +11,13 @@ number of tile intersections and drawn (Gaussian, pixel) pairs, which set the co
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import time
+
+# Idle OpenMP threads sleep instead of spinning: on a shared machine a spinning thread waiting for a
+# descheduled partner makes two threads several times slower than one. Must be set before torch loads.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 def main() -> None:

@@ -44,7 +44,7 @@ from torch import Tensor
 
 from wonderverse.splats.model import quat_to_rotmat, sh_colors
 
-TILE_SIZE = 8
+TILE_SIZE = 16  # gsplat's; the image does not depend on it (tested)
 EPS2D = 0.3  # px^2 added to the 2D covariance diagonal (gsplat's eps2d, a low-pass filter)
 ALPHA_THRESHOLD = 1.0 / 255.0  # alphas below this are skipped; also sets the opacity-aware box
 ALPHA_MAX = 0.999  # gsplat's clamp of a single Gaussian's alpha
