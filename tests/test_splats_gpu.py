@@ -96,3 +96,38 @@ def test_torch_renderer_matches_gsplat(sh_degree: int | None) -> None:
 @requires_gsplat
 def test_make_renderer_auto_picks_gsplat_on_cuda() -> None:
     assert make_renderer("auto").name == "gsplat"
+
+
+@requires_gsplat
+def test_training_with_gsplat_fits_and_densifies() -> None:
+    import numpy as np
+
+    from wonderverse.splats.model import init_from_points
+    from wonderverse.splats.trainer import DensifyParams, TrainParams, Views, train
+
+    # Frames of a known Gaussian scene, drawn by the float64 torch renderer from six cameras.
+    gt = _scene(500, seed=3, sh_degree=None)
+    gt["opacities"] = gt["opacities"].clamp_min(0.6)
+    torch_r = make_renderer("torch")
+    eyes = [[-0.6 + 0.24 * i, 0.1 * (i % 2), -0.3] for i in range(6)]
+    w2c = np.stack([look_at(e, [0.0, 0.0, 4.0]) for e in eyes])
+    frames, depths = [], []
+    for pose in w2c:
+        rgb, depth, alpha, _, _ = torch_r(
+            gt["means"], gt["quats"], gt["scales"], gt["opacities"], gt["colors"], torch.tensor(pose), gt["K"], W, H,
+            background=torch.tensor([0.6, 0.7, 0.9], dtype=torch.float64),
+        )  # fmt: skip
+        frames.append(rgb.clamp(0, 1).numpy())
+        depths.append(np.where(alpha[..., 0].numpy() > 0.5, (depth / alpha.clamp_min(1e-9))[..., 0].numpy(), np.inf))
+    views = Views(np.stack(frames).astype(np.float32), w2c, gt["K"].numpy(), np.stack(depths).astype(np.float32))
+    rng = np.random.default_rng(0)
+    pts = gt["means"].numpy() + rng.normal(scale=0.05, size=(500, 3))
+    model = init_from_points(pts, np.full((500, 3), 0.5), sh_degree=1, init_opacity=0.5)
+    dens = DensifyParams(start_iter=50, every_iters=50, reset_opacity_every_iters=0, grow_grad2d_ndc=5e-5)
+    params = TrainParams(iterations=300, sh_degree=1, holdout_every=3, strategy="default", densify=dens, lr_sh0=0.05)
+    model, curves, metrics = train(model, views, params, make_renderer("gsplat"))
+    print({k: metrics[k] for k in ("test_psnr", "train_psnr", "n_gaussians", "seconds")})
+    assert model.means.is_cuda and metrics["skipped_steps"] == 0
+    assert np.mean(curves["rgb"][-20:]) < 0.5 * np.mean(curves["rgb"][:20])
+    assert max(curves["n_gaussians"]) > 500
+    assert metrics["test_psnr"] > 20.0
