@@ -190,6 +190,10 @@ def test_normalization_preserves_projection(seed: int, offset: float, spread: fl
         np.testing.assert_allclose(z_n, norm.scale * z, rtol=1e-6, atol=1e-9 * np.abs(z).max())
     np.testing.assert_allclose(norm.invert_w2c(w2c_n), w2c, rtol=1e-9, atol=1e-9 * max(1.0, np.abs(w2c).max()))
     np.testing.assert_allclose(norm.invert_points(pts_n), pts, rtol=1e-9, atol=1e-9 * np.abs(pts).max())
+    sim3 = norm.to_sim3()  # x -> s R x + t cancels large offsets in a different order: looser tolerance
+    tol = 1e-9 * max(1.0, abs(offset) * norm.scale)
+    np.testing.assert_allclose(sim3.apply(pts), pts_n, rtol=1e-9, atol=tol * max(1.0, np.abs(pts_n).max()))
+    np.testing.assert_allclose(sim3.transform_w2c(w2c), w2c_n, rtol=1e-9, atol=tol)
     again = SceneNormalization.from_dict(norm.to_dict())
     np.testing.assert_array_equal(again.apply_points(pts), pts_n)
 

@@ -14,10 +14,14 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 import torch
 from torch import Tensor, nn
+
+if TYPE_CHECKING:
+    from wonderverse.camera import Sim3
 
 # Real SH constants of the INRIA 3DGS code (utils/sh_utils.py), used by gsplat too.
 SH_C0 = 0.28209479177387814
@@ -222,6 +226,12 @@ class SceneNormalization:
             extent = float(np.median(np.linalg.norm(np.asarray(points, np.float64) - center, axis=1)))
         scale = target_radius / extent if extent > 1e-9 and np.isfinite(extent) else 1.0
         return SceneNormalization(center=center, scale=scale)
+
+    def to_sim3(self) -> Sim3:
+        """The same map as a `camera.Sim3` (x -> s R x + t with t = -s R c)."""
+        from wonderverse.camera import Sim3
+
+        return Sim3(self.scale, self.rotation, -self.scale * (self.rotation @ self.center))
 
     def to_dict(self) -> dict[str, list[float] | float]:
         return {
