@@ -65,6 +65,18 @@ def _model(scene: dict, sh_degree: int = 1):
 FAST = {"iterations": 150, "sh_degree": 1, "sh_degree_interval_iters": 100, "holdout_every": 4}
 
 
+def test_auto_scene_scale() -> None:
+    from wonderverse.camera import look_at
+    from wonderverse.splats.trainer import auto_scene_scale
+
+    w2c = np.stack([look_at(np.array([x, 0.0, 0.0]), np.array([x, 10.0, 0.0])) for x in (-1.0, 1.0)])
+    near = np.array([[0.0, 0.5, 0.0], [0.2, 0.3, 0.0], [0.0, 0.4, 0.1]])
+    assert auto_scene_scale(w2c, near) == pytest.approx(1.1)  # the camera extent dominates
+    far = np.array([[0.0, 30.0, 0.0], [0.0, 40.0, 0.0], [0.0, 50.0, 0.0]])
+    assert auto_scene_scale(w2c, far) == pytest.approx(40.0)  # the median distance of the content
+    assert auto_scene_scale(w2c[:1], np.zeros((0, 3))) == 1.0
+
+
 def test_split_views() -> None:
     assert split_views(16, 8) == ([*range(7), *range(8, 15)], [7, 15])
     assert split_views(5, 0) == ([0, 1, 2, 3, 4], [])
@@ -107,6 +119,9 @@ def test_densification_and_mcmc_change_the_model_size(scene: dict) -> None:
     model, curves, metrics = train(model, scene["views"], params, renderer)
     assert metrics["n_gaussians"] == model.num_gaussians == int(curves["n_gaussians"][-1])
     assert max(curves["n_gaussians"]) > n0
+    # The step-40 refinement prunes "too big" Gaussians; relative to the automatic scene scale (the
+    # distant content, not the 0.6 m camera path) they are not, so the model survives.
+    assert curves["n_gaussians"][-1] > n0 and metrics["scene_scale"] > 10
     assert np.isfinite(curves["total"]).all()
 
     mcmc = MCMCParams(start_iter=5, every_iters=10)

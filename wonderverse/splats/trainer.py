@@ -87,7 +87,9 @@ class TrainParams(BaseModel):
     densify: DensifyParams = DensifyParams()
     mcmc: MCMCParams = MCMCParams()
     max_gaussians: int | None = Field(300_000, ge=1, description="Gaussian budget (cap of either strategy)")
-    scene_scale: float = Field(1.0, gt=0, description="scene extent the lengths above are relative to")
+    scene_scale: float | None = Field(
+        None, gt=0, description="scene extent the lengths above are relative to; None = `auto_scene_scale`"
+    )
     background_rgb: tuple[float, float, float] | None = Field(
         None, description="initial background (sky) colour; None = median colour of the sky pixels, else black"
     )
@@ -167,9 +169,25 @@ def _make_strategy(params: TrainParams) -> DefaultStrategy | MCMCStrategy | None
     return None
 
 
-def _lr_means(params: TrainParams, step: int) -> float:
+def auto_scene_scale(w2c: np.ndarray, means: np.ndarray) -> float:
+    """The scene extent that learning rates and densification sizes are relative to: the larger of 3DGS's
+    camera extent (1.1 x the largest camera distance from the cameras' centroid) and the median distance
+    of the initial Gaussians from that centroid. The second term matters for videos whose camera moves
+    little compared with the distance to what it sees: relative to the camera extent alone, every
+    Gaussian of a distant scene would be "too big" and pruned, and means would barely move."""
+    w2c = np.asarray(w2c, dtype=np.float64).reshape(-1, 4, 4)
+    centres = -np.einsum("nji,nj->ni", w2c[:, :3, :3], w2c[:, :3, 3])
+    c = centres.mean(axis=0)
+    cam = 1.1 * float(np.max(np.linalg.norm(centres - c, axis=1))) if len(centres) else 0.0
+    means = np.asarray(means, dtype=np.float64).reshape(-1, 3)
+    content = float(np.median(np.linalg.norm(means - c, axis=1))) if len(means) else 0.0
+    scale = max(cam, content)
+    return scale if np.isfinite(scale) and scale > 1e-9 else 1.0
+
+
+def _lr_means(params: TrainParams, scene_scale: float, step: int) -> float:
     t = min(step / max(params.iterations, 1), 1.0)
-    return params.lr_means * params.scene_scale * params.lr_means_final_ratio**t
+    return params.lr_means * scene_scale * params.lr_means_final_ratio**t
 
 
 class _Data:
@@ -282,8 +300,13 @@ def train(
         sky = data.sky_colour()
         bg0 = sky if sky is not None else np.zeros(3, np.float32)
     background = torch.nn.Parameter(torch.tensor(bg0, dtype=torch.float32, device=device))
+    scene_scale = params.scene_scale
+    if resume_state is not None and "scene_scale" in resume_state:
+        scene_scale = float(resume_state["scene_scale"])
+    if scene_scale is None:
+        scene_scale = auto_scene_scale(views.w2c, model.means.detach().cpu().numpy())
     lrs = {
-        "means": _lr_means(params, 0),
+        "means": _lr_means(params, scene_scale, 0),
         "quats": params.lr_quats,
         "log_scales": params.lr_log_scales,
         "logit_opacities": params.lr_logit_opacities,
@@ -294,7 +317,7 @@ def train(
     optimizers = {k: torch.optim.Adam([p], lr=lrs[k], eps=1e-15) for k, p in pdict.items()}
     bg_opt = torch.optim.Adam([background], lr=params.lr_background if params.learn_background else 0.0)
     strategy = _make_strategy(params)
-    strategy_state = strategy.initialize_state(params.scene_scale) if strategy is not None else {}
+    strategy_state = strategy.initialize_state(scene_scale) if strategy is not None else {}
     curves: dict[str, list[float]] = {}
     start = 0
     if resume_state is not None:
@@ -318,6 +341,7 @@ def train(
     def snapshot(step: int) -> dict[str, Any]:
         return {
             "step": step,
+            "scene_scale": scene_scale,
             "params": model.to_numpy(),
             # Deep copies: a state_dict holds the live moment tensors, which later steps update in place.
             "optimizers": {k: copy.deepcopy(o.state_dict()) for k, o in optimizers.items()},
@@ -336,7 +360,7 @@ def train(
         if not order:
             order = [train_ids[j] for j in torch.randperm(len(train_ids), generator=gen).tolist()]
         i = order.pop()
-        lr_m = _lr_means(params, step)
+        lr_m = _lr_means(params, scene_scale, step)
         for g in optimizers["means"].param_groups:
             g["lr"] = lr_m
         sh = min(step // params.sh_degree_interval_iters, params.sh_degree, model.sh_degree)
@@ -395,6 +419,7 @@ def train(
         "train_views": train_ids,
         "test_views": test_ids,
         "n_gaussians": model.num_gaussians,
+        "scene_scale": scene_scale,
         "seconds": time.perf_counter() - t_start,
         "background_rgb": bg_final.cpu().tolist(),
         "skipped_steps": len(curves.get("skipped", [])),
