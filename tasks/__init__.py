@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from tasks import check, generate_segments, plan, poses, priors
+from tasks import check, generate_segments, plan, poses, priors, splats
 from tasks.base import Step, StepResult, step_keys
 
-STEPS: list[Step] = [plan.STEP, generate_segments.STEP, check.STEP, poses.STEP, priors.STEP]
+STEPS: list[Step] = [plan.STEP, generate_segments.STEP, check.STEP, poses.STEP, priors.STEP, splats.STEP]
 STEP_NAMES = [s.name for s in STEPS]
 
 __all__ = ["STEPS", "STEP_NAMES", "Step", "StepResult", "step_keys", "steps_until"]

@@ -2,7 +2,7 @@
 per image (scale and shift) to the global SfM points seen in that frame. Segments run in parallel.
 
 Writes `priors/<seg>/`: depth (T,H,W) f32 (aligned depth in SfM units where the alignment held, else
-the prior turned into depth), normals (T,H,W,3) f16 camera space, scale/shift/aligned (T,) and attrs
+the prior turned into depth; +inf for sky), normals (T,H,W,3) f16 camera space, scale/shift/aligned (T,) and attrs
 with the prior kind and the alignment reasons."""
 
 from __future__ import annotations
@@ -22,7 +22,7 @@ VERSION = 1
 
 
 def _params(cfg: RunConfig) -> dict[str, Any]:
-    return {"models": cfg.steps.priors.models}
+    return {"priors": cfg.steps.priors.model_dump(exclude={"workers"})}
 
 
 def _ground_truth(store: SceneStore, ap: str) -> Any:
@@ -80,6 +80,8 @@ def priors_segment(seg: str, scene_dir: str, cfg: RunConfig, step_key: str) -> d
         ref = project_points(points, poses[t], K) if np.isfinite(poses[t]).all() else np.zeros((0, 3))
         r = align_scale_shift(pred.depth[t], ref, space=pred.kind, params=p.align)
         depth[t], scale[t], shift[t] = r.aligned_depth, r.scale, r.shift
+        if len(ref):  # monocular networks put the sky far away, not at infinity: mark it as sky (+inf)
+            depth[t][depth[t] > cfg.steps.priors.sky_beyond_ref * ref[:, 2].max()] = np.inf
         ok.append(r.ok)
         if not r.ok:
             reasons.append(f"frame {t}: {r.reason}")
@@ -112,4 +114,4 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     return f"{len(segs)} segments, {aligned}/{total} frames aligned to SfM ({out[0]['kind'] if out else '-'})"
 
 
-STEP = Step("priors", 1, ("poses",), _params, run, "depth and normal priors, aligned to SfM")
+STEP = Step("priors", 2, ("poses",), _params, run, "depth and normal priors, aligned to SfM")

@@ -229,9 +229,7 @@ def test_slerp_of_nearly_identical_quats(a0: np.ndarray, axis: np.ndarray, eps: 
 
 @FAST
 @given(seeds, unit_vectors, st.floats(0.0, PI))
-def test_geodesic_angle_symmetric_and_equals_generating_angle(
-    seed: int, axis: np.ndarray, theta: float
-) -> None:
+def test_geodesic_angle_symmetric_and_equals_generating_angle(seed: int, axis: np.ndarray, theta: float) -> None:
     R0 = random_rotation(np.random.default_rng(seed))
     R1 = R0 @ so3_exp(axis * theta)
     g01 = geodesic_angle(R0, R1)
@@ -468,12 +466,8 @@ def test_move_path_directions_in_the_image() -> None:
     up = move_path(start, 0.0, np.radians(45), 0.0, 0.0, 5)[-1]
     assert abs(pixel_y_sign(up, bird)) < 1e-12
     # Forward moves along +x, a positive strafe to the left (+y), keeping the height.
-    np.testing.assert_allclose(
-        camera_centers(move_path(start, 0.0, 0.3, 2.0, 0.0, 3)[-1]), [2.0, 0, 1], atol=1e-12
-    )
-    np.testing.assert_allclose(
-        camera_centers(move_path(start, 0.5, 0.0, 0.0, 1.5, 3)[-1]), [0, 1.5, 1], atol=1e-12
-    )
+    np.testing.assert_allclose(camera_centers(move_path(start, 0.0, 0.3, 2.0, 0.0, 3)[-1]), [2.0, 0, 1], atol=1e-12)
+    np.testing.assert_allclose(camera_centers(move_path(start, 0.5, 0.0, 0.0, 1.5, 3)[-1]), [0, 1.5, 1], atol=1e-12)
     # Ease: smoothstep progress, halfway at the middle frame, slow at the ends.
     eased = camera_centers(move_path(start, 0.0, 0.0, 4.0, 0.0, 5, ease=True))
     np.testing.assert_allclose(eased[:, 0], 4.0 * np.array([0.0, 5 / 32, 0.5, 27 / 32, 1.0]), atol=1e-12)

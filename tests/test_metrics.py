@@ -159,9 +159,7 @@ def test_normal_errors_ignore_zero_and_nan_normals() -> None:
     pred = np.array([[0.0, 0, 1], [0.0, 1, 1], [np.nan, 0, 1], [0.0, 0, 1], [0.0, 0, 0]])
     r = normal_errors(pred, gt)
     assert r["n"] == 2  # only the first two rows are usable: 0° and 45°
-    np.testing.assert_allclose(
-        [r["mean_deg"], r["median_deg"], r["pct_11_25"]], [22.5, 22.5, 50.0], atol=1e-12
-    )
+    np.testing.assert_allclose([r["mean_deg"], r["median_deg"], r["pct_11_25"]], [22.5, 22.5, 50.0], atol=1e-12)
     r = normal_errors(pred, gt, mask=np.array([False, True, True, True, True]))
     np.testing.assert_allclose(r["mean_deg"], 45.0, atol=1e-12)
     # float16 storage: a tiny but nonzero angle is measured, not rounded to 0 by arccos.

@@ -42,9 +42,7 @@ class Reply:
 
 def completion(content: str) -> Reply:
     return Reply(
-        body=json.dumps(
-            {"choices": [{"index": 0, "message": {"role": "assistant", "content": content}}]}
-        ).encode()
+        body=json.dumps({"choices": [{"index": 0, "message": {"role": "assistant", "content": content}}]}).encode()
     )
 
 
@@ -69,9 +67,7 @@ def server(monkeypatch: pytest.MonkeyPatch) -> Iterator[ChatServer]:
     class Handler(BaseHTTPRequestHandler):
         def do_POST(self) -> None:
             body = self.rfile.read(int(self.headers.get("Content-Length", 0)))
-            state.requests.append(
-                {"path": self.path, "headers": dict(self.headers), "json": json.loads(body)}
-            )
+            state.requests.append({"path": self.path, "headers": dict(self.headers), "json": json.loads(body)})
             reply = state.reply()
             time.sleep(reply.delay_s)
             try:
@@ -103,9 +99,7 @@ def key(monkeypatch: pytest.MonkeyPatch) -> str:
 
 
 def planner(url: str, **spec: object) -> ChatPlanner:
-    return ChatPlanner(
-        PlannerSpec(backend="chat", base_url=url, model="test-model", api_key_env=KEY_ENV, **spec)
-    )
+    return ChatPlanner(PlannerSpec(backend="chat", base_url=url, model="test-model", api_key_env=KEY_ENV, **spec))
 
 
 def assert_fallback(plan: Plan, caplog: pytest.LogCaptureFixture, *reason_parts: str) -> None:
@@ -113,9 +107,7 @@ def assert_fallback(plan: Plan, caplog: pytest.LogCaptureFixture, *reason_parts:
     assert plan.segments == plan_scene(DESCRIPTION, EXTENSIONS, PARAMS).segments
     for part in reason_parts:
         assert part in plan.fallback_reason
-    warnings = [
-        r for r in caplog.records if r.name == "wonderverse.planning" and r.levelno == logging.WARNING
-    ]
+    warnings = [r for r in caplog.records if r.name == "wonderverse.planning" and r.levelno == logging.WARNING]
     assert len(warnings) == 1 and plan.fallback_reason in warnings[0].getMessage()
     assert "\n" not in warnings[0].getMessage()
     assert_no_key(plan.model_dump_json(), caplog.text, plan.fallback_reason)
@@ -212,9 +204,7 @@ def test_server_error_is_retried(server: ChatServer, key: str) -> None:
     assert plan.planner == "chat" and len(server.requests) == 2
 
 
-def test_persistent_server_error_falls_back(
-    server: ChatServer, key: str, caplog: pytest.LogCaptureFixture
-) -> None:
+def test_persistent_server_error_falls_back(server: ChatServer, key: str, caplog: pytest.LogCaptureFixture) -> None:
     server.replies.append(Reply(status=503, body=b"busy"))
     plan = planner(server.url, max_retries=2).plan_scene(DESCRIPTION, EXTENSIONS, PARAMS)
     assert_fallback(plan, caplog, "HTTP 503", "after 3 attempt(s)")
@@ -232,9 +222,7 @@ def test_unauthorized_is_not_retried_and_never_leaks_the_key(
 
 
 def test_slow_server_times_out(server: ChatServer, key: str, caplog: pytest.LogCaptureFixture) -> None:
-    server.replies.append(
-        Reply(body=completion("up 0, left 30, forward 1\nup 0, right 30, forward 1").body, delay_s=3)
-    )
+    server.replies.append(Reply(body=completion("up 0, left 30, forward 1\nup 0, right 30, forward 1").body, delay_s=3))
     start = time.monotonic()
     plan = planner(server.url, timeout_s=0.5, max_retries=1).plan_scene(DESCRIPTION, EXTENSIONS, PARAMS)
     assert time.monotonic() - start < 2.5

@@ -167,9 +167,7 @@ def _number(limit: int) -> st.SearchStrategy[tuple[str, float]]:
 
 
 def _clause(plus: str, minus: str, limit: int, units: list[str]) -> st.SearchStrategy[tuple[str, float]]:
-    return st.tuples(
-        st.booleans(), _number(limit), st.sampled_from(["", *units]), st.sampled_from(["", " "])
-    ).map(
+    return st.tuples(st.booleans(), _number(limit), st.sampled_from(["", *units]), st.sampled_from(["", " "])).map(
         lambda t: (
             f"{plus if t[0] else minus} {t[1][0]}{t[3] if t[2] else ''}{t[2]}",
             t[1][1] if t[0] else -t[1][1],

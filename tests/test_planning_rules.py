@@ -122,13 +122,9 @@ def test_bad_initial_move_names_the_setting() -> None:
 
 
 def test_initial_move_is_clamped_to_the_limits() -> None:
-    plan = plan_scene(
-        "x", ExtensionSpec(rounds=0), PlanParams(initial_move="up 80, left 180, forward 2"), fov_deg=90
-    )
+    plan = plan_scene("x", ExtensionSpec(rounds=0), PlanParams(initial_move="up 80, left 180, forward 2"), fov_deg=90)
     assert plan.segments[0].move == CameraMove(yaw_deg=180, pitch_deg=60, forward_m=2)
-    plan = plan_scene(
-        "x", ExtensionSpec(rounds=0), PlanParams(initial_move="up 0, left 180, forward 2"), fov_deg=200
-    )
+    plan = plan_scene("x", ExtensionSpec(rounds=0), PlanParams(initial_move="up 0, left 180, forward 2"), fov_deg=200)
     assert plan.segments[0].move.yaw_deg == 160
 
 
@@ -154,13 +150,9 @@ SIGN |= {"forward": ("forward_m", 1), "back": ("forward_m", -1)}
     rounds=st.integers(0, 16),
     directions=st.lists(st.sampled_from(list(SIGN)), min_size=1, max_size=4),
     fov_deg=st.floats(20, 160),
-    initial=st.sampled_from(
-        ["right 30, up 0, forward 2", "up 45, left 90, forward 0", "down 30, right 0, back 1"]
-    ),
+    initial=st.sampled_from(["right 30, up 0, forward 2", "up 45, left 90, forward 0", "down 30, right 0, back 1"]),
 )
-def test_rule_plans_never_repeat_views(
-    rounds: int, directions: list[str], fov_deg: float, initial: str
-) -> None:
+def test_rule_plans_never_repeat_views(rounds: int, directions: list[str], fov_deg: float, initial: str) -> None:
     spec = ExtensionSpec(rounds=rounds, directions=tuple(directions))
     params = PlanParams(initial_move=initial)
     plan = plan_scene("x", spec, params, fov_deg=fov_deg)

@@ -103,7 +103,8 @@ def test_training_with_gsplat_fits_and_densifies() -> None:
     import numpy as np
 
     from wonderverse.splats.model import init_from_points
-    from wonderverse.splats.trainer import DensifyParams, TrainParams, Views, train
+    from wonderverse.splats.params import DensifyParams, TrainParams
+    from wonderverse.splats.trainer import Views, train
 
     # Frames of a known Gaussian scene, drawn by the float64 torch renderer from six cameras.
     gt = _scene(500, seed=3, sh_degree=None)

@@ -8,13 +8,10 @@ import numpy as np
 import pytest
 import torch
 
-from wonderverse.splats.losses import LossParams
 from wonderverse.splats.model import SceneNormalization, init_from_points, voxel_downsample
+from wonderverse.splats.params import DensifyParams, LossParams, MCMCParams, TrainParams
 from wonderverse.splats.renderer import make_renderer
 from wonderverse.splats.trainer import (
-    DensifyParams,
-    MCMCParams,
-    TrainParams,
     Views,
     evaluate,
     normalize_views,

@@ -80,9 +80,7 @@ def skew(v: np.ndarray) -> np.ndarray:
 
 def _vee(A: np.ndarray) -> np.ndarray:
     """Axial vector (..., 3) of the antisymmetric part of (..., 3, 3) matrices: vee((A - A^T) / 2)."""
-    return 0.5 * np.stack(
-        [A[..., 2, 1] - A[..., 1, 2], A[..., 0, 2] - A[..., 2, 0], A[..., 1, 0] - A[..., 0, 1]], -1
-    )
+    return 0.5 * np.stack([A[..., 2, 1] - A[..., 1, 2], A[..., 0, 2] - A[..., 2, 0], A[..., 1, 0] - A[..., 0, 1]], -1)
 
 
 def _sinc(x: np.ndarray) -> np.ndarray:
@@ -127,9 +125,7 @@ def so3_log(R: np.ndarray) -> np.ndarray:
         small = v * ratio[..., None]
         # Large angles: a a^T = (sym(R) - cosθ I) / (1 - cosθ); take the column with the largest diagonal.
         one_minus_c = np.where(c < 0.0, 1.0 - c, 1.0)
-        M = (0.5 * (R + np.swapaxes(R, -1, -2)) - c[..., None, None] * np.eye(3)) / one_minus_c[
-            ..., None, None
-        ]
+        M = (0.5 * (R + np.swapaxes(R, -1, -2)) - c[..., None, None] * np.eye(3)) / one_minus_c[..., None, None]
         diag = np.diagonal(M, axis1=-2, axis2=-1)
         k = np.argmax(diag, axis=-1)
         col = np.take_along_axis(M, k[..., None, None], axis=-1)[..., 0]
@@ -171,9 +167,7 @@ def quat_from_matrix(R: np.ndarray) -> np.ndarray:
         ],
         -2,
     )
-    diag = np.stack(
-        [1.0 + r00 + r11 + r22, 1.0 + r00 - r11 - r22, 1.0 - r00 + r11 - r22, 1.0 - r00 - r11 + r22], -1
-    )
+    diag = np.stack([1.0 + r00 + r11 + r22, 1.0 + r00 - r11 - r22, 1.0 - r00 + r11 - r22, 1.0 - r00 - r11 + r22], -1)
     k = np.argmax(diag, axis=-1)
     q = np.take_along_axis(cands, k[..., None, None], axis=-2)[..., 0, :]
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
@@ -297,9 +291,7 @@ def _degenerate(points_centred: np.ndarray) -> bool:
     return bool(sv[0] == 0.0 or sv[1] <= UMEYAMA_DEGENERATE_RTOL * sv[0])
 
 
-def umeyama(
-    src: np.ndarray, dst: np.ndarray, with_scale: bool = True, allow_degenerate: bool = False
-) -> Sim3:
+def umeyama(src: np.ndarray, dst: np.ndarray, with_scale: bool = True, allow_degenerate: bool = False) -> Sim3:
     """Least-squares Sim3 (or SE3 when with_scale=False, s = 1) minimising sum ||dst - (s R src + t)||².
 
     src, dst: (N, 3) corresponding points. Umeyama (1991) with the reflection fix, so R is always a
@@ -321,9 +313,7 @@ def umeyama(
     if not allow_degenerate:
         for name, pts in (("src", xs), ("dst", xd)):
             if _degenerate(pts):
-                raise ValueError(
-                    f"umeyama: {name} points are collinear or coincident; the rotation is not unique"
-                )
+                raise ValueError(f"umeyama: {name} points are collinear or coincident; the rotation is not unique")
     n = src.shape[0]
     cov = xd.T @ xs / n
     U, D, Vt = np.linalg.svd(cov)
@@ -339,9 +329,7 @@ def umeyama(
             raise ValueError("umeyama: src points coincide; the scale is undefined")
         s = float(np.sum(D * S) / var_s)
         if not s > 0.0:
-            raise ValueError(
-                "umeyama: dst points coincide or are uncorrelated with src; scale is not positive"
-            )
+            raise ValueError("umeyama: dst points coincide or are uncorrelated with src; scale is not positive")
     else:
         s = 1.0
     return Sim3(s, R, mu_d - s * (R @ mu_s))
@@ -364,9 +352,7 @@ def _w2c_from(R: np.ndarray, centers: np.ndarray) -> np.ndarray:
     return out
 
 
-def interpolate_poses(
-    key_w2c: np.ndarray, key_times: np.ndarray, times: np.ndarray, ease: bool = True
-) -> np.ndarray:
+def interpolate_poses(key_w2c: np.ndarray, key_times: np.ndarray, times: np.ndarray, ease: bool = True) -> np.ndarray:
     """W2C poses (N, 4, 4) at `times` between key poses (K, 4, 4) at strictly increasing `key_times` (K,).
 
     Between two keys the rotation follows the slerp (shortest arc) and the camera centre the straight

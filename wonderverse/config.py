@@ -16,6 +16,7 @@ from wonderverse.check import CheckParams
 from wonderverse.errors import ConfigError
 from wonderverse.priors.params import PriorsParams
 from wonderverse.sfm import SfmParams
+from wonderverse.splats.params import TrainParams
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 PRESET_DIR = CONFIG_DIR / "presets"
@@ -131,7 +132,24 @@ class PriorsStepParams(Model):
     offline) is the oracle with realistic degradation; real video uses Depth Anything V2."""
 
     models: PriorsParams = PriorsParams(depth_backend="oracle", normal_backend="from_depth")
+    sky_beyond_ref: float = Field(
+        4.0, gt=1, description="aligned depth beyond this many times the farthest SfM point seen in the frame is sky"
+    )
     workers: int = Field(2, ge=1, le=256, description="segments processed at once (Dask)")
+
+
+class SplatsStepParams(Model):
+    """Step `splats`: geometry-aware 3D Gaussian splatting (RGB + depth + normal losses)."""
+
+    train: TrainParams = TrainParams()
+    renderer: Literal["auto", "torch", "gsplat"] = Field("auto", description="auto: gsplat whenever CUDA is there")
+    max_side_px: int = Field(480, ge=16, le=8192, description="frames are downscaled to this longer side")
+    frame_stride: int = Field(1, ge=1, description="train on every Nth stitched frame")
+    init_from_depth: bool = Field(True, description="add back-projected aligned prior depth to the SfM points")
+    init_depth_stride_px: int = Field(8, ge=1, description="pixel stride of the depth back-projection")
+    init_depth_frame_stride: int = Field(4, ge=1, description="views back-projected: every Nth")
+    init_voxel_frac: float = Field(0.01, gt=0, description="seeding voxel size, fraction of the scene scale")
+    init_opacity: float = Field(0.1, gt=0, lt=1)
 
 
 class StepsConfig(Model):
@@ -140,6 +158,7 @@ class StepsConfig(Model):
     check: CheckStepParams = CheckStepParams()
     poses: PosesParams = PosesParams()
     priors: PriorsStepParams = PriorsStepParams()
+    splats: SplatsStepParams = SplatsStepParams()
 
 
 class RunConfig(Model):

@@ -47,10 +47,7 @@ def ate(
         raise ValueError(f"ate: need at least 3 frames with finite est and gt poses, got {n}")
     c_est = camera_centers(est[valid])
     c_gt = camera_centers(gt[valid])
-    if align == "none":
-        T = Sim3.identity()
-    else:
-        T = umeyama(c_est, c_gt, with_scale=align == "sim3", allow_degenerate=True)
+    T = Sim3.identity() if align == "none" else umeyama(c_est, c_gt, with_scale=align == "sim3", allow_degenerate=True)
     rmse = float(np.sqrt(np.mean(np.sum((c_gt - T.apply(c_est)) ** 2, axis=-1))))
     path = float(np.sum(np.linalg.norm(np.diff(camera_centers(gt[gt_ok]), axis=0), axis=-1)))
     return {"rmse": rmse, "rmse_frac": rmse / path if path > 0.0 else float("nan"), "n": n}
@@ -148,9 +145,7 @@ def ssim(img: np.ndarray, ref: np.ndarray, max_val: float = 1.0) -> float:
     if x.ndim == 2:
         x, y = x[..., None], y[..., None]
     if x.ndim != 3 or min(x.shape[:2]) < SSIM_WIN:
-        raise ValueError(
-            f"ssim: need (H,W) or (H,W,C) images at least {SSIM_WIN} px on a side, got {x.shape}"
-        )
+        raise ValueError(f"ssim: need (H,W) or (H,W,C) images at least {SSIM_WIN} px on a side, got {x.shape}")
     r = np.arange(SSIM_WIN) - (SSIM_WIN - 1) / 2.0
     w = np.exp(-(r**2) / (2.0 * SSIM_SIGMA**2))
     w /= w.sum()

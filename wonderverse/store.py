@@ -86,9 +86,7 @@ class SceneStore:
             if scene_dir.exists() and not scene_dir.is_dir():
                 raise StoreError(f"output path {scene_dir} exists and is not a folder")
             if scene_dir.is_dir() and any(scene_dir.iterdir()):
-                raise StoreError(
-                    f"output folder {scene_dir} is not empty and holds no scene; choose another --out"
-                )
+                raise StoreError(f"output folder {scene_dir} is not empty and holds no scene; choose another --out")
             try:
                 scene_dir.mkdir(parents=True, exist_ok=True)
                 probe = scene_dir / f".write-probe-{uuid.uuid4().hex}"
@@ -159,9 +157,7 @@ class SceneStore:
         d = self._dir(group_path)
         if not d.is_dir():
             return []
-        return sorted(
-            p.name for p in d.iterdir() if (p / "zarr.json").is_file() and not p.name.startswith("_")
-        )
+        return sorted(p.name for p in d.iterdir() if (p / "zarr.json").is_file() and not p.name.startswith("_"))
 
     def remove(self, group_path: str) -> None:
         """Delete a group: moved aside first so a crash never leaves a half-deleted group in place."""
@@ -215,9 +211,7 @@ class SceneStore:
         return sum(f.stat().st_size for f in d.rglob("*") if f.is_file())
 
 
-def write_array(
-    group: zarr.Group, name: str, data: np.ndarray, chunks: tuple[int, ...] | None = None
-) -> zarr.Array:
+def write_array(group: zarr.Group, name: str, data: np.ndarray, chunks: tuple[int, ...] | None = None) -> zarr.Array:
     """Create `name` in `group` with an explicit dtype, shape and chunking and write `data`.
 
     Default chunking is one leading index per chunk (one frame), which suits per-frame access.

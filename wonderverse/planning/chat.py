@@ -70,9 +70,7 @@ class ChatPlanner:
             segments = _checked_segments([init], jobs, moves, params, fov_deg)
         except ChatFailure as e:
             fallback = rules.plan_scene(description, extensions, params, fov_deg=fov_deg)
-            return Plan(
-                segments=fallback.segments, planner=FALLBACK, fallback_reason=self._fallback_reason(e)
-            )
+            return Plan(segments=fallback.segments, planner=FALLBACK, fallback_reason=self._fallback_reason(e))
         return Plan(segments=segments, planner=CHAT)
 
     def plan_extension(
@@ -143,9 +141,7 @@ class ChatPlanner:
 
 def scene_message(description: str, jobs: Sequence[tuple[Direction, str]]) -> str:
     """The user message for a whole scene: the description and one line per extension, in order."""
-    lines = [
-        f"{i}. {direction}" + (f": {words}" if words else "") for i, (direction, words) in enumerate(jobs, 1)
-    ]
+    lines = [f"{i}. {direction}" + (f": {words}" if words else "") for i, (direction, words) in enumerate(jobs, 1)]
     return (
         f"Scene description: {description}\n"
         f"Give {len(jobs)} answers, one per line, for these extensions in order:\n" + "\n".join(lines)

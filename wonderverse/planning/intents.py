@@ -67,8 +67,7 @@ def interpret_intent(words: str, default_direction: Direction, params: PlanParam
     axis = DIRECTION_AXIS[direction][0]
     if magnitude <= 0 or magnitude > AXIS_LIMIT[axis]:
         raise PlanError(
-            f"{words!r}: {direction} {magnitude:g} is out of range "
-            f"(more than 0, at most {AXIS_LIMIT[axis]:g})"
+            f"{words!r}: {direction} {magnitude:g} is out of range (more than 0, at most {AXIS_LIMIT[axis]:g})"
         )
     forward_m = params.yaw_forward_m if axis == "yaw" else 0.0
     return CameraMove.toward(direction, magnitude, forward_m)

@@ -80,9 +80,7 @@ def fit_move(
 def _exhausted(segments: Sequence[PlannedSegment], role: Role, params: PlanParams, fov_deg: float) -> str:
     if DIRECTION_AXIS[role][0] == "yaw":
         span = format_number(yaw_span_deg(segments, fov_deg))
-        return (
-            f"cannot extend {role}: the planned views already span {span}° of 360° (try up, down or forward)"
-        )
+        return f"cannot extend {role}: the planned views already span {span}° of 360° (try up, down or forward)"
     pitch = chain_pitch_deg(segments, role)
     return (
         f"cannot extend {role}: the camera already tilts {format_number(abs(pitch))}° "

@@ -41,9 +41,7 @@ AXIS_UNITS = {"pitch": ANGLE_UNITS, "yaw": ANGLE_UNITS, "forward": DISTANCE_UNIT
 DECIMALS = 3
 
 NUMBER = r"\d+(?:\.\d*)?|\.\d+"
-_CLAUSE = re.compile(
-    rf"(?P<word>[a-z]+)\s+(?P<sign>[-+])?(?P<value>{NUMBER})\s*(?P<unit>[a-z]+|°)?", re.I | re.A
-)
+_CLAUSE = re.compile(rf"(?P<word>[a-z]+)\s+(?P<sign>[-+])?(?P<value>{NUMBER})\s*(?P<unit>[a-z]+|°)?", re.I | re.A)
 # List numbering, bullets and "Answer 1:" labels a model may put before an answer.
 _PREFIX = re.compile(r"(?:[-*•]\s*|\(?\d{1,3}[.):]\s+|answer\s*\d{0,3}\s*[:.)-]\s*)+", re.I | re.A)
 
@@ -128,9 +126,7 @@ def parse_move(text: str, *, any_order: bool = False) -> CameraMove:
     body = text[prefix.end() if prefix else 0 :].strip().removesuffix(".")
     clauses = [c.strip() for c in body.split(",")]
     if len(clauses) != 3:
-        raise PlanParseError(
-            f"expected 3 clauses 'up|down X, left|right X, forward|back X', got {len(clauses)}"
-        )
+        raise PlanParseError(f"expected 3 clauses 'up|down X, left|right X, forward|back X', got {len(clauses)}")
     values: dict[Axis, float] = {}
     for i, clause in enumerate(clauses):
         axis, value = _parse_clause(clause, None if any_order else PAPER_AXES[i][0])
@@ -184,9 +180,7 @@ def _parse_clause(clause: str, axis_wanted: Axis | None) -> tuple[Axis, float]:
         raise PlanParseError(f"{_quote(clause)}: unit {unit!r} does not fit {plus}|{minus}")
     value = float(m["value"])
     if not math.isfinite(value) or value > AXIS_LIMIT[axis]:
-        raise PlanParseError(
-            f"{_quote(clause)}: {m['value'][:20]} is out of range (at most {AXIS_LIMIT[axis]:g})"
-        )
+        raise PlanParseError(f"{_quote(clause)}: {m['value'][:20]} is out of range (at most {AXIS_LIMIT[axis]:g})")
     return axis, value if word == plus else -value
 
 

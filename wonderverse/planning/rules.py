@@ -114,14 +114,10 @@ class RulePlanner:
         fov_deg: float = DEFAULT_FOV_DEG,
         default_direction: Direction | None = None,
     ) -> PlannedSegment:
-        return plan_extension(
-            description, words, history, params, fov_deg=fov_deg, default_direction=default_direction
-        )
+        return plan_extension(description, words, history, params, fov_deg=fov_deg, default_direction=default_direction)
 
 
-def _fitting_steps(
-    params: PlanParams, directions: Sequence[Direction], init: CameraMove, fov_deg: float
-) -> PlanParams:
+def _fitting_steps(params: PlanParams, directions: Sequence[Direction], init: CameraMove, fov_deg: float) -> PlanParams:
     """`params` with the yaw and pitch steps shrunk so that every planned turn and tilt fits the limits."""
     count = {d: directions.count(d) for d in DIRECTION_AXIS}
     yaw_room = FULL_TURN_DEG - fov_deg - abs(init.yaw_deg)
@@ -133,9 +129,7 @@ def _fitting_steps(
         + ([(max_pitch + init.pitch_deg) / count["down"]] if count["down"] else [])
     )
     # A zero step is invalid in PlanParams; fit_move reports the exhausted direction instead.
-    return params.model_copy(
-        update={"yaw_step_deg": max(yaw_step, 1e-3), "pitch_step_deg": max(pitch_step, 1e-3)}
-    )
+    return params.model_copy(update={"yaw_step_deg": max(yaw_step, 1e-3), "pitch_step_deg": max(pitch_step, 1e-3)})
 
 
 def _less_explored_side(segments: Sequence[PlannedSegment]) -> Direction:

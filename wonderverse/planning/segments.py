@@ -61,9 +61,7 @@ class Plan(BaseModel):
 
     def extended(self, segment: PlannedSegment) -> Plan:
         """This plan with `segment` (made by a planner's `plan_extension`) added at the end."""
-        return Plan(
-            segments=(*self.segments, segment), planner=self.planner, fallback_reason=self.fallback_reason
-        )
+        return Plan(segments=(*self.segments, segment), planner=self.planner, fallback_reason=self.fallback_reason)
 
 
 def reference_kind(role: Role) -> Reference:
@@ -80,9 +78,7 @@ def reference_segment(segments: Sequence[PlannedSegment], role: Role) -> str | N
     return end[-1].id if end else segments[0].id
 
 
-def next_segment(
-    segments: Sequence[PlannedSegment], role: Role, move: CameraMove, intent: str = ""
-) -> PlannedSegment:
+def next_segment(segments: Sequence[PlannedSegment], role: Role, move: CameraMove, intent: str = "") -> PlannedSegment:
     """The segment that follows `segments` in generation order (the first one must be `init`)."""
     if (role == "init") != (not segments):
         raise ValueError("the init segment comes first, and only once")

@@ -30,24 +30,9 @@ import math
 
 import torch
 import torch.nn.functional as F
-from pydantic import BaseModel, ConfigDict, Field
 from torch import Tensor
 
-
-class LossParams(BaseModel):
-    """Weights of the splat loss. The paper gives no values; these follow 3DGS (λ_ssim) and DN-Splatter."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    lambda_ssim: float = Field(0.2, ge=0, le=1, description="share of (1 - SSIM) in L_rgb (3DGS: 0.2)")
-    lambda_depth: float = Field(0.2, ge=0, description="λ_d, weight of the log-L1 depth term")
-    lambda_normal: float = Field(0.1, ge=0, description="λ_n, weight of the normal term")
-    lambda_normal_tv: float = Field(0.1, ge=0, description="λ_s, weight of TV(N̂) inside the normal term")
-    alpha_threshold: float = Field(0.5, ge=0, lt=1, description="rendered alpha above which depth/normal count")
-    ssim_window_px: int = Field(11, ge=3, description="Gaussian SSIM window size (odd)")
-    ssim_sigma_px: float = Field(1.5, gt=0, description="Gaussian SSIM window standard deviation")
-    depth_min_valid_px: int = Field(16, ge=2, description="fewer valid pixels: no depth fit, L_depth = 0")
-    depth_use_expected: bool = Field(False, description="compare D̂/alpha instead of D̂ = Σ w z")
+from wonderverse.splats.params import LossParams
 
 
 def _gaussian_window(size: int, sigma: float, dtype: torch.dtype, device: torch.device) -> Tensor:

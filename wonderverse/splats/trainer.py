@@ -22,85 +22,18 @@ import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import torch
-from pydantic import BaseModel, ConfigDict, Field
 
-from wonderverse.splats.losses import LossParams, total_loss
+from wonderverse.splats.losses import total_loss
 from wonderverse.splats.model import GaussianModel, SceneNormalization
+from wonderverse.splats.params import TrainParams
 from wonderverse.splats.renderer import Renderer
 from wonderverse.splats.strategy import DefaultStrategy, MCMCStrategy
 
 log = logging.getLogger(__name__)
-
-
-class DensifyParams(BaseModel):
-    """3DGS adaptive density control (`strategy.DefaultStrategy`); steps are optimisation iterations."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    prune_opacity: float = Field(0.005, gt=0, lt=1)
-    grow_grad2d_ndc: float = Field(0.0002, gt=0, description="mean view-space gradient (NDC) to grow")
-    grow_scale3d_rel: float = Field(0.01, gt=0, description="largest axis / scene scale below which to clone")
-    prune_scale3d_rel: float = Field(0.1, gt=0, description="largest axis / scene scale above which to prune")
-    start_iter: int = Field(500, ge=0)
-    stop_iter: int = Field(15_000, ge=0)
-    every_iters: int = Field(100, ge=1)
-    reset_opacity_every_iters: int = Field(3000, ge=0, description="0 disables the opacity reset")
-    reset_opacity: float = Field(0.01, gt=0, lt=1)
-
-
-class MCMCParams(BaseModel):
-    """3DGS-as-MCMC (`strategy.MCMCStrategy`): the budget is `TrainParams.max_gaussians`."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    noise_lr: float = Field(5e5, ge=0)
-    start_iter: int = Field(500, ge=0)
-    stop_iter: int = Field(25_000, ge=0)
-    every_iters: int = Field(100, ge=1)
-    min_opacity: float = Field(0.005, gt=0, lt=1)
-    opacity_reg: float = Field(0.01, ge=0)
-    scale_reg: float = Field(0.01, ge=0)
-
-
-class TrainParams(BaseModel):
-    """Splat optimisation. Learning rates are per iteration of Adam; lengths are in normalised-scene units."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    iterations: int = Field(7000, ge=0)
-    lr_means: float = Field(1.6e-4, ge=0, description="times scene_scale; decays exponentially")
-    lr_means_final_ratio: float = Field(0.01, gt=0, le=1, description="lr_means at the end / at the start")
-    lr_quats: float = Field(1e-3, ge=0)
-    lr_log_scales: float = Field(5e-3, ge=0)
-    lr_logit_opacities: float = Field(5e-2, ge=0)
-    lr_sh0: float = Field(2.5e-3, ge=0)
-    lr_shN: float = Field(2.5e-3 / 20, ge=0)
-    lr_background: float = Field(1e-2, ge=0)
-    sh_degree: int = Field(3, ge=0, le=3, description="largest SH degree used (the model may store more)")
-    sh_degree_interval_iters: int = Field(1000, ge=1, description="active degree += 1 this often")
-    loss: LossParams = LossParams()
-    strategy: Literal["default", "mcmc", "none"] = "default"
-    densify: DensifyParams = DensifyParams()
-    mcmc: MCMCParams = MCMCParams()
-    max_gaussians: int | None = Field(300_000, ge=1, description="Gaussian budget (cap of either strategy)")
-    scene_scale: float | None = Field(
-        None, gt=0, description="scene extent the lengths above are relative to; None = `auto_scene_scale`"
-    )
-    background_rgb: tuple[float, float, float] | None = Field(
-        None, description="initial background (sky) colour; None = median colour of the sky pixels, else black"
-    )
-    learn_background: bool = True
-    sky_from_invalid_prior: bool = Field(True, description="treat pixels with an invalid depth prior as sky")
-    sky_alpha_weight: float = Field(0.1, ge=0, description="weight of mean alpha over sky pixels")
-    holdout_every: int = Field(8, ge=0, description="every Nth view is held out for evaluation; 0 = none")
-    checkpoint_every_iters: int = Field(1000, ge=1)
-    near: float = Field(0.01, gt=0)
-    far: float = Field(1e10, gt=0)
-    seed: int = Field(0, ge=0)
 
 
 @dataclass
@@ -398,6 +331,8 @@ def train(
         for o in [*optimizers.values(), bg_opt]:
             o.step()
             o.zero_grad(set_to_none=True)
+        with torch.no_grad():
+            background.clamp_(0.0, 1.0)  # a colour: outside [0,1] it would only compensate other errors
         if strategy is not None and model.num_gaussians:
             n_before = model.num_gaussians
             strategy.step_post_backward(pdict, optimizers, strategy_state, step, info, lr=lr_m)

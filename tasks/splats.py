@@ -1,0 +1,141 @@
+"""Step `splats`: optimise 3D Gaussians on the stitched video with the paper's RGB + depth + normal
+losses, from the global poses and the aligned priors. Checkpoints go to `splats_checkpoint/` every
+`checkpoint_every_iters`, so a killed run resumes; the result goes to `splats/` and `splats.ply` (INRIA
+layout, original world frame) beside the store."""
+
+from __future__ import annotations
+
+import io
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tasks.base import Step
+from wonderverse.config import RunConfig
+from wonderverse.errors import WonderError
+from wonderverse.store import SceneStore, cache_key, write_array
+
+log = logging.getLogger("wonderverse.splats")
+CHECKPOINT = "splats_checkpoint"
+
+
+def _params(cfg: RunConfig) -> dict[str, Any]:
+    return {"splats": cfg.steps.splats.model_dump(exclude={"renderer"})}
+
+
+def load_views(store: SceneStore) -> Any:
+    """Every posed stitched frame with its priors, in SfM world units (frames without a pose skipped)."""
+    from wonderverse.splats.trainer import Views
+
+    segs = store.attrs("sfm")["segments"]
+    index = store.array("sfm/frame_index")
+    poses = store.array("sfm/poses")
+    keep = np.isfinite(poses).all(axis=(1, 2))
+    frames, depth, normals = [], [], []
+    cache: dict[str, dict[str, np.ndarray]] = {}
+    for (a, i), ok in zip(index, keep, strict=True):
+        if not ok:
+            continue
+        seg = segs[a]
+        if seg not in cache:
+            from tasks.segments import attempt_path
+
+            ap = attempt_path(store, seg)
+            cache[seg] = {
+                "frames": store.array(f"{ap}/frames"),
+                "depth": store.array(f"priors/{seg}/depth"),
+                "normals": store.array(f"priors/{seg}/normals"),
+            }
+        frames.append(cache[seg]["frames"][i])
+        depth.append(cache[seg]["depth"][i])
+        normals.append(cache[seg]["normals"][i].astype(np.float32))
+    if not frames:
+        raise WonderError("no posed frames to train on")
+    return Views(np.stack(frames), poses[keep], store.array("sfm/K"), np.stack(depth), np.stack(normals))
+
+
+def _initial_model(views: Any, points: np.ndarray, colors: np.ndarray, cfg: RunConfig) -> Any:
+    """SfM points plus back-projected prior depth, voxel-averaged at a size that follows the scene."""
+    from wonderverse.splats.data import backproject_depth
+    from wonderverse.splats.model import init_from_points, voxel_downsample
+    from wonderverse.splats.trainer import auto_scene_scale
+
+    p = cfg.steps.splats
+    if p.init_from_depth:
+        dp, dc = backproject_depth(views, p.init_depth_stride_px, p.init_depth_frame_stride)
+        points, colors = np.concatenate([points, dp]), np.concatenate([colors, dc])
+    if len(points) == 0:
+        raise WonderError("no points to start the splats from (no SfM points and no valid prior depth)")
+    rgb = colors.astype(np.float64) / 255.0  # averaged as floats in [0,1], as init_from_points expects
+    points, rgb = voxel_downsample(points, rgb, p.init_voxel_frac * auto_scene_scale(views.w2c, points))
+    return init_from_points(points, rgb, p.train.sh_degree, init_opacity=p.init_opacity)
+
+
+def _save_checkpoint(store: SceneStore, key: str, step: int, state: dict[str, Any]) -> None:
+    import torch
+
+    buf = io.BytesIO()
+    torch.save(state, buf)
+    with store.staged(CHECKPOINT, cache_key("checkpoint", 1, {"step": step}, [key]), step=step, run_key=key) as g:
+        write_array(g, "state", np.frombuffer(buf.getvalue(), np.uint8), chunks=(1 << 24,))
+
+
+def _load_checkpoint(store: SceneStore, key: str) -> dict[str, Any] | None:
+    import torch
+
+    a = store.attrs(CHECKPOINT)
+    if a.get("complete") is not True or a.get("run_key") != key:
+        return None
+    state = torch.load(io.BytesIO(store.array(f"{CHECKPOINT}/state").tobytes()), weights_only=False)
+    log.warning("resuming splat training from the checkpoint at step %d", a["step"])
+    return state
+
+
+def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
+    from wonderverse.splats.data import downscale_views
+    from wonderverse.splats.model import SceneNormalization
+    from wonderverse.splats.ply import write_ply
+    from wonderverse.splats.renderer import make_renderer
+    from wonderverse.splats.trainer import normalize_views, train
+
+    p = cfg.steps.splats
+    views = load_views(store)
+    if p.frame_stride > 1:
+        from wonderverse.splats.trainer import Views
+
+        sel = slice(None, None, p.frame_stride)
+        views = Views(views.frames[sel], views.w2c[sel], views.K, views.prior_depth[sel], views.prior_normals[sel])
+    views = downscale_views(views, p.max_side_px)
+    points, colors = store.array("sfm/points3d"), store.array("sfm/colors")
+    norm = SceneNormalization.from_cameras(views.w2c, points)  # train in a unit-sized frame
+    nviews = normalize_views(views, norm)
+    model = _initial_model(nviews, norm.apply_points(points), colors, cfg)
+    renderer = make_renderer(p.renderer)
+    model, curves, metrics = train(
+        model,
+        nviews,
+        p.train,
+        renderer,
+        checkpoint_cb=lambda step, state: _save_checkpoint(store, key, step, state),
+        resume_state=_load_checkpoint(store, key),
+    )
+    arrays = model.to_numpy()
+    ply = write_ply(Path(store.scene_dir) / "splats.ply", arrays, norm)
+    with store.staged(
+        "splats",
+        key,
+        normalization=norm.to_dict(),
+        metrics=metrics,
+        files=[ply.name],
+        curves={k: [float(x) for x in v] for k, v in curves.items()},
+    ) as g:
+        for name, arr in arrays.items():
+            write_array(g, name, np.asarray(arr, np.float32), chunks=(max(1, len(arr)), *np.shape(arr)[1:]))
+    store.remove(CHECKPOINT)
+    psnr = metrics.get("test_psnr", metrics.get("train_psnr", float("nan")))
+    return f"{metrics['n_gaussians']} Gaussians, held-out PSNR {psnr:.2f} dB, {renderer.__class__.__name__}"
+
+
+STEP = Step("splats", 2, ("priors",), _params, run, "3D Gaussian splatting with depth and normal losses")
