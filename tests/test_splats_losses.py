@@ -66,7 +66,7 @@ def test_fit_scale_shift_recovers_an_affine_map() -> None:
 
 def test_depth_loss_value_mask_and_gradient() -> None:
     g = torch.Generator().manual_seed(3)
-    params = LossParams()
+    params = LossParams(depth_use_expected=False, depth_units="scene")  # the paper's formula, literally
     rendered = (torch.rand(H, W, 1, generator=g, dtype=torch.float64) * 4 + 2).requires_grad_()
     alpha = torch.ones(H, W, 1, dtype=torch.float64)
     alpha[:, :4] = 0.1  # below the alpha threshold
@@ -95,6 +95,12 @@ def test_depth_loss_value_mask_and_gradient() -> None:
     expect = torch.zeros(H, W, dtype=torch.float64)
     expect[mask] = torch.sign(r) / (1 + r.abs()) / mask.sum()  # (a, b) are held fixed
     np.testing.assert_allclose(shifted.grad[..., 0].numpy(), expect.numpy(), atol=1e-15)
+    # the default measures the residual in units of the frame's median aligned prior depth (scale-free)
+    scaled = LossParams(depth_use_expected=False)
+    loss_m, _ = depth_loss(shifted, alpha, prior, valid, scaled)
+    assert float(loss_m.detach()) == pytest.approx(float(torch.log1p(r.abs() / aligned[mask].median()).mean()))
+    loss_10, _ = depth_loss(shifted * 10, alpha, prior * 10, valid, scaled)
+    assert float(loss_10.detach()) == pytest.approx(float(loss_m.detach()), rel=1e-9)
     assert torch.isfinite(shifted.grad).all()
 
 

@@ -108,7 +108,10 @@ def depth_loss(
         return rendered.sum() * 0.0, {"depth_scale": math.nan, "depth_shift": math.nan, "depth_valid_frac": 0.0}
     scale, shift = fit_scale_shift(prior, rendered.detach(), mask)
     aligned = scale * torch.where(mask, prior, torch.zeros_like(prior)) + shift
-    loss = torch.log1p((rendered - aligned).abs())[mask].mean()
+    err = (rendered - aligned).abs()
+    if params.depth_units == "median":
+        err = err / aligned[mask].median().clamp_min(1e-8)
+    loss = torch.log1p(err)[mask].mean()
     return loss, {"depth_scale": scale, "depth_shift": shift, "depth_valid_frac": n / mask.numel()}
 
 

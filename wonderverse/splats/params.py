@@ -20,7 +20,12 @@ class LossParams(BaseModel):
     ssim_window_px: int = Field(11, ge=3, description="Gaussian SSIM window size (odd)")
     ssim_sigma_px: float = Field(1.5, gt=0, description="Gaussian SSIM window standard deviation")
     depth_min_valid_px: int = Field(16, ge=2, description="fewer valid pixels: no depth fit, L_depth = 0")
-    depth_use_expected: bool = Field(False, description="compare D̂/alpha instead of D̂ = Σ w z")
+    depth_use_expected: bool = Field(True, description="compare D̂/alpha (expected depth) instead of D̂ = Σ w z")
+    depth_units: Literal["scene", "median"] = Field(
+        "median",
+        description="units of |D̂ - (aD+b)| inside the log: the scene's, or the frame's median aligned prior "
+        "depth (scale-free: the same loss for a room and a valley)",
+    )
 
 
 class DensifyParams(BaseModel):
