@@ -1,0 +1,101 @@
+"""The splats step end to end on a tiny procedural scene: trains from the global poses and aligned
+priors, writes the Gaussians and an INRIA PLY, checkpoints into the store and resumes after a kill."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import tiny_config
+from plyfile import PlyData
+
+from flows.pipeline import execute
+from wonderverse.store import SceneStore
+
+VIDEO = {"width": 200, "height": 136, "frames_per_segment": 12}
+
+
+def splat_config(iterations: int = 40):
+    cfg = tiny_config(video=VIDEO, extensions={"rounds": 0})
+    train = cfg.steps.splats.train.model_copy(
+        update={"iterations": iterations, "checkpoint_every_iters": 20, "holdout_every": 4}
+    )
+    splats = cfg.steps.splats.model_copy(update={"train": train, "max_side_px": 96, "renderer": "torch"})
+    return cfg.model_copy(update={"steps": cfg.steps.model_copy(update={"splats": splats})})
+
+
+@pytest.fixture(scope="module")
+def trained(tmp_path_factory) -> Path:
+    scene = tmp_path_factory.mktemp("splats") / "scene"
+    results = execute(scene, splat_config())
+    assert results[-1].step == "splats" and results[-1].status == "ran"
+    return scene
+
+
+def test_splats_are_stored_and_exported_in_the_world_frame(trained: Path):
+    store = SceneStore.open(trained)
+    a = store.attrs("splats")
+    n = a["metrics"]["n_gaussians"]
+    assert n > 100 and store.array("splats/means").shape == (n, 3)
+    assert np.isfinite(store.array("splats/means")).all()
+    assert a["metrics"]["test_views"] and np.isfinite(a["metrics"]["test_psnr"])
+    assert len(a["curves"]["total"]) == 40 and a["curves"]["total"][-1] < a["curves"]["total"][0]
+    ply = PlyData.read(str(trained / "splats.ply"))["vertex"]
+    assert ply.count == n
+    names = [p.name for p in ply.properties]
+    assert names[:9] == ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
+    assert names[-8:] == ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    # world frame: the splats sit where the SfM points are, not in the unit training frame
+    pts = store.array("sfm/points3d")
+    xyz = np.stack([ply["x"], ply["y"], ply["z"]], -1)
+    assert np.linalg.norm(np.median(xyz, 0) - np.median(pts, 0)) < 0.5 * np.ptp(pts, 0).max()
+    assert not store.exists("splats_checkpoint")  # removed once the result is committed
+
+
+def test_sigkill_during_training_resumes_from_its_checkpoint(tmp_path: Path, trained: Path, caplog):
+    import shutil
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    import yaml
+    from conftest import ROOT
+
+    scene = tmp_path / "scene"
+    shutil.copytree(trained, scene)
+    SceneStore.open(scene, mode="r+").remove("splats")
+    cfg = splat_config(iterations=400)
+    cfg_file = tmp_path / "scene.yaml"
+    cfg_file.write_text(yaml.safe_dump(cfg.model_dump(mode="json")))
+    child = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "flows.cli",
+            "generate",
+            "--config",
+            str(cfg_file),
+            "--out",
+            str(scene),
+            "--engine",
+            "local",
+        ],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    deadline = time.monotonic() + 300
+    while SceneStore.open(scene).attrs("splats_checkpoint").get("complete") is not True:
+        assert child.poll() is None and time.monotonic() < deadline, "training ended before a checkpoint"
+        time.sleep(0.1)
+    child.send_signal(signal.SIGKILL)
+    child.wait()
+    step = SceneStore.open(scene).attrs("splats_checkpoint")["step"]
+    assert 20 <= step < 400 and not SceneStore.open(scene).exists("splats")
+    with caplog.at_level("WARNING", logger="wonderverse.splats"):
+        results = execute(scene, cfg)
+    assert [r.status for r in results][-1] == "ran" and [r.status for r in results][:-1] == ["cached"] * 5
+    assert any(f"checkpoint at step {step}" in r.message for r in caplog.records)
+    assert len(SceneStore.open(scene).attrs("splats")["curves"]["total"]) == 400  # history carried over
