@@ -8,6 +8,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
+# Idle OpenMP threads sleep instead of spinning (set before torch loads): on a 2-core machine spinning
+# threads made small splat renders 3-10x slower.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
 import pytest
 
 from wonderverse.config import RunConfig, build_config
