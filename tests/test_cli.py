@@ -105,6 +105,7 @@ def test_inspect_json_and_preview(scene: Path):
         "check": "missing",
         "poses": "missing",
         "priors": "missing",
+        "splats": "missing",
     }
     assert all(len(s["cache_key"]) == 64 for s in info["steps"] if s["status"] == "complete")
     assert len(info["segments"]) == 3 and info["spec"]["prompt"].startswith("a small house")
