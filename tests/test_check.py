@@ -77,10 +77,32 @@ def test_rotation_step_above_t2_is_flagged_in_words() -> None:
     assert res.flagged_frames == [7]
     assert res.rot_steps[7] == pytest.approx(0.62, abs=1e-9)
     assert "rotation step 0.62 rad > 0.5 between frames 7 and 8" in res.reasons
-    # Just under T2 passes.
+    # Just under T2 passes the paper's rule alone ...
     poses2 = line(16)
     poses2[8:] = yawed(poses2[8:], 0.49)
-    assert check_trajectory(poses2, all_reg(16)).accepted
+    assert check_trajectory(poses2, all_reg(16), CheckParams(max_rot_ratio=None)).accepted
+    # ... but not the relative rule: a still-rotating camera turning 0.49 rad at once is abnormal.
+    res2 = check_trajectory(poses2, all_reg(16))
+    assert not res2.accepted and res2.flagged_frames == [7] and "x the median" in res2.reasons[0]
+
+
+def test_relative_rotation_rule_catches_jumps_below_t2_but_not_smooth_turns() -> None:
+    def turning(n: int, per_frame: float, jump_at: int | None = None, jump: float = 0.0) -> np.ndarray:
+        poses = line(n)
+        for i in range(n):
+            poses[i : i + 1] = yawed(
+                poses[i : i + 1], per_frame * i + (jump if jump_at is not None and i >= jump_at else 0)
+            )
+        return poses
+
+    smooth = turning(20, 0.03)
+    assert check_trajectory(smooth, all_reg(20)).accepted  # 0.03 rad every frame: a pan
+    jumpy = turning(20, 0.03, jump_at=10, jump=0.3)  # a 17° sudden turn, under T2
+    res = check_trajectory(jumpy, all_reg(20))
+    assert not res.accepted and res.flagged_frames == [9]
+    # below the absolute floor even a large ratio is noise of a near-still camera
+    tiny = turning(20, 0.001, jump_at=10, jump=0.05)
+    assert check_trajectory(tiny, all_reg(20)).accepted
 
 
 def test_absolute_mode_uses_t1_in_sfm_units_scale_free_does_not_care() -> None:

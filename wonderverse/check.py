@@ -49,6 +49,10 @@ class CheckParams(BaseModel):
     abs_trans_thresh: float = Field(5.0, gt=0, description="T1 in SfM units (absolute mode, the paper's)")
     max_step_ratio: float = Field(3.5, gt=1, description="step ÷ median of the other steps (scale-free mode)")
     rot_thresh_rad: float = Field(0.5, gt=0, le=math.pi, description="T2: rotation between consecutive frames")
+    max_rot_ratio: float | None = Field(
+        5.0, gt=1, description="also abnormal: a rotation step this many times the median one (None: off) ..."
+    )
+    min_rot_jump_rad: float = Field(0.1, ge=0, description="... and above this, so jitter of a still camera is not")
     min_registered_frac: float = Field(0.8, ge=0, le=1)
     allow_gaps: bool = Field(False, description="judge steps across unregistered frames instead of rejecting")
     min_step_depth_frac: float = Field(
@@ -247,6 +251,16 @@ def check_trajectory(
         if rot_excess[k] > params.rot_thresh_rad:
             flagged.add(a)
             rot_words.append(f"rotation step {r[k]:.2f} rad > {params.rot_thresh_rad:g} between frames {a} and {b}")
+        elif (
+            params.max_rot_ratio is not None
+            and rot_excess[k] > params.min_rot_jump_rad
+            and rot_excess[k] > params.max_rot_ratio * max(median_rot, 1e-9)
+        ):
+            flagged.add(a)
+            rot_words.append(
+                f"rotation step {r[k]:.2f} rad is {rot_excess[k] / max(median_rot, 1e-9):.1f}x the median "
+                f"between frames {a} and {b}"
+            )
     reasons += _limited(jump_words, "translation jumps") + _limited(rot_words, "rotation jumps")
     return CheckResult(
         accepted=not reasons,
