@@ -79,10 +79,16 @@ def render_attempt(store: SceneStore, cfg: RunConfig, model: Any, seg: str, atte
     a = store.attrs(f"segments/{seg}")
     parent = a.get("reference_segment")
     ref = frames(store, parent)[a["reference_frame"]] if parent else None
-    seed = attempt_seed(cfg.scene.seed, seg, attempt)
     path = store.array(f"segments/{seg}/path")
-    video = model.generate(segment_prompt(cfg.scene.prompt, a["role"], a.get("intent", "")), path, seed, ref)
-    return video, seed
+    return _render(cfg, model, seg, attempt, a["role"], a.get("intent", ""), path, ref)
+
+
+def _render(
+    cfg: RunConfig, model: Any, seg: str, attempt: int, role: str, intent: str, path: np.ndarray, ref: np.ndarray | None
+) -> tuple[Any, int]:
+    """One generation: the paper's prompt for the segment, a seed of its own for this attempt."""
+    seed = attempt_seed(cfg.scene.seed, seg, attempt)
+    return model.generate(segment_prompt(cfg.scene.prompt, role, intent), path, seed, ref), seed
 
 
 def write_attempt(group: Any, video: Any, seed: int, source: str) -> None:
@@ -100,8 +106,7 @@ def write_attempt(group: Any, video: Any, seed: int, source: str) -> None:
 def _generate_one(store: SceneStore, cfg: RunConfig, model: Any, seg: str, info: dict[str, Any]) -> None:
     s = info["plan"]
     ref = frames(store, info["parent"])[info["ref_idx"]] if info["parent"] else None
-    seed = attempt_seed(cfg.scene.seed, seg, 0)
-    video = model.generate(segment_prompt(cfg.scene.prompt, s.role, s.intent), info["path"], seed, ref)
+    video, seed = _render(cfg, model, seg, 0, s.role, s.intent, info["path"], ref)
     v = cfg.scene.video
     K = video.K if video.K is not None else intrinsics(v.width, v.height, v.fov_deg)
     seg_attrs = {
