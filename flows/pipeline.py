@@ -60,6 +60,7 @@ def execute(scene_dir: Path | str, cfg: RunConfig, until: str | None = None, cal
                 reporter.finished(result)
                 raise StepFailed(step.name, e, [*results, result]) from e
             result = StepResult(step.name, "ran", time.perf_counter() - t0, key, detail)
+            store.group(step.group).attrs["seconds"] = result.seconds  # for inspect and the report
         reporter.finished(result)
         results.append(result)
     return results
