@@ -48,20 +48,27 @@ def test_ssim_is_differentiable() -> None:
     assert torch.autograd.gradcheck(lambda x: ssim(x, b8), (a8,), eps=1e-6, atol=1e-6)
 
 
+def _floats(result: tuple[torch.Tensor, dict[str, torch.Tensor]]) -> tuple[torch.Tensor, dict[str, float]]:
+    """(loss, terms as Python floats): the loss functions keep their diagnostics on the device."""
+    loss, terms = result
+    return loss, {k: float(v) for k, v in terms.items()}
+
+
 def test_fit_scale_shift_recovers_an_affine_map() -> None:
     g = torch.Generator().manual_seed(2)
     prior = torch.rand(H, W, generator=g, dtype=torch.float64) * 5 + 1
     target = 0.37 * prior + 1.25
     mask = torch.ones(H, W, dtype=torch.bool)
-    a, b = fit_scale_shift(prior, target, mask)
+    a, b = map(float, fit_scale_shift(prior, target, mask))
     assert (a, b) == (pytest.approx(0.37, rel=1e-12), pytest.approx(1.25, rel=1e-12))
     noisy = target + 0.05 * torch.randn(H, W, generator=g, dtype=torch.float64)
     mask[:5] = False
-    a, b = fit_scale_shift(prior, noisy, mask)
+    a, b = map(float, fit_scale_shift(prior, noisy, mask))
     ref = np.polyfit(prior[mask].numpy(), noisy[mask].numpy(), 1)
     np.testing.assert_allclose([a, b], ref, rtol=1e-10)
-    assert fit_scale_shift(torch.full((4, 4), 2.0), torch.full((4, 4), 6.0), torch.ones(4, 4, dtype=bool)) == (3.0, 0.0)
-    assert fit_scale_shift(prior, target, torch.zeros(H, W, dtype=torch.bool)) == (1.0, 0.0)
+    flat = fit_scale_shift(torch.full((4, 4), 2.0), torch.full((4, 4), 6.0), torch.ones(4, 4, dtype=bool))
+    assert tuple(map(float, flat)) == (3.0, 0.0)
+    assert tuple(map(float, fit_scale_shift(prior, target, torch.zeros(H, W, dtype=torch.bool)))) == (1.0, 0.0)
 
 
 def test_depth_loss_value_mask_and_gradient() -> None:
@@ -77,7 +84,7 @@ def test_depth_loss_value_mask_and_gradient() -> None:
     prior[3, 10:] = 123.0  # excluded by the validity mask
     valid = torch.ones(H, W, dtype=torch.bool)
     valid[3] = False
-    loss, info = depth_loss(rendered, alpha, prior, valid, params)
+    loss, info = _floats(depth_loss(rendered, alpha, prior, valid, params))
     assert float(loss.detach()) == pytest.approx(0.0, abs=1e-12)
     assert (info["depth_scale"], info["depth_shift"]) == (pytest.approx(2.0), pytest.approx(0.5))
     n_valid = H * (W - 4) - 3 - (W - 4)
@@ -86,7 +93,7 @@ def test_depth_loss_value_mask_and_gradient() -> None:
     shifted = rendered.detach().clone()
     shifted[10:14, 10:14] += 0.3
     shifted.requires_grad_()
-    loss, info = depth_loss(shifted, alpha, prior, valid, params)
+    loss, info = _floats(depth_loss(shifted, alpha, prior, valid, params))
     mask = torch.isfinite(prior) & (prior > 0) & (alpha[..., 0] > 0.5) & valid
     aligned = info["depth_scale"] * prior + info["depth_shift"]
     r = (shifted.detach()[..., 0] - aligned)[mask]
@@ -106,7 +113,7 @@ def test_depth_loss_value_mask_and_gradient() -> None:
 
 def test_depth_loss_without_valid_pixels_is_zero_and_differentiable() -> None:
     rendered = torch.ones(H, W, 1, requires_grad=True)
-    loss, info = depth_loss(rendered, torch.zeros(H, W, 1), torch.ones(H, W), None, LossParams())
+    loss, info = _floats(depth_loss(rendered, torch.zeros(H, W, 1), torch.ones(H, W), None, LossParams()))
     loss.backward()
     assert float(loss.detach()) == 0.0 and info["depth_valid_frac"] == 0.0 and torch.all(rendered.grad == 0)
 
@@ -116,7 +123,7 @@ def test_depth_use_expected_divides_by_alpha() -> None:
     alpha = torch.full((H, W, 1), 0.75, dtype=torch.float64)
     prior = torch.linspace(1, 2, H * W, dtype=torch.float64).reshape(H, W)
     prior_const = torch.full((H, W), 2.0, dtype=torch.float64)
-    _, info = depth_loss(depth, alpha, prior_const, None, LossParams(depth_use_expected=True))
+    _, info = _floats(depth_loss(depth, alpha, prior_const, None, LossParams(depth_use_expected=True)))
     assert info["depth_scale"] == pytest.approx(2.0)  # 3 / 0.75 = 4 = 2 * 2
     loss, _ = depth_loss(depth, alpha, prior, None, LossParams())
     assert float(loss) == pytest.approx(0.0, abs=1e-12)  # a constant render: a = 0, b = 3
@@ -130,7 +137,7 @@ def test_normal_loss_l1_and_tv() -> None:
     rendered[:, W // 2 :, 0] = 0.2  # a vertical step of 0.2 in x
     alpha = torch.ones(H, W, 1, dtype=torch.float64)
     prior[0, 0] = 0.0  # invalid prior normal
-    loss, info = normal_loss(rendered, alpha, prior, None, params)
+    loss, info = _floats(normal_loss(rendered, alpha, prior, None, params))
     n_valid = H * W - 1
     l1 = 0.2 * H * (W - W // 2) / n_valid
     tv = 0.2 * H / (H * (W - 1))  # one step per row, averaged over all horizontal pairs; no vertical change
@@ -156,17 +163,17 @@ def test_total_is_the_weighted_sum_and_each_weight_acts_alone() -> None:
     def run(**kw) -> tuple[torch.Tensor, dict]:
         return total_loss(a, b, depth, alpha, normals, LossParams(**kw), prior_depth=prior_d, prior_normals=prior_n)
 
-    total, t = run()
+    total, t = _floats(run())
     p = LossParams()
     assert t["rgb"] == pytest.approx((1 - p.lambda_ssim) * t["rgb_l1"] + p.lambda_ssim * (1 - t["ssim"]), rel=1e-12)
     assert float(total) == pytest.approx(t["rgb"] + p.lambda_depth * t["depth"] + p.lambda_normal * t["normal"])
     assert t["normal"] == pytest.approx(t["normal_l1"] + p.lambda_normal_tv * t["normal_tv"], rel=1e-12)
     for key, term in (("lambda_depth", "depth"), ("lambda_normal", "normal")):
-        _, t2 = run(**{key: 3.0})
+        _, t2 = _floats(run(**{key: 3.0}))
         assert t2["total"] - t["total"] == pytest.approx((3.0 - getattr(p, key)) * t[term], rel=1e-9)
-    _, t0 = run(lambda_depth=0.0, lambda_normal=0.0)
+    _, t0 = _floats(run(lambda_depth=0.0, lambda_normal=0.0))
     assert t0["total"] == pytest.approx(t["rgb"]) and "depth" not in t0 and "normal" not in t0
-    _, t3 = total_loss(a, b, depth, alpha, normals, p)
+    _, t3 = _floats(total_loss(a, b, depth, alpha, normals, p))
     assert t3["total"] == pytest.approx(t["rgb"])
 
 
@@ -196,5 +203,5 @@ def test_losses_stay_finite_on_extreme_renders() -> None:
         rgb, torch.zeros(H, W, 3), depth, alpha, normals, LossParams(), prior_depth=prior_d, prior_normals=prior_n
     )
     loss.backward()
-    assert math.isfinite(terms["total"]) and all(math.isfinite(v) for v in terms.values() if v == v)
+    assert math.isfinite(terms["total"]) and all(math.isfinite(v) for v in map(float, terms.values()) if v == v)
     assert all(torch.isfinite(t.grad).all() for t in (rgb, depth, normals))

@@ -26,8 +26,6 @@ their terms and nothing else (no (1 + λ) factors).
 
 from __future__ import annotations
 
-import math
-
 import torch
 import torch.nn.functional as F
 from torch import Tensor
@@ -69,23 +67,30 @@ def ssim(img: Tensor, ref: Tensor, window: int = 11, sigma: float = 1.5) -> Tens
 
 
 @torch.no_grad()
-def fit_scale_shift(prior: Tensor, target: Tensor, mask: Tensor) -> tuple[float, float]:
-    """(a, b) minimising Σ_mask (a prior + b - target)² (float64 closed form).
+def fit_scale_shift(prior: Tensor, target: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
+    """(a, b) minimising Σ_mask (a prior + b - target)², as float64 0-d tensors (closed form, no host sync).
 
     A prior that is constant over the mask gives a pure shift (a = 0 would erase it, so the scale is
     taken from the means instead: a = mean(target) / mean(prior), b = 0). Fewer than 2 pixels: (1, 0).
     """
-    p = prior[mask].double()
-    t = target[mask].double()
-    if p.numel() < 2:
-        return 1.0, 0.0
-    pm, tm = p.mean(), t.mean()
-    var = ((p - pm) ** 2).mean()
-    if var <= 1e-12 * max(float(pm * pm), 1e-30):
-        a = float(tm / pm) if abs(float(pm)) > 1e-30 else 1.0
-        return a, 0.0
-    a = ((p - pm) * (t - tm)).mean() / var
-    return float(a), float(tm - a * pm)
+    m = mask.reshape(prior.shape).double()
+    p = torch.where(mask, prior, 0).double()
+    t = torch.where(mask, target, 0).double()
+    n = m.sum()
+    pm, tm = p.sum() / n.clamp_min(1), t.sum() / n.clamp_min(1)
+    var = (m * (p - pm) ** 2).sum() / n.clamp_min(1)
+    cov = (m * (p - pm) * (t - tm)).sum() / n.clamp_min(1)
+    flat = var <= 1e-12 * (pm * pm).clamp_min(1e-30)
+    a_flat = torch.where(pm.abs() > 1e-30, tm / torch.where(pm.abs() > 1e-30, pm, 1.0), 1.0)
+    a = torch.where(flat, a_flat, cov / torch.where(flat, 1.0, var))
+    b = torch.where(flat, 0.0, tm - a * pm)
+    few = n < 2
+    return torch.where(few, 1.0, a), torch.where(few, 0.0, b)
+
+
+def masked_mean(x: Tensor, mask: Tensor) -> Tensor:
+    """Mean of x over mask (0 when the mask is empty), without indexing (no host sync, fixed shapes)."""
+    return torch.where(mask, x, 0).sum() / mask.sum().clamp_min(1)
 
 
 def depth_loss(
@@ -94,8 +99,9 @@ def depth_loss(
     prior_depth: Tensor,
     valid: Tensor | None,
     params: LossParams,
-) -> tuple[Tensor, dict[str, float]]:
-    """L_depth (see the module docstring) for depth, alpha (H,W,1), prior (H,W) or (H,W,1), valid (H,W) bool."""
+) -> tuple[Tensor, dict[str, Tensor]]:
+    """L_depth (see the module docstring) for depth, alpha (H,W,1), prior (H,W) or (H,W,1), valid (H,W) bool.
+    Fewer than `depth_min_valid_px` valid pixels: the term is 0 (and the fit NaN)."""
     d = depth[..., 0]
     a_r = alpha[..., 0]
     prior = prior_depth.reshape(d.shape).to(d.dtype)
@@ -103,16 +109,20 @@ def depth_loss(
     if valid is not None:
         mask &= valid.reshape(d.shape).bool()
     rendered = d / a_r.clamp_min(1e-10) if params.depth_use_expected else d
-    n = int(mask.sum())
-    if n < params.depth_min_valid_px:
-        return rendered.sum() * 0.0, {"depth_scale": math.nan, "depth_shift": math.nan, "depth_valid_frac": 0.0}
+    n = mask.sum()
+    enough = n >= params.depth_min_valid_px
     scale, shift = fit_scale_shift(prior, rendered.detach(), mask)
-    aligned = scale * torch.where(mask, prior, torch.zeros_like(prior)) + shift
+    aligned = scale.to(d.dtype) * torch.where(mask, prior, 0) + shift.to(d.dtype)
     err = (rendered - aligned).abs()
     if params.depth_units == "median":
-        err = err / aligned[mask].median().clamp_min(1e-8)
-    loss = torch.log1p(err)[mask].mean()
-    return loss, {"depth_scale": scale, "depth_shift": shift, "depth_valid_frac": n / mask.numel()}
+        err = err / torch.nanmedian(torch.where(mask, aligned, torch.nan)).nan_to_num(1.0).clamp_min(1e-8)
+    loss = torch.where(enough, masked_mean(torch.log1p(err), mask), 0.0)
+    nan = torch.full_like(scale, torch.nan)
+    return loss, {
+        "depth_scale": torch.where(enough, scale, nan),
+        "depth_shift": torch.where(enough, shift, nan),
+        "depth_valid_frac": torch.where(enough, n / mask.numel(), 0.0),
+    }
 
 
 def normal_tv(normals: Tensor) -> Tensor:
@@ -131,7 +141,7 @@ def normal_loss(
     prior_normals: Tensor,
     valid: Tensor | None,
     params: LossParams,
-) -> tuple[Tensor, dict[str, float]]:
+) -> tuple[Tensor, dict[str, Tensor]]:
     """L_normal = mean_valid ||N̂ - N||_1 + λ_s TV(N̂) for normals (H,W,3), alpha (H,W,1), prior (H,W,3)."""
     prior = prior_normals.to(normals.dtype)
     norm = prior.norm(dim=-1)
@@ -139,12 +149,11 @@ def normal_loss(
     if valid is not None:
         mask &= valid.reshape(mask.shape).bool()
     tv = normal_tv(normals)
-    diff = (normals - torch.nan_to_num(prior)).abs().sum(-1)
-    l1 = diff[mask].mean() if bool(mask.any()) else normals.sum() * 0.0
+    l1 = masked_mean((normals - torch.nan_to_num(prior)).abs().sum(-1), mask)
     return l1 + params.lambda_normal_tv * tv, {
-        "normal_l1": float(l1.detach()),
-        "normal_tv": float(tv.detach()),
-        "normal_valid_frac": float(mask.float().mean()),
+        "normal_l1": l1.detach(),
+        "normal_tv": tv.detach(),
+        "normal_valid_frac": mask.float().mean(),
     }
 
 
@@ -159,22 +168,23 @@ def total_loss(
     prior_normals: Tensor | None = None,
     depth_valid: Tensor | None = None,
     normal_valid: Tensor | None = None,
-) -> tuple[Tensor, dict[str, float]]:
+) -> tuple[Tensor, dict[str, Tensor]]:
     """L = L_rgb + λ_d L_depth + λ_n L_normal for one view. Images (H,W,C) float in [0,1]; see the module
     docstring for every term. A missing prior drops its term. Returns (total, {term: float}) with keys
-    rgb_l1, ssim, rgb, depth, normal, total and the fit/validity diagnostics."""
+    rgb_l1, ssim, rgb, depth, normal, total and the fit/validity diagnostics, all detached 0-d tensors: nothing
+    here waits for the device, so a training step runs without host syncs."""
     l1 = (rgb - gt_rgb).abs().mean()
     s = ssim(rgb, gt_rgb, params.ssim_window_px, params.ssim_sigma_px)
     l_rgb = (1.0 - params.lambda_ssim) * l1 + params.lambda_ssim * (1.0 - s)
-    terms: dict[str, float] = {"rgb_l1": float(l1.detach()), "ssim": float(s.detach()), "rgb": float(l_rgb.detach())}
+    terms = {"rgb_l1": l1.detach(), "ssim": s.detach(), "rgb": l_rgb.detach()}
     total = l_rgb
     if prior_depth is not None and params.lambda_depth > 0:
         l_d, extra = depth_loss(depth, alpha, prior_depth, depth_valid, params)
         total = total + params.lambda_depth * l_d
-        terms.update(extra, depth=float(l_d.detach()))
+        terms.update(extra, depth=l_d.detach())
     if prior_normals is not None and params.lambda_normal > 0:
         l_n, extra = normal_loss(normals, alpha, prior_normals, normal_valid, params)
         total = total + params.lambda_normal * l_n
-        terms.update(extra, normal=float(l_n.detach()))
-    terms["total"] = float(total.detach())
+        terms.update(extra, normal=l_n.detach())
+    terms["total"] = total.detach()
     return total, terms

@@ -102,7 +102,8 @@ def set_values(params: Params, optimizers: Optimizers, idx: Tensor, values: dict
 
 
 def _view_space_grad_norm(info: dict[str, Any]) -> tuple[Tensor, Tensor]:
-    """(visible ids, |d loss / d means2d| in NDC units) for this step's visible Gaussians."""
+    """(counted (N,) bool, |d loss / d means2d| in NDC units (N,), 0 where not counted): the Gaussians
+    visible in this step with a finite gradient. Fixed shapes: no host sync."""
     g = info["means2d"].grad
     if g is None:
         raise RuntimeError("means2d has no gradient: call step_pre_backward before loss.backward()")
@@ -111,9 +112,9 @@ def _view_space_grad_norm(info: dict[str, Any]) -> tuple[Tensor, Tensor]:
     n_cam = info.get("n_cameras", 1)
     g[:, 0] *= info["width"] / 2.0 * n_cam
     g[:, 1] *= info["height"] / 2.0 * n_cam
-    visible = (info["radii"].reshape(-1, 2) > 0).all(-1)
-    ids = torch.nonzero(visible)[:, 0]
-    return ids, g[ids].norm(dim=-1)
+    norms = g.norm(dim=-1)
+    counted = (info["radii"].reshape(-1, 2) > 0).all(-1) & torch.isfinite(norms)
+    return counted, torch.where(counted, norms, 0.0)
 
 
 @dataclass
@@ -170,9 +171,9 @@ class DefaultStrategy:
         if state["grad2d"] is None or len(state["grad2d"]) != n:
             state["grad2d"] = torch.zeros(n, device=params["means"].device)
             state["count"] = torch.zeros(n, device=params["means"].device)
-        ids, norms = _view_space_grad_norm(info)
-        state["grad2d"].index_add_(0, ids, norms.to(state["grad2d"].dtype))
-        state["count"].index_add_(0, ids, torch.ones_like(norms, dtype=state["count"].dtype))
+        counted, norms = _view_space_grad_norm(info)
+        state["grad2d"] += norms.to(state["grad2d"].dtype)
+        state["count"] += counted
 
         if (
             step > self.refine_start_iter

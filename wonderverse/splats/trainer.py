@@ -10,15 +10,19 @@ their rendered alpha is pushed to 0 (`sky_alpha_weight` * mean alpha over sky pi
 modelled by Gaussians at infinity. Depth/normal terms ignore sky pixels (their priors are invalid).
 
 Held-out views (every `holdout_every`-th, starting with view `holdout_every - 1`) are never trained on and
-give the evaluation metrics. A step whose loss or gradients are not finite is skipped (no optimiser or
-densification update) and logged.
+give the evaluation metrics. A step whose loss or gradients are not finite is skipped: fused Adam's
+`found_inf` flag leaves parameters and moments untouched, its gradients add nothing to the densification
+statistics, and it is logged (when the loss curves are next copied to the host).
+
+Speed: a step never waits for the device. Loss terms stay on the device and reach the host every
+`_FLUSH_EVERY` steps in one copy; the finite check is a device flag, not a Python branch; densification
+statistics accumulate with fixed shapes. On a GPU the CPU can then run ahead of the kernels it queues.
 """
 
 from __future__ import annotations
 
 import copy
 import logging
-import math
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -27,13 +31,14 @@ from typing import Any
 import numpy as np
 import torch
 
-from wonderverse.splats.losses import total_loss
+from wonderverse.splats.losses import masked_mean, total_loss
 from wonderverse.splats.model import GaussianModel, SceneNormalization
 from wonderverse.splats.params import TrainParams
 from wonderverse.splats.renderer import Renderer
 from wonderverse.splats.strategy import DefaultStrategy, MCMCStrategy
 
 log = logging.getLogger(__name__)
+_FLUSH_EVERY = 50  # steps between copies of the loss terms to the host (each copy waits for the device)
 
 
 @dataclass
@@ -172,12 +177,46 @@ def _render_view(model: GaussianModel, data: _Data, i: int, renderer: Renderer, 
     )
 
 
-def _grads_finite(tensors: list[tuple[str, torch.Tensor]]) -> str | None:
-    """Name of the first tensor whose gradient has a NaN or inf, else None."""
-    for name, t in tensors:
-        if t.grad is not None and not bool(torch.isfinite(t.grad).all()):
-            return name
-    return None
+def _found_inf(loss: torch.Tensor, params: list[torch.Tensor]) -> torch.Tensor:
+    """0-d float32 device tensor: 1 when the loss or any gradient is NaN/inf, else 0 (no host sync)."""
+    grads = [p.grad for p in params if p.grad is not None and p.grad.numel()]
+    total = loss.detach().float()
+    if grads:
+        total = total + torch.stack(torch._foreach_norm(grads)).float().sum()
+    return (~torch.isfinite(total)).float()
+
+
+def _make_adam(param: torch.Tensor, lr: float, eps: float = 1e-15) -> torch.optim.Adam:
+    # fused: one kernel per step, and it honours `found_inf` (how a non-finite step is skipped)
+    return torch.optim.Adam([param], lr=lr, eps=eps, fused=True)
+
+
+@dataclass
+class _Pending:
+    """One step's loss terms, still on the device (`values`, stacked in `names` order), and host figures."""
+
+    step: int
+    names: list[str]
+    values: torch.Tensor
+    host: dict[str, float]
+
+
+def _flush(pending: list[_Pending], curves: dict[str, list[float]]) -> None:
+    """Copy the queued per-step terms to `curves` in one transfer; skipped steps are logged, not recorded."""
+    if not pending:
+        return
+    flat = torch.cat([p.values.double() for p in pending]).cpu().tolist()
+    at = 0
+    for p in pending:
+        values = dict(zip(p.names, flat[at : at + len(p.names)], strict=True))
+        at += len(p.names)
+        if values.pop("_skipped") > 0:
+            log.warning("splat training step %d: non-finite loss or gradients; step skipped", p.step)
+            curves.setdefault("skipped", []).append(float(p.step))
+            continue
+        for k, v in (values | p.host).items():
+            curves.setdefault(k, []).append(v)
+    pending.clear()
 
 
 @torch.no_grad()
@@ -247,8 +286,8 @@ def train(
         "shN": params.lr_shN,
     }
     pdict = model.param_dict()
-    optimizers = {k: torch.optim.Adam([p], lr=lrs[k], eps=1e-15) for k, p in pdict.items()}
-    bg_opt = torch.optim.Adam([background], lr=params.lr_background if params.learn_background else 0.0)
+    optimizers = {k: _make_adam(p, lrs[k]) for k, p in pdict.items()}
+    bg_opt = _make_adam(background, params.lr_background if params.learn_background else 0.0, eps=1e-8)
     strategy = _make_strategy(params)
     strategy_state = strategy.initialize_state(scene_scale) if strategy is not None else {}
     curves: dict[str, list[float]] = {}
@@ -258,7 +297,7 @@ def train(
         restored = GaussianModel.from_numpy(resume_state["params"], sh_degree=model.sh_degree).to(device)
         model.replace_params(restored.param_dict())
         pdict = model.param_dict()
-        optimizers = {k: torch.optim.Adam([p], lr=lrs[k], eps=1e-15) for k, p in pdict.items()}
+        optimizers = {k: _make_adam(p, lrs[k]) for k, p in pdict.items()}
         for k, sd in resume_state["optimizers"].items():
             optimizers[k].load_state_dict(sd)
         background.data.copy_(torch.as_tensor(resume_state["background"]))
@@ -287,6 +326,8 @@ def train(
             "order": list(order),
         }
 
+    has_sky = data.sky.flatten(1).any(1).tolist()
+    pending: list[_Pending] = []
     t_start = time.perf_counter()
     for step in range(start, params.iterations):
         t0 = time.perf_counter()
@@ -312,23 +353,15 @@ def train(
             depth_valid=data.valid[i],
             normal_valid=data.valid[i],
         )
-        sky = data.sky[i]
-        if params.sky_alpha_weight > 0 and bool(sky.any()):
-            sky_term = alpha[..., 0][sky].mean()
-            loss = loss + params.sky_alpha_weight * sky_term
-            terms["sky_alpha"] = float(sky_term.detach())
+        if params.sky_alpha_weight > 0 and has_sky[i]:
+            terms["sky_alpha"] = masked_mean(alpha[..., 0], data.sky[i])
+            loss = loss + params.sky_alpha_weight * terms["sky_alpha"]
         if strategy is not None:
             loss = loss + strategy.regularization(pdict)
         loss.backward()
-        bad = "loss" if not math.isfinite(float(loss.detach())) else None
-        bad = bad or _grads_finite([*pdict.items(), ("background", background)])
-        if bad is not None:
-            log.warning("splat training step %d (view %d): non-finite %s; step skipped", step, i, bad)
-            for o in [*optimizers.values(), bg_opt]:
-                o.zero_grad(set_to_none=True)
-            curves.setdefault("skipped", []).append(float(step))
-            continue
+        found_inf = _found_inf(loss, [*pdict.values(), background])
         for o in [*optimizers.values(), bg_opt]:
+            o.found_inf, o.grad_scale = found_inf, None  # fused Adam leaves everything as it was when set
             o.step()
             o.zero_grad(set_to_none=True)
         with torch.no_grad():
@@ -340,13 +373,16 @@ def train(
             pdict = model.param_dict()
             if model.num_gaussians != n_before:
                 log.debug("step %d: %d -> %d Gaussians", step, n_before, model.num_gaussians)
-        terms["total"] = float(loss.detach())
-        for k, v in terms.items():
-            curves.setdefault(k, []).append(float(v))
-        curves.setdefault("n_gaussians", []).append(float(model.num_gaussians))
-        curves.setdefault("step_s", []).append(time.perf_counter() - t0)
+        terms |= {"total": loss.detach(), "_skipped": found_inf}
+        names = list(terms)
+        host = {"n_gaussians": float(model.num_gaussians), "step_s": time.perf_counter() - t0}
+        pending.append(_Pending(step, names, torch.stack([terms[k].float() for k in names]), host))
+        if len(pending) >= _FLUSH_EVERY:
+            _flush(pending, curves)
         if checkpoint_cb is not None and (step + 1) % params.checkpoint_every_iters == 0:
+            _flush(pending, curves)
             checkpoint_cb(step + 1, snapshot(step + 1))
+    _flush(pending, curves)
     if checkpoint_cb is not None and params.iterations % params.checkpoint_every_iters != 0:
         checkpoint_cb(params.iterations, snapshot(params.iterations))
     bg_final = background.detach()
