@@ -1,0 +1,511 @@
+"""`wonderverse report`: gather what a scene store holds into `SCENE_DIR/report.html`.
+
+Works on a scene run to any step (or to none): every section shows what exists and says what does not.
+Ground-truth metrics appear when the accepted attempts carry `gt/` (procedural world): the camera path's
+ATE, per-attempt SfM ATE, and the depth/normal priors' errors; the splats' own metrics and training curves
+come from `splats/` attributes; step times from each step group's `seconds` attribute (absent for steps
+run by older versions, shown as not recorded).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import uuid
+from datetime import UTC, datetime
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import zarr
+
+from tasks import STEPS
+from tasks.segments import accepted_attempt, attempt_ids, attempt_path, segment_ids, stitched
+from wonderverse import __version__
+from wonderverse.report import (
+    AttemptInfo,
+    FileEntry,
+    Picture,
+    ReportContent,
+    ReportParams,
+    SegmentInfo,
+    StepTiming,
+    render_html,
+)
+from wonderverse.store import STORE_NAME, SceneStore
+
+log = logging.getLogger("wonderverse.report")
+REPORT_NAME = "report.html"
+
+# Files other steps write beside the store (whatever exists is linked), with what they are.
+KNOWN_FILES: dict[str, str] = {
+    "splats.ply": "Gaussian splats, INRIA 3DGS PLY layout, original world frame",
+    "mesh.ply": "mesh (PLY)",
+    "mesh.glb": "mesh (glTF binary)",
+    "points.ply": "point cloud (PLY)",
+    "flythrough.mp4": "fly-through video of the splats",
+    "novel.mp4": "novel-view video",
+    "preview.mp4": "the stitched video (wonderverse preview)",
+    "contact_sheet.png": "frames of the stitched video (wonderverse preview)",
+    "camera_path.json": "camera path",
+    "colmap": "COLMAP text model",
+    "nerfstudio": "nerfstudio transforms.json and images",
+    "plots": "check plots (wonderverse preview)",
+    STORE_NAME: "the scene store (zarr v3), source of truth for everything above",
+}
+
+
+# -- reading helpers -----------------------------------------------------------------------------
+
+
+def _rows(store: SceneStore, path: str, idx: np.ndarray) -> np.ndarray:
+    """Selected leading indices of an array (reads only their chunks)."""
+    return np.asarray(zarr.open_array(store.root.store, path=path, mode="r").oindex[idx])
+
+
+def _shape(store: SceneStore, path: str) -> tuple[int, ...] | None:
+    try:
+        return tuple(zarr.open_array(store.root.store, path=path, mode="r").shape)
+    except Exception:
+        return None
+
+
+def _has_array(store: SceneStore, path: str) -> bool:
+    return (store.path / path / "zarr.json").is_file()
+
+
+def _check_params(store: SceneStore) -> Any:
+    from wonderverse.config import validate_config
+    from wonderverse.errors import WonderError
+
+    config = store.root.attrs.get("config")
+    try:
+        return validate_config(config).steps.check.rules if config else None
+    except WonderError:
+        return None
+
+
+def _fault_words(faults: Any) -> str:
+    """The injected fault in words ("" for a clean attempt)."""
+    if not isinstance(faults, dict) or not faults.get("type"):
+        return ""
+    frames = faults.get("frames") or []
+    where = f" at frame{'s' if len(frames) > 1 else ''} {', '.join(str(f) for f in frames)}" if frames else ""
+    return f"{faults['type']}{where}"
+
+
+def _aligned_to_gt(est: np.ndarray, gt: np.ndarray) -> np.ndarray | None:
+    """`est` W2C poses moved into the ground-truth world (Sim3 of camera centres), None when impossible."""
+    from wonderverse.camera import camera_centers, umeyama
+
+    ok = np.isfinite(est).all(axis=(1, 2)) & np.isfinite(gt).all(axis=(1, 2))
+    if ok.sum() < 3:
+        return None
+    try:
+        sim = umeyama(camera_centers(est[ok]), camera_centers(gt[ok]), allow_degenerate=True)
+    except ValueError:
+        return None
+    return sim.transform_w2c(est)
+
+
+def _topview(est: np.ndarray, gt: np.ndarray | None, label: str, title: str) -> bytes:
+    """Top view of an SfM path; with ground truth, both in the GT world (+z up, seen from above)."""
+    from wonderverse.plots import trajectory_topview_plot
+
+    aligned = None if gt is None else _aligned_to_gt(est, gt)
+    if aligned is None:
+        return trajectory_topview_plot([est], [label], title)
+    return trajectory_topview_plot([gt, aligned], ["ground truth", f"{label} (Sim3-aligned)"], title, plane="xy")
+
+
+def _ate_percent(est: np.ndarray, gt: np.ndarray) -> float | None:
+    from wonderverse.metrics import ate
+
+    try:
+        return 100.0 * ate(est, gt)["rmse_frac"]
+    except ValueError:
+        return None
+
+
+# -- sections ------------------------------------------------------------------------------------
+
+
+def _attempt(store: SceneStore, seg: str, k: int, chosen: int | None, params: Any) -> AttemptInfo:
+    from flows.preview import _check_result
+    from wonderverse.plots import segment_check_plot
+
+    ap = f"segments/{seg}/attempts/{k}"
+    info = AttemptInfo(index=k, seed=store.attrs(ap).get("seed"), chosen=k == chosen)
+    has_gt = store.exists(f"{ap}/gt")
+    if has_gt:
+        info.fault = _fault_words(store.attrs(f"{ap}/gt").get("faults"))
+    check = store.attrs(f"{ap}/check")
+    if check.get("complete") is not True:
+        return info
+    info.accepted = bool(check.get("accepted"))
+    info.reasons = list(check.get("reasons", []))
+    info.notes = list(check.get("notes", []))
+    info.flagged_frames = [int(i) for i in check.get("flagged_frames", [])]
+    info.registered_frac = check.get("registered_frac")
+    info.sfm_seconds = check.get("sfm_seconds")
+    info.check_plot = segment_check_plot(_check_result(check), params, f"{seg} attempt {k}")
+    if _has_array(store, f"{ap}/sfm/poses"):
+        est = store.array(f"{ap}/sfm/poses")
+        gt = store.array(f"{ap}/gt/poses") if has_gt and _has_array(store, f"{ap}/gt/poses") else None
+        info.topview = _topview(est, gt, "SfM", f"{seg} attempt {k}: camera path from above")
+        if gt is not None:
+            info.metrics["SfM ATE (% of path)"] = _ate_percent(est, gt)
+    return info
+
+
+def _status(store: SceneStore, seg: str, n_attempts: int) -> tuple[str, bool | None]:
+    acc = store.attrs(f"segments/{seg}/accepted")
+    if acc.get("complete") is True:
+        if acc.get("dropped"):
+            return f"dropped after {acc.get('attempts', n_attempts)} attempts", False
+        if acc.get("reasons"):
+            return f"kept failing attempt {acc.get('attempt')} (best of {acc.get('attempts', n_attempts)})", False
+        return f"attempt {acc.get('attempt')} accepted", True
+    if n_attempts:
+        return "not checked yet", None
+    return "not generated yet", None
+
+
+def _previews(store: SceneStore, seg: str, p: ReportParams) -> list[Picture]:
+    """Depth/normal priors of a few frames beside the frame (and the ground truth when there is one)."""
+    from wonderverse.report import depth_normal_preview
+
+    if store.cache_key_of(f"priors/{seg}") is None or accepted_attempt(store, seg) is None:
+        return []
+    ap = attempt_path(store, seg)
+    shape = _shape(store, f"priors/{seg}/depth")
+    if shape is None or not _has_array(store, f"priors/{seg}/normals"):
+        return []
+    idx = np.unique(np.linspace(0, shape[0] - 1, p.preview_frames).round().astype(int))
+    gt = store.exists(f"{ap}/gt") and _has_array(store, f"{ap}/gt/depth") and _has_array(store, f"{ap}/gt/normals")
+    png = depth_normal_preview(
+        _rows(store, f"{ap}/frames", idx),
+        _rows(store, f"priors/{seg}/depth", idx),
+        _rows(store, f"priors/{seg}/normals", idx).astype(np.float32),
+        [f"frame {i}" for i in idx],
+        gt_depth=_rows(store, f"{ap}/gt/depth", idx) if gt else None,
+        gt_normals=_rows(store, f"{ap}/gt/normals", idx).astype(np.float32) if gt else None,
+        thumb_width_px=p.preview_thumb_width_px,
+    )
+    kind = store.attrs(f"priors/{seg}").get("kind", "")
+    words = f" (the network predicts {kind.replace('_', ' ')})" if kind else ""
+    return [Picture(png, f"{seg}: depth (turbo, near = warm, sky grey) and normal priors{words}")]
+
+
+def _global_gt(store: SceneStore) -> tuple[np.ndarray, np.ndarray] | None:
+    """(global SfM poses, ground-truth poses of the same stitched frames), when every frame has GT."""
+    if store.cache_key_of("sfm") is None:
+        return None
+    segs = store.attrs("sfm").get("segments", [])
+    index = store.array("sfm/frame_index")
+    gts: dict[str, np.ndarray] = {}
+    for seg in segs:
+        k = accepted_attempt(store, seg)
+        path = f"segments/{seg}/attempts/{k}/gt/poses"
+        if k is None or not _has_array(store, path):
+            return None
+        gts[seg] = store.array(path)
+    gt = np.stack([gts[segs[a]][i] for a, i in index]) if len(index) else np.zeros((0, 4, 4))
+    return store.array("sfm/poses"), gt
+
+
+def _prior_errors(store: SceneStore, segments: list[SegmentInfo], sfm_to_gt_scale: float) -> dict[str, Any]:
+    """Depth and normal errors of every segment's priors against the ground truth; per-segment figures go
+    into the segments' metrics, the pixel-weighted totals are returned. The priors are in SfM units, so
+    the ground truth depth is scaled by the global Sim3 scale (GT metres -> SfM units) first."""
+    from wonderverse.metrics import depth_errors, normal_errors
+
+    tot = {"d_n": 0, "absrel": 0.0, "delta1": 0.0, "sq": 0.0, "n_n": 0, "deg": 0.0, "good": 0.0}
+    for info in segments:
+        seg = info.id
+        if store.cache_key_of(f"priors/{seg}") is None or accepted_attempt(store, seg) is None:
+            continue
+        ap = attempt_path(store, seg)
+        if not (_has_array(store, f"{ap}/gt/depth") and _has_array(store, f"{ap}/gt/normals")):
+            continue
+        prior = store.array(f"priors/{seg}/depth")
+        d = depth_errors(prior, store.array(f"{ap}/gt/depth") * sfm_to_gt_scale, mask=np.isfinite(prior))
+        n = normal_errors(store.array(f"priors/{seg}/normals"), store.array(f"{ap}/gt/normals"))
+        info.metrics |= {
+            "depth prior AbsRel": d["absrel"],
+            "depth prior δ1 (%)": 100 * d["delta1"] if d["n"] else None,
+            "normal prior mean angle (°)": n["mean_deg"],
+            "normal prior within 11.25° (%)": n["pct_11_25"],
+        }
+        if d["n"]:
+            tot["d_n"] += d["n"]
+            tot["absrel"] += d["absrel"] * d["n"]
+            tot["delta1"] += d["delta1"] * d["n"]
+            tot["sq"] += d["rmse"] ** 2 * d["n"]
+        if n["n"]:
+            tot["n_n"] += n["n"]
+            tot["deg"] += n["mean_deg"] * n["n"]
+            tot["good"] += n["pct_11_25"] * n["n"]
+    out: dict[str, Any] = {}
+    if tot["d_n"]:
+        out["Depth priors vs ground truth (GT scaled to SfM units by the camera-path Sim3)"] = {
+            "AbsRel": tot["absrel"] / tot["d_n"],
+            "δ1 (%)": 100 * tot["delta1"] / tot["d_n"],
+            "RMSE (SfM units)": float(np.sqrt(tot["sq"] / tot["d_n"])),
+            "pixels": tot["d_n"],
+        }
+    if tot["n_n"]:
+        out["Normal priors vs ground truth"] = {
+            "mean angle (°)": tot["deg"] / tot["n_n"],
+            "within 11.25° (%)": tot["good"] / tot["n_n"],
+            "pixels": tot["n_n"],
+        }
+    return out
+
+
+def _segments(store: SceneStore, p: ReportParams) -> list[SegmentInfo]:
+    """Planned segments (from the plan, else from the store) with attempts, status and previews."""
+    params = _check_params(store)
+    plan = store.attrs("plan") if store.cache_key_of("plan") else {}
+    planned = list((plan.get("plan") or {}).get("segments", []))
+    moves = list(plan.get("moves", []))
+    ids = [s["id"] for s in planned] + [s for s in segment_ids(store) if s not in {x["id"] for x in planned}]
+    out = []
+    for i, seg in enumerate(ids):
+        entry = planned[i] if i < len(planned) else {}
+        attrs = store.attrs(f"segments/{seg}")
+        ref_seg = attrs.get("reference_segment", entry.get("reference_segment"))
+        if ref_seg:
+            frame = attrs.get("reference_frame")
+            ref = f"{ref_seg}, frame {frame}" if frame is not None else f"{ref_seg}, {entry.get('reference')} frame"
+        else:
+            ref = ""
+        ks = attempt_ids(store, seg)
+        chosen = accepted_attempt(store, seg) if ks else None
+        status, ok = _status(store, seg, len(ks))
+        info = SegmentInfo(
+            id=seg,
+            role=str(attrs.get("role", entry.get("role", ""))),
+            move=str(attrs.get("move") or (moves[i] if i < len(moves) else "")),
+            intent=str(attrs.get("intent", entry.get("intent", "")) or ""),
+            reference=ref,
+            status=status,
+            status_ok=ok,
+            attempts=[_attempt(store, seg, k, chosen, params) for k in ks],
+        )
+        if chosen is not None and ks:
+            shape = _shape(store, f"segments/{seg}/attempts/{chosen}/frames")
+            info.frames = shape[0] if shape else None
+        info.previews = _previews(store, seg, p)
+        out.append(info)
+    return out
+
+
+def _timings(store: SceneStore) -> list[StepTiming]:
+    from flows.inspect import summarize
+
+    status = {s["name"]: s["status"] for s in summarize(store)["steps"]}
+    out = []
+    for s in STEPS:
+        seconds = store.attrs(s.group).get("seconds") if status[s.name] != "missing" else None
+        out.append(StepTiming(s.name, status[s.name], None if seconds is None else float(seconds), s.description))
+    return out
+
+
+def _files(store: SceneStore) -> list[FileEntry]:
+    """Files and folders beside the store: the known ones, and those steps list in their attributes."""
+    root = store.scene_dir.resolve()
+    wanted: dict[str, str] = {}
+    for group in ("splats", "outputs"):
+        for f in store.attrs(group).get("files", []) or []:
+            name, what = (f.get("path") or f.get("name"), f.get("description", "")) if isinstance(f, dict) else (f, "")
+            if isinstance(name, str) and name:
+                wanted.setdefault(name, what or KNOWN_FILES.get(name, f"written by {group}"))
+    for name, what in KNOWN_FILES.items():
+        wanted.setdefault(name, what)
+    out = []
+    for name, what in wanted.items():
+        path = (root / name).resolve()
+        if not path.is_relative_to(root) or path == root or not path.exists() or name == REPORT_NAME:
+            continue
+        size = sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() else path.stat().st_size
+        out.append(FileEntry(path.relative_to(root).as_posix(), size, path.is_dir(), what))
+    # Exports first, the store last (it is the biggest and least looked at).
+    return sorted(out, key=lambda f: (f.path == STORE_NAME, f.is_dir, f.path))
+
+
+def _stitched_pictures(store: SceneStore, p: ReportParams) -> tuple[Picture | None, Picture | None]:
+    """Contact sheet of the stitched video, and the global camera path from above."""
+    from wonderverse.media import contact_sheet
+
+    frames, index = stitched(store)
+    overview = None
+    if len(frames):
+        pick = np.unique(np.linspace(0, len(frames) - 1, min(p.overview_frames, len(frames))).round().astype(int))
+        png = contact_sheet(frames[pick], [f"{index[i][0]}:{index[i][1]}" for i in pick])
+        overview = Picture(png, f"{len(frames)} stitched frames, {len(pick)} shown (segment:frame)")
+    trajectory = None
+    pair = _global_gt(store)
+    if store.cache_key_of("sfm") is not None:
+        est = store.array("sfm/poses")
+        gt = pair[1] if pair is not None else None
+        src = store.attrs("sfm").get("source", "sfm")
+        png = _topview(est, gt, f"global ({src})", "stitched video: global camera path from above")
+        trajectory = Picture(png, "global camera path (square = first frame, arrows = viewing direction)")
+    return overview, trajectory
+
+
+def _planned_paths(store: SceneStore, segments: list[SegmentInfo]) -> Picture | None:
+    from wonderverse.plots import trajectory_topview_plot
+
+    with_path = [s for s in segments if _has_array(store, f"segments/{s.id}/path")]
+    if not with_path:
+        return None
+    png = trajectory_topview_plot(
+        [store.array(f"segments/{s.id}/path") for s in with_path],
+        [f"{s.id} ({s.role})" for s in with_path],
+        "planned camera paths from above (world +z up)",
+        plane="xy",
+    )
+    return Picture(png, "the camera path each segment was conditioned on")
+
+
+def _metrics(store: SceneStore, segments: list[SegmentInfo]) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
+    """Metric groups, and headline figures for the summary."""
+    metrics: dict[str, dict[str, Any]] = {}
+    headline: dict[str, Any] = {}
+    check = store.attrs("check")
+    if check.get("complete") is True:
+        metrics["Geometric correction"] = {
+            "mean extra trials per segment": check.get("mean_extra_trials"),
+            "dropped segments": ", ".join(check.get("dropped", [])) or "none",
+            "kept failing": ", ".join(check.get("kept_failing", [])) or "none",
+        }
+    if store.cache_key_of("sfm") is not None:
+        a = store.attrs("sfm")
+        poses = store.array("sfm/poses")
+        points = _shape(store, "sfm/points3d")
+        metrics["Global camera path"] = {
+            "source": a.get("source"),
+            "mapper": a.get("mapper"),
+            "frames posed": f"{int(np.isfinite(poses[:, 0, 0]).sum())} of {len(poses)}",
+            "frames used by SfM": a.get("frames_used"),
+            "reprojection error (px)": a.get("reproj_error_px"),
+            "3D points": points[0] if points else None,
+        }
+    pair = _global_gt(store)
+    if pair is not None:
+        from wonderverse.camera import camera_centers, umeyama
+        from wonderverse.metrics import ate
+
+        est, gt = pair
+        try:
+            e = ate(est, gt)
+        except ValueError as err:
+            log.info("no camera-path ATE: %s", err)
+        else:
+            metrics["Camera path vs ground truth (Sim3-aligned ATE)"] = {
+                "RMSE (GT metres)": e["rmse"],
+                "RMSE / path length (%)": 100 * e["rmse_frac"],
+                "frames": e["n"],
+            }
+            headline["camera path ATE"] = f"{100 * e['rmse_frac']:.2f} % of the path length"
+            ok = np.isfinite(est).all(axis=(1, 2)) & np.isfinite(gt).all(axis=(1, 2))
+            scale = umeyama(camera_centers(gt[ok]), camera_centers(est[ok]), allow_degenerate=True).s
+            metrics |= _prior_errors(store, segments, scale)
+    sp = store.attrs("splats")
+    if sp.get("complete") is True:
+        m = sp.get("metrics", {})
+        metrics["Gaussian splats"] = {
+            "held-out PSNR (dB)": m.get("test_psnr"),
+            "held-out SSIM": m.get("test_ssim"),
+            "training PSNR (dB)": m.get("train_psnr"),
+            "training SSIM": m.get("train_ssim"),
+            "Gaussians": m.get("n_gaussians"),
+            "views (training / held out)": f"{len(m.get('train_views', []))} / {len(m.get('test_views', []))}",
+            "training time (s)": m.get("seconds"),
+            "skipped steps (non-finite)": m.get("skipped_steps"),
+        }
+        if m.get("test_psnr") is not None:
+            headline["held-out PSNR"] = f"{m['test_psnr']:.2f} dB"
+    return metrics, headline
+
+
+def _facts(store: SceneStore) -> dict[str, Any]:
+    root = dict(store.root.attrs)
+    spec = root.get("spec") or {}
+    video = spec.get("video") or {}
+    config = root.get("config") or {}
+    facts: dict[str, Any] = {"scene folder": str(store.scene_dir)}
+    if config.get("preset"):
+        facts["preset"] = config["preset"]
+    if "seed" in spec:
+        facts["seed"] = spec["seed"]
+    if video:
+        facts["video"] = (
+            f"{video.get('backend')} backend, {video.get('width')}×{video.get('height')} px, "
+            f"{video.get('frames_per_segment')} frames per segment at {video.get('fps')} fps, "
+            f"{video.get('fov_deg')}° field of view"
+        )
+    ext = spec.get("extensions") or {}
+    if ext:
+        rounds, dirs = ext.get("rounds", 0), ", ".join(ext.get("directions", []))
+        facts["extensions"] = f"{rounds} round(s) towards {dirs}" if rounds else "none"
+    facts["store"] = f"format {root.get('format')}, written by WonderVerse {root.get('wonderverse_version')}"
+    return facts
+
+
+def gather(store: SceneStore, params: ReportParams | None = None) -> ReportContent:
+    """Everything the report shows, read from the store (nothing is written)."""
+    p = params or ReportParams()
+    spec = store.root.attrs.get("spec") or {}
+    plan = store.attrs("plan") if store.cache_key_of("plan") else {}
+    plan_model = plan.get("plan") or {}
+    segments = _segments(store, p)
+    overview, trajectory = _stitched_pictures(store, p)
+    metrics, headline = _metrics(store, segments)
+    timings = _timings(store)
+    curves = {k: [float(x) for x in v] for k, v in (store.attrs("splats").get("curves") or {}).items()}
+    skipped = curves.pop("skipped", [])
+    notes = []
+    stale = [t.step for t in timings if t.status == "stale"]
+    if stale:
+        notes.append(
+            f"Stale steps (made with other settings than the stored config, shown as they are): {', '.join(stale)}."
+        )
+    if not any(t.status == "complete" for t in timings):
+        notes.append("Nothing has completed yet: run `wonderverse generate` on this scene.")
+    facts = _facts(store) | headline
+    return ReportContent(
+        title=f"WonderVerse report — {store.scene_dir.name}",
+        prompt=str(spec.get("prompt", "")),
+        facts=facts,
+        planner=str(plan_model.get("planner", "")),
+        plan_note=f"fallback: {plan_model['fallback_reason']}" if plan_model.get("fallback_reason") else "",
+        segments=segments,
+        overview=overview,
+        trajectory=trajectory,
+        planned_paths=_planned_paths(store, segments),
+        timings=timings,
+        metrics=metrics,
+        curves=curves,
+        curves_note=f"{len(skipped)} iterations skipped (non-finite loss or gradients)." if skipped else "",
+        files=_files(store),
+        notes=notes,
+        generated=f"written {datetime.now(UTC):%Y-%m-%d %H:%M} UTC by WonderVerse {__version__}",
+    )
+
+
+def write_report(scene_dir: Path | str, params: ReportParams | None = None) -> Path:
+    """Write `SCENE_DIR/report.html` (atomically: a half-written report never replaces a good one);
+    returns its path. Raises StoreError when the folder holds no scene."""
+    store = SceneStore.open(scene_dir)
+    text = render_html(gather(store, params), params)
+    out = Path(scene_dir) / REPORT_NAME
+    tmp = out.with_name(f".{REPORT_NAME}.{uuid.uuid4().hex}")
+    try:
+        tmp.write_text(text, encoding="utf-8")
+        os.replace(tmp, out)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return out

@@ -1,0 +1,341 @@
+"""The scene report: built from real (tiny) procedural scenes run through the pipeline, checked as HTML
+(every segment and attempt, escaped user text, inlined images, only local links) and rendered in headless
+Chromium (no console errors, every image decoded, a full-page screenshot of the expected size).
+
+Ground truth: the procedural world's injected faults (a scene seed is chosen so that exactly segment s000's
+first attempt has a camera teleport), the files we create, and the store's own listing."""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import os
+import re
+import shutil
+from html.parser import HTMLParser
+from pathlib import Path
+
+import numpy as np
+import pytest
+from conftest import TINY_VIDEO, tiny_config
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from PIL import Image
+
+from flows.pipeline import execute
+from flows.report import write_report
+from tasks import STEPS
+from tasks.generate_segments import attempt_seed
+from tasks.segments import attempt_ids, segment_ids
+from wonderverse.config import build_config
+from wonderverse.errors import WonderError
+from wonderverse.report import (
+    AttemptInfo,
+    FileEntry,
+    ReportContent,
+    SegmentInfo,
+    StepTiming,
+    colorize_depth,
+    colorize_normals,
+    image_size,
+    render_html,
+)
+from wonderverse.store import SceneStore
+from wonderverse.video.procedural import ProceduralOptions, draw_fault
+
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+VIEWPORT = {"width": 1280, "height": 900}
+PROMPT = 'a snowy village <script>alert("x")</script> & <b>lanterns</b>'
+# A long jump: on 6-frame segments a short one can hide in the median step (measured 3.4x for 1.7 m).
+FAULTS = {"fault_probability": 0.5, "fault_types": ["teleport"], "teleport_m": [3.0, 4.0]}
+
+
+class Page(HTMLParser):
+    """Every tag's attributes, the text of elements by id, and all text."""
+
+    def __init__(self, text: str):
+        super().__init__()
+        self.tags: list[tuple[str, dict[str, str | None]]] = []
+        self.text: list[str] = []
+        self.feed(text)
+
+    def handle_starttag(self, tag, attrs):
+        self.tags.append((tag, dict(attrs)))
+
+    def handle_data(self, data):
+        self.text.append(data)
+
+    def attrs_of(self, tag: str) -> list[dict[str, str | None]]:
+        return [a for t, a in self.tags if t == tag]
+
+
+def seed_with_one_fault(frames: int) -> int:
+    """A scene seed whose draws give s000 attempt 0 a fault and s000 attempt 1, s001, s002 none."""
+    opts = ProceduralOptions(**FAULTS)
+    want = {("s000", 0): True, ("s000", 1): False, ("s001", 0): False, ("s002", 0): False}
+    for seed in range(500):
+        draws = {(s, k): draw_fault(seed, attempt_seed(seed, s, k), frames, opts) for s, k in want}
+        if all((draws[key] is not None) == v for key, v in want.items()):
+            return seed
+    raise AssertionError("no scene seed with the wanted faults")
+
+
+@pytest.fixture(scope="module")
+def full_scene(tmp_path_factory) -> Path:
+    """3 segments (one regenerated after a teleport) through every step, splats kept tiny (~20 s)."""
+    seed = seed_with_one_fault(TINY_VIDEO["frames_per_segment"])
+    cfg = build_config(
+        PROMPT,
+        preset="preview",
+        overrides={
+            "scene": {"seed": seed, "video": {**TINY_VIDEO, "options": FAULTS}},
+            "steps": {
+                # in-process (no Dask cluster start-up); tiny frames give fewer SfM points than the default gate
+                "check": {"workers": 1, "max_attempts": 2, "sfm": {"min_points": 40}},
+                "priors": {"workers": 1},
+                "splats": {"max_side_px": 48, "renderer": "torch", "train": {"iterations": 10, "holdout_every": 4}},
+            },
+        },
+    )
+    scene = tmp_path_factory.mktemp("report") / "scene"
+    results = execute(scene, cfg)
+    assert [r.status for r in results] == ["ran"] * len(STEPS)
+    check = SceneStore.open(scene).attrs("segments/s000/attempts/0/check")
+    assert not check["accepted"], "precondition: the teleport attempt is rejected"
+    write_report(scene)
+    return scene
+
+
+@pytest.fixture(scope="module")
+def partial_scene(tmp_path_factory) -> Path:
+    """One segment, run only up to generate_segments."""
+    scene = tmp_path_factory.mktemp("report") / "partial"
+    execute(scene, tiny_config(extensions={"rounds": 0}), until="generate_segments")
+    return scene
+
+
+def row(text: str, row_id: str) -> str:
+    m = re.search(rf'<tr id="{row_id}">(.*?)</tr>', text, re.S)
+    assert m, f"no table row {row_id}"
+    return m.group(1)
+
+
+def section(text: str, sid: str) -> str:
+    m = re.search(rf'<section id="{sid}">(.*?)</section>', text, re.S)
+    assert m, f"no section {sid}"
+    return m.group(1)
+
+
+def assert_self_contained(text: str, scene: Path) -> Page:
+    """Images are decodable data URIs of the size they declare; links are in-page or existing local files."""
+    page = Page(text)
+    assert not re.search(r"https?://", text)
+    assert not page.attrs_of("script") and "<script" not in text.lower()
+    for a in page.attrs_of("img"):
+        src = a["src"] or ""
+        assert src.startswith("data:image/png;base64,"), src[:40]
+        img = Image.open(io.BytesIO(base64.b64decode(src.split(",", 1)[1])))
+        assert img.size == (int(a["width"]), int(a["height"]))
+    for a in page.attrs_of("a"):
+        href = a["href"] or ""
+        assert href.startswith("#") or (scene / href).exists(), href
+        if href.startswith("#"):
+            assert f'id="{href[1:]}"' in text, f"dangling in-page link {href}"
+    for a in page.attrs_of("link"):
+        assert (a["href"] or "").startswith("data:")
+    return page
+
+
+# -- library ------------------------------------------------------------------------------------
+
+
+def test_image_size_reads_png_and_jpeg_headers():
+    for fmt, mime in (("PNG", "image/png"), ("JPEG", "image/jpeg")):
+        buf = io.BytesIO()
+        Image.new("RGB", (37, 21), (10, 200, 30)).save(buf, format=fmt)
+        assert image_size(buf.getvalue()) == (mime, 37, 21)
+    with pytest.raises(ValueError):
+        image_size(b"GIF89a....")
+
+
+def test_depth_and_normal_colours():
+    depth = np.array([[1.0, 2.0, 4.0, np.inf]])
+    rgb = colorize_depth(depth)
+    assert (rgb[0, 3] == 40).all()  # sky: dark grey
+    # turbo runs blue (far, small inverse depth) to red (near)
+    assert rgb[0, 0, 0] > rgb[0, 0, 2] and rgb[0, 2, 2] > rgb[0, 2, 0]
+    n = np.array([[[0, 0, -1], [0, -1, 0], [0, 0, 0]]], float)  # facing the camera, up (OpenCV), missing
+    np.testing.assert_array_equal(colorize_normals(n)[0], [[128, 128, 255], [128, 255, 128], [128, 128, 128]])
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.text(min_size=1, max_size=60), st.text(max_size=40), st.text(max_size=30))
+def test_user_text_is_escaped_everywhere(prompt, reason, intent):
+    content = ReportContent(
+        title=f"report {intent}",
+        prompt=prompt,
+        facts={"seed": 3, intent or "x": reason},
+        segments=[
+            SegmentInfo(id="s000", role="init", move=intent, intent=intent, attempts=[AttemptInfo(0, reasons=[reason])])
+        ],
+        timings=[StepTiming("plan", "complete", 1.5, intent)],
+        metrics={intent or "m": {reason or "r": 1.0}},
+        files=[FileEntry(f'a "{intent}".ply', 10)],
+        notes=[reason],
+    )
+    text = render_html(content)
+    page = Page(text)
+    # the only tags are ours: user text never opens one
+    assert {t for t, _ in page.tags} <= {
+        "html", "head", "meta", "link", "title", "style", "body", "header", "h1", "div", "nav", "a", "main",
+        "blockquote", "section", "h2", "h3", "h4", "table", "tr", "th", "td", "p", "span", "ul", "li", "i", "footer",
+    }  # fmt: skip
+    quote = re.search(r'<blockquote class="prompt">(.*?)</blockquote>', text, re.S).group(1)
+    assert html.unescape(quote) == prompt
+
+
+# -- the report of a real scene -----------------------------------------------------------------
+
+
+def test_report_lists_every_segment_and_attempt_with_its_verdict(full_scene: Path):
+    text = (full_scene / "report.html").read_text()
+    store = SceneStore.open(full_scene)
+    segs = segment_ids(store)
+    assert segs == ["s000", "s001", "s002"]
+    for seg in segs:
+        assert f'id="seg-{seg}"' in text
+        for k in attempt_ids(store, seg):
+            row(text, f"{seg}-a{k}")
+    assert len(re.findall(r'<tr id="s\d+-a\d+">', text)) == 4  # s000 twice, the others once
+    # the injected teleport: attempt 0 rejected (with the check's words), attempt 1 accepted and used
+    bad, good = row(text, "s000-a0"), row(text, "s000-a1")
+    assert "rejected" in bad and "teleport at frame" in bad and "translation" in bad and "used" not in bad
+    assert "accepted" in good and ">used<" in good and "none" in good
+    assert "attempt 1 accepted" in text
+    # one check plot and one top view per attempt, a depth/normal preview per segment
+    segments = section(text, "segments")
+    assert segments.count("steps against the thresholds") == 4 * 2  # alt text + caption
+    assert segments.count("camera path from above</figcaption>") == 4
+    assert segments.count("normal priors") >= 3
+
+
+def test_report_shows_prompt_escaped_timings_metrics_curves_and_files(full_scene: Path):
+    text = (full_scene / "report.html").read_text()
+    page = assert_self_contained(text, full_scene)
+    assert html.escape(PROMPT, quote=True) in text and PROMPT not in text
+    assert "<script>" not in text and "<b>lanterns" not in text
+    steps = section(text, "steps")
+    for s in STEPS:
+        assert re.search(rf"<td>{s.name}</td><td><span class=\"badge ok\">complete</span></td><td class=\"num\">"
+                         r"[0-9.]+ m?s</td>", steps), s.name  # fmt: skip
+    metrics = section(text, "metrics")
+    for group in ("Camera path vs ground truth", "Depth priors vs ground truth", "Normal priors", "Gaussian splats"):
+        assert group in metrics
+    psnr = SceneStore.open(full_scene).attrs("splats")["metrics"]["test_psnr"]
+    assert f"{psnr:.4g}" in metrics and f"{psnr:.2f} dB" in section(text, "summary")
+    assert "<img" in section(text, "curves")
+    files = section(text, "files")
+    assert 'href="splats.ply"' in files and 'href="scene.zarr/"' in files
+    assert len(page.attrs_of("img")) >= 4 * 2 + 3 + 4  # attempts, previews, overview/paths/trajectory/curves
+
+
+def test_partial_scene_report_says_what_is_missing(partial_scene: Path, tmp_path: Path):
+    scene = tmp_path / "scene"
+    shutil.copytree(partial_scene, scene)
+    store = SceneStore.open(scene, mode="r+")
+    store.group("plan").attrs.pop("seconds")  # as written by an older WonderVerse
+    # another step's exports, listed in `outputs` (one outside the scene must not be linked)
+    (scene / "exports" / "colmap").mkdir(parents=True)
+    (scene / "exports" / "colmap" / "cameras.txt").write_text("# camera\n")
+    (scene / "mesh.glb").write_bytes(b"glTF" + bytes(96))
+    (tmp_path / "secret.txt").write_text("no")
+    files = ["mesh.glb", {"path": "exports/colmap", "description": "COLMAP model"}, "../secret.txt", "absent.ply"]
+    with store.staged("outputs", "k", files=files):
+        pass
+    text = write_report(scene).read_text()
+    assert_self_contained(text, scene)
+    assert "not checked" in row(text, "s000-a0") and "not checked yet</span></h3>" in text
+    assert "The splats step has not run yet." in text
+    steps = section(text, "steps")
+    for name in ("check", "poses", "priors", "splats"):
+        assert f'<td>{name}</td><td><span class="badge muted">missing</span>' in steps
+    assert '<td>plan</td><td><span class="badge ok">complete</span></td><td class="num">–</td>' in steps
+    assert "not recorded" in steps
+    files_html = section(text, "files")
+    assert 'href="mesh.glb"' in files_html and "100 B" in files_html
+    assert 'href="exports/colmap/"' in files_html and "COLMAP model" in files_html
+    assert "secret" not in files_html and "absent.ply" not in files_html
+
+
+def test_report_of_an_empty_store_and_of_no_store(tmp_path: Path):
+    SceneStore.open_or_create(tmp_path / "empty")
+    text = write_report(tmp_path / "empty").read_text()
+    assert "Nothing has completed yet" in text and "The plan step has not run yet." in text
+    (tmp_path / "none").mkdir()
+    with pytest.raises(WonderError, match="holds no scene store"):
+        write_report(tmp_path / "none")
+    assert not (tmp_path / "none" / "report.html").exists()
+
+
+# -- in a browser -------------------------------------------------------------------------------
+
+
+def launch_browser(playwright):
+    """Headless Chromium from the system package; its absence fails the test unless explicitly allowed."""
+    if not CHROMIUM.is_file():
+        message = f"{CHROMIUM} is missing: install it with `apt-get install -y chromium`"
+        if os.environ.get("WONDERVERSE_ALLOW_NO_BROWSER") == "1":
+            pytest.skip(message)
+        pytest.fail(message + " (or set WONDERVERSE_ALLOW_NO_BROWSER=1 to skip)")
+    return playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+
+
+def test_report_renders_in_headless_chromium(full_scene: Path):
+    try:
+        from playwright.sync_api import sync_playwright
+    except ImportError:
+        if os.environ.get("WONDERVERSE_ALLOW_NO_BROWSER") == "1":
+            pytest.skip("playwright is not installed")
+        pytest.fail("the playwright package is missing: pip install playwright")
+    report = full_scene / "report.html"
+    errors: list[str] = []
+    requests: list[str] = []
+    with sync_playwright() as pw:
+        browser = launch_browser(pw)
+        try:
+            page = browser.new_page(viewport=VIEWPORT)
+            page.on("console", lambda m: errors.append(f"console {m.type}: {m.text}") if m.type == "error" else None)
+            page.on("pageerror", lambda e: errors.append(f"page error: {e}"))
+            page.on("request", lambda r: requests.append(r.url))
+            page.goto(report.as_uri(), wait_until="load")
+            images = page.evaluate(
+                "Array.from(document.images).map(i => [i.complete, i.naturalWidth, i.naturalHeight, i.alt])"
+            )
+            overflow = page.evaluate("document.documentElement.scrollWidth - window.innerWidth")
+            title = page.title()
+            png = page.screenshot(full_page=True)
+        finally:
+            browser.close()
+    assert errors == []
+    assert requests == [report.as_uri()]  # data URIs only: nothing else is fetched
+    assert len(images) >= 15
+    assert all(ok and w > 0 and h > 0 for ok, w, h, _ in images), [alt for ok, w, h, alt in images if not w]
+    assert overflow <= 0  # nothing wider than the window
+    assert title == f"WonderVerse report — {full_scene.name}"
+    shot = Image.open(io.BytesIO(png))
+    assert shot.width == VIEWPORT["width"]
+    assert shot.height > 5000  # a long page: 4 attempts' plots, 3 previews, curves, metrics
+    # it is not blank: the header band is dark, the page body light
+    px = np.asarray(shot.convert("RGB"))
+    assert px[5, 5].mean() < 80 and px[-5, 5].mean() > 200
