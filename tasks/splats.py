@@ -138,4 +138,4 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     return f"{metrics['n_gaussians']} Gaussians, held-out PSNR {psnr:.2f} dB, {renderer.__class__.__name__}"
 
 
-STEP = Step("splats", 2, ("priors",), _params, run, "3D Gaussian splatting with depth and normal losses")
+STEP = Step("splats", 3, ("priors",), _params, run, "3D Gaussian splatting with depth and normal losses")

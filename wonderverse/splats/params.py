@@ -93,3 +93,6 @@ class TrainParams(BaseModel):
     near: float = Field(0.01, gt=0)
     far: float = Field(1e10, gt=0)
     seed: int = Field(0, ge=0)
+    compile_loss: bool = Field(
+        True, description="on CUDA, fuse the loss into a few kernels with torch.compile (eager when it cannot)"
+    )

@@ -4,8 +4,9 @@ One call renders RGB, expected depth, alpha and camera-space normals of one came
 `gsplat.rasterization(..., render_mode="RGB+ED", packed=False, rasterize_mode="classic")` with the
 per-Gaussian camera-space normals appended to the colours as three extra channels (gsplat blends any
 number of channels with the same weights, padding to a supported count). Consequences:
-  * SH colours are evaluated here (`model.sh_colors`, the same formula and constants as gsplat's
-    `spherical_harmonics` + 0.5 + clamp at 0), because extra channels need post-activation colours.
+  * SH colours are evaluated here with gsplat's own fused `spherical_harmonics` kernel (+ 0.5, clamp at
+    0, exactly what `rasterization` does inside; `model.sh_colors` is the same formula in plain torch),
+    because extra channels need post-activation colours.
   * gsplat's "ED" channel is Σ w z / max(alpha, 1e-10); it is multiplied back by alpha so that `depth` is
     Σ w z exactly as the torch backend returns it (normalise with depth / alpha).
   * The background is given for the RGB channels only (zeros behind the normals; gsplat appends a zero
@@ -21,7 +22,6 @@ import torch
 from torch import Tensor
 
 from wonderverse.errors import WonderError
-from wonderverse.splats.model import sh_colors
 from wonderverse.splats.render_torch import EPS2D, gaussian_normals
 
 GSPLAT_VERSION = "1.5.3"
@@ -51,7 +51,7 @@ def render(
     depths (N,), visible (N,), conics (N,3), width, height, n_cameras = 1 and `meta`, gsplat's own dict.
     """
     try:
-        from gsplat import rasterization
+        from gsplat import rasterization, spherical_harmonics
     except ImportError as e:  # pragma: no cover - depends on the machine
         raise WonderError(f"the gsplat backend needs gsplat=={GSPLAT_VERSION} (pip install '.[gpu]'): {e}") from None
     if not means.is_cuda:
@@ -61,7 +61,7 @@ def render(
     K = torch.as_tensor(K).to(device=device, dtype=dtype)
     if sh_degree is not None:
         campos = -viewmat[:3, :3].T @ viewmat[:3, 3]
-        rgb_g = sh_colors(sh_degree, colors, means - campos)
+        rgb_g = torch.clamp_min(spherical_harmonics(sh_degree, means - campos, colors) + 0.5, 0.0)
     else:
         rgb_g = colors
     means_c = means @ viewmat[:3, :3].T + viewmat[:3, 3]

@@ -186,9 +186,29 @@ def _found_inf(loss: torch.Tensor, params: list[torch.Tensor]) -> torch.Tensor:
     return (~torch.isfinite(total)).float()
 
 
-def _make_adam(param: torch.Tensor, lr: float, eps: float = 1e-15) -> torch.optim.Adam:
-    # fused: one kernel per step, and it honours `found_inf` (how a non-finite step is skipped)
-    return torch.optim.Adam([param], lr=lr, eps=eps, fused=True)
+def _make_adam(params: dict[str, torch.Tensor], lrs: dict[str, float], eps: float = 1e-15) -> torch.optim.Adam:
+    """One Adam over named param groups (one Python call per step). fused: it honours `found_inf`, how a
+    non-finite step is skipped."""
+    groups = [{"params": [p], "lr": lrs[k], "name": k} for k, p in params.items()]
+    return torch.optim.Adam(groups, eps=eps, fused=True)
+
+
+class _Loss:
+    """`total_loss`, compiled by torch.compile on CUDA when asked (a training step's loss is ~150 small
+    kernels eagerly, a handful compiled); falls back to eager, logged, when compiling fails."""
+
+    def __init__(self, compiled: bool) -> None:
+        self.fn = torch.compile(total_loss, dynamic=False) if compiled else total_loss
+
+    def __call__(self, *args: Any, **kwargs: Any) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        try:
+            return self.fn(*args, **kwargs)
+        except Exception as e:  # a missing compiler toolchain surfaces here, at the first call
+            if self.fn is total_loss:
+                raise
+            log.warning("torch.compile of the splat loss failed (%s: %s); running it eagerly", type(e).__name__, e)
+            self.fn = total_loss
+            return total_loss(*args, **kwargs)
 
 
 @dataclass
@@ -286,8 +306,10 @@ def train(
         "shN": params.lr_shN,
     }
     pdict = model.param_dict()
-    optimizers = {k: _make_adam(p, lrs[k]) for k, p in pdict.items()}
-    bg_opt = _make_adam(background, params.lr_background if params.learn_background else 0.0, eps=1e-8)
+    optimizer = _make_adam(pdict, lrs)
+    optimizers = dict.fromkeys(pdict, optimizer)  # the strategies' view: each tensor's optimiser
+    bg_lr = params.lr_background if params.learn_background else 0.0
+    bg_opt = _make_adam({"background": background}, {"background": bg_lr}, eps=1e-8)
     strategy = _make_strategy(params)
     strategy_state = strategy.initialize_state(scene_scale) if strategy is not None else {}
     curves: dict[str, list[float]] = {}
@@ -297,9 +319,9 @@ def train(
         restored = GaussianModel.from_numpy(resume_state["params"], sh_degree=model.sh_degree).to(device)
         model.replace_params(restored.param_dict())
         pdict = model.param_dict()
-        optimizers = {k: _make_adam(p, lrs[k]) for k, p in pdict.items()}
-        for k, sd in resume_state["optimizers"].items():
-            optimizers[k].load_state_dict(sd)
+        optimizer = _make_adam(pdict, lrs)
+        optimizers = dict.fromkeys(pdict, optimizer)
+        optimizer.load_state_dict(resume_state["optimizer"])
         background.data.copy_(torch.as_tensor(resume_state["background"]))
         bg_opt.load_state_dict(resume_state["bg_optimizer"])
         strategy_state = dict(resume_state["strategy_state"])
@@ -316,7 +338,7 @@ def train(
             "scene_scale": scene_scale,
             "params": model.to_numpy(),
             # Deep copies: a state_dict holds the live moment tensors, which later steps update in place.
-            "optimizers": {k: copy.deepcopy(o.state_dict()) for k, o in optimizers.items()},
+            "optimizer": copy.deepcopy(optimizer.state_dict()),
             "background": background.detach().cpu().numpy().copy(),
             "bg_optimizer": copy.deepcopy(bg_opt.state_dict()),
             "strategy_state": {k: (v.clone() if torch.is_tensor(v) else v) for k, v in strategy_state.items()},
@@ -327,6 +349,7 @@ def train(
         }
 
     has_sky = data.sky.flatten(1).any(1).tolist()
+    loss_fn = _Loss(params.compile_loss and torch.device(device).type == "cuda")
     pending: list[_Pending] = []
     t_start = time.perf_counter()
     for step in range(start, params.iterations):
@@ -335,13 +358,14 @@ def train(
             order = [train_ids[j] for j in torch.randperm(len(train_ids), generator=gen).tolist()]
         i = order.pop()
         lr_m = _lr_means(params, scene_scale, step)
-        for g in optimizers["means"].param_groups:
-            g["lr"] = lr_m
+        for g in optimizer.param_groups:
+            if g["name"] == "means":
+                g["lr"] = lr_m
         sh = min(step // params.sh_degree_interval_iters, params.sh_degree, model.sh_degree)
         rgb, depth, alpha, normals, info = _render_view(model, data, i, renderer, params, background, sh)
         if strategy is not None and model.num_gaussians:
             strategy.step_pre_backward(pdict, optimizers, strategy_state, step, info)
-        loss, terms = total_loss(
+        loss, terms = loss_fn(
             rgb,
             data.frames[i],
             depth,
@@ -360,7 +384,7 @@ def train(
             loss = loss + strategy.regularization(pdict)
         loss.backward()
         found_inf = _found_inf(loss, [*pdict.values(), background])
-        for o in [*optimizers.values(), bg_opt]:
+        for o in (optimizer, bg_opt):
             o.found_inf, o.grad_scale = found_inf, None  # fused Adam leaves everything as it was when set
             o.step()
             o.zero_grad(set_to_none=True)
