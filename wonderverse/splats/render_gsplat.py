@@ -22,9 +22,17 @@ import torch
 from torch import Tensor
 
 from wonderverse.errors import WonderError
+from wonderverse.splats.compiled import Compiled
 from wonderverse.splats.render_torch import EPS2D, gaussian_normals
 
 GSPLAT_VERSION = "1.5.3"
+
+
+def _camera_normals(means: Tensor, quats: Tensor, scales: Tensor, viewmat: Tensor) -> Tensor:
+    return gaussian_normals(quats, scales, viewmat, means @ viewmat[:3, :3].T + viewmat[:3, 3])
+
+
+_normals = Compiled(_camera_normals, dynamic=True)  # ~100 tiny kernels eagerly (forward + backward)
 
 
 def render(
@@ -64,8 +72,7 @@ def render(
         rgb_g = torch.clamp_min(spherical_harmonics(sh_degree, means - campos, colors) + 0.5, 0.0)
     else:
         rgb_g = colors
-    means_c = means @ viewmat[:3, :3].T + viewmat[:3, 3]
-    normals_g = gaussian_normals(quats, scales, viewmat, means_c)
+    normals_g = _normals(means, quats, scales, viewmat)
     feats = torch.cat([rgb_g, normals_g], dim=-1)  # (N, 6)
     backgrounds = None
     if background is not None:

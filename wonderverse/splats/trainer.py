@@ -31,6 +31,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from wonderverse.splats.compiled import Compiled
 from wonderverse.splats.losses import masked_mean, total_loss
 from wonderverse.splats.model import GaussianModel, SceneNormalization
 from wonderverse.splats.params import TrainParams
@@ -193,24 +194,6 @@ def _make_adam(params: dict[str, torch.Tensor], lrs: dict[str, float], eps: floa
     return torch.optim.Adam(groups, eps=eps, fused=True)
 
 
-class _Loss:
-    """`total_loss`, compiled by torch.compile on CUDA when asked (a training step's loss is ~150 small
-    kernels eagerly, a handful compiled); falls back to eager, logged, when compiling fails."""
-
-    def __init__(self, compiled: bool) -> None:
-        self.fn = torch.compile(total_loss, dynamic=False) if compiled else total_loss
-
-    def __call__(self, *args: Any, **kwargs: Any) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-        try:
-            return self.fn(*args, **kwargs)
-        except Exception as e:  # a missing compiler toolchain surfaces here, at the first call
-            if self.fn is total_loss:
-                raise
-            log.warning("torch.compile of the splat loss failed (%s: %s); running it eagerly", type(e).__name__, e)
-            self.fn = total_loss
-            return total_loss(*args, **kwargs)
-
-
 @dataclass
 class _Pending:
     """One step's loss terms, still on the device (`values`, stacked in `names` order), and host figures."""
@@ -349,7 +332,7 @@ def train(
         }
 
     has_sky = data.sky.flatten(1).any(1).tolist()
-    loss_fn = _Loss(params.compile_loss and torch.device(device).type == "cuda")
+    loss_fn = Compiled(total_loss, enabled=params.compile_loss and torch.device(device).type == "cuda")
     pending: list[_Pending] = []
     t_start = time.perf_counter()
     for step in range(start, params.iterations):
