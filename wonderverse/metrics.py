@@ -1,4 +1,4 @@
-"""Ground-truth metrics: camera trajectory (ATE), depth, normals, image fidelity (PSNR, SSIM).
+"""Ground-truth metrics: camera trajectory (ATE), depth, normals, image fidelity (PSNR, SSIM), surfaces (Chamfer).
 
 Arrays in, plain Python floats/ints (in dicts) out. Poses are W2C 4x4 float64 (OpenCV camera axes); depth is
 camera-space z; normals are 3-vectors in any one frame shared by `pred` and `gt`. The constants below are
@@ -157,3 +157,61 @@ def ssim(img: np.ndarray, ref: np.ndarray, max_val: float = 1.0) -> float:
     sxy = _gaussian_valid(x * y, w) - mx * my
     s = ((2.0 * mx * my + c1) * (2.0 * sxy + c2)) / ((mx * mx + my * my + c1) * (sxx + syy + c2))
     return float(np.mean(s))
+
+
+def sample_mesh_points(vertices: np.ndarray, triangles: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    """`n` points (n,3) float64 drawn uniformly by area on a triangle mesh (vertices (V,3), triangles (F,3)):
+    a triangle with probability proportional to its area, then a uniform point in it (the square-root
+    barycentric trick). Degenerate triangles are never drawn; an empty or zero-area mesh gives (0,3)."""
+    v = np.asarray(vertices, dtype=np.float64).reshape(-1, 3)
+    f = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    if len(f) == 0 or n <= 0:
+        return np.zeros((0, 3))
+    a, b, c = v[f[:, 0]], v[f[:, 1]], v[f[:, 2]]
+    area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    total = float(area.sum())
+    if not total > 0.0:
+        return np.zeros((0, 3))
+    rng = np.random.default_rng(seed)
+    idx = rng.choice(len(f), size=n, p=area / total)
+    r1, r2 = np.sqrt(rng.random(n))[:, None], rng.random(n)[:, None]
+    return (1.0 - r1) * a[idx] + r1 * (1.0 - r2) * b[idx] + r1 * r2 * c[idx]
+
+
+def chamfer_fscore(
+    pred_points: np.ndarray, gt_points: np.ndarray, thresholds: tuple[float, ...] | list[float]
+) -> dict[str, float | int | list[float]]:
+    """Point-set distances between a reconstruction and the ground truth (both (N,3), same units).
+
+    accuracy = mean distance from each predicted point to its nearest GT point; completeness = mean distance
+    from each GT point to its nearest prediction; chamfer = (accuracy + completeness) / 2. For each threshold
+    t: precision = share of predicted points within t of the GT, recall = share of GT points within t of the
+    prediction, fscore = 2 P R / (P + R) (0 when both are 0). Returns {"chamfer", "accuracy", "completeness"
+    (floats), "precision", "recall", "fscore" (lists of floats in the order of `thresholds`, shares in 0..1),
+    "n_pred", "n_gt"}; distances are NaN and shares 0 when either set is empty.
+    """
+    from scipy.spatial import cKDTree
+
+    pred = np.asarray(pred_points, dtype=np.float64).reshape(-1, 3)
+    gt = np.asarray(gt_points, dtype=np.float64).reshape(-1, 3)
+    ts = [float(t) for t in thresholds]
+    if len(pred) == 0 or len(gt) == 0:
+        nan = float("nan")
+        shares = {"precision": [0.0] * len(ts), "recall": [0.0] * len(ts), "fscore": [0.0] * len(ts)}
+        return {"chamfer": nan, "accuracy": nan, "completeness": nan, **shares, "n_pred": len(pred), "n_gt": len(gt)}
+    d_pred, _ = cKDTree(gt).query(pred, workers=1)
+    d_gt, _ = cKDTree(pred).query(gt, workers=1)
+    precision = [float(np.mean(d_pred < t)) for t in ts]
+    recall = [float(np.mean(d_gt < t)) for t in ts]
+    fscore = [2 * p * r / (p + r) if p + r > 0 else 0.0 for p, r in zip(precision, recall, strict=True)]
+    acc, comp = float(np.mean(d_pred)), float(np.mean(d_gt))
+    return {
+        "chamfer": (acc + comp) / 2.0,
+        "accuracy": acc,
+        "completeness": comp,
+        "precision": precision,
+        "recall": recall,
+        "fscore": fscore,
+        "n_pred": len(pred),
+        "n_gt": len(gt),
+    }
