@@ -72,7 +72,8 @@ def render(
         rgb_g = torch.clamp_min(spherical_harmonics(sh_degree, means - campos, colors) + 0.5, 0.0)
     else:
         rgb_g = colors
-    normals_g = _normals(means, quats, scales, viewmat)
+    # view_as: plain tensors, not Parameters, so the compiled graph treats N as dynamic (no recompiles)
+    normals_g = _normals(means.view_as(means), quats.view_as(quats), scales, viewmat)
     feats = torch.cat([rgb_g, normals_g], dim=-1)  # (N, 6)
     backgrounds = None
     if background is not None:
