@@ -2,10 +2,18 @@
 
 from __future__ import annotations
 
-from tasks import check, generate_segments, plan, poses, priors, splats
+from tasks import check, generate_segments, outputs, plan, poses, priors, splats
 from tasks.base import Step, StepResult, step_keys
 
-STEPS: list[Step] = [plan.STEP, generate_segments.STEP, check.STEP, poses.STEP, priors.STEP, splats.STEP]
+STEPS: list[Step] = [
+    plan.STEP,
+    generate_segments.STEP,
+    check.STEP,
+    poses.STEP,
+    priors.STEP,
+    splats.STEP,
+    outputs.STEP,
+]
 STEP_NAMES = [s.name for s in STEPS]
 
 __all__ = ["STEPS", "STEP_NAMES", "Step", "StepResult", "step_keys", "steps_until"]

@@ -28,7 +28,7 @@ def splat_config(iterations: int = 40):
 @pytest.fixture(scope="module")
 def trained(tmp_path_factory) -> Path:
     scene = tmp_path_factory.mktemp("splats") / "scene"
-    results = execute(scene, splat_config())
+    results = execute(scene, splat_config(), until="splats")
     assert results[-1].step == "splats" and results[-1].status == "ran"
     return scene
 
@@ -95,7 +95,7 @@ def test_sigkill_during_training_resumes_from_its_checkpoint(tmp_path: Path, tra
     step = SceneStore.open(scene).attrs("splats_checkpoint")["step"]
     assert 20 <= step < 400 and not SceneStore.open(scene).exists("splats")
     with caplog.at_level("WARNING", logger="wonderverse.splats"):
-        results = execute(scene, cfg)
+        results = execute(scene, cfg, until="splats")
     assert [r.status for r in results][-1] == "ran" and [r.status for r in results][:-1] == ["cached"] * 5
     assert any(f"checkpoint at step {step}" in r.message for r in caplog.records)
     assert len(SceneStore.open(scene).attrs("splats")["curves"]["total"]) == 400  # history carried over

@@ -14,6 +14,7 @@ from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_valida
 
 from wonderverse.check import CheckParams
 from wonderverse.errors import ConfigError
+from wonderverse.mesh import MeshParams
 from wonderverse.priors.params import PriorsParams
 from wonderverse.sfm import SfmParams
 from wonderverse.splats.params import TrainParams
@@ -152,6 +153,20 @@ class SplatsStepParams(Model):
     init_opacity: float = Field(0.1, gt=0, lt=1)
 
 
+class OutputsParams(Model):
+    """Step `outputs`: the files users open elsewhere (mesh, points, COLMAP/nerfstudio data, videos)."""
+
+    mesh: MeshParams = MeshParams()
+    render_max_side_px: int = Field(480, ge=16, le=8192, description="renders for TSDF and videos: longer side")
+    video_frames: int = Field(120, ge=2, le=10_000, description="frames of the fly-through and novel-view videos")
+    video_fps: float = Field(24.0, gt=0, le=240)
+    novel_offset_frac: float = Field(
+        0.1, ge=0, le=1, description="the novel-view path runs this share of the scene extent off the training path"
+    )
+    colmap: bool = Field(True, description="write colmap/ (cameras.txt, images.txt, points3D.txt)")
+    nerfstudio: bool = Field(True, description="write nerfstudio/ (transforms.json + images/)")
+
+
 class StepsConfig(Model):
     plan: PlanParams = PlanParams()
     generate: GenerateParams = GenerateParams()
@@ -159,6 +174,7 @@ class StepsConfig(Model):
     poses: PosesParams = PosesParams()
     priors: PriorsStepParams = PriorsStepParams()
     splats: SplatsStepParams = SplatsStepParams()
+    outputs: OutputsParams = OutputsParams()
 
 
 class RunConfig(Model):

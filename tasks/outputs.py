@@ -1,0 +1,134 @@
+"""Step `outputs`: the files users open elsewhere, written beside the store from the trained splats.
+
+  points.ply              Gaussian centres at least `mesh.points_min_opacity` opaque, with their base colour
+  mesh.ply, mesh.glb      TSDF fusion of splat renders from the training cameras (sky/background excluded)
+  colmap/                 COLMAP text model of the global poses and sparse points (W2C, as COLMAP stores it)
+  nerfstudio/             transforms.json (OpenGL camera-to-world) + images/ of the stitched frames
+  camera_path.json        the fly-through path (W2C, OpenCV axes, world units; stated in the file)
+  flythrough.mp4          splat renders along a smooth path through the whole scene
+  novel.mp4               splat renders along a parallel path off the training trajectory
+
+Everything is in the world frame of the global poses (`sfm/`). The `outputs` group lists the files and
+their sizes; it is committed last, so a killed run rewrites them all on the next run.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tasks.base import Step
+from wonderverse.config import RunConfig
+from wonderverse.store import SceneStore
+
+log = logging.getLogger("wonderverse.outputs")
+
+
+def _params(cfg: RunConfig) -> dict[str, Any]:
+    return {"outputs": cfg.steps.outputs.model_dump(), "renderer": cfg.steps.splats.renderer}
+
+
+def posed_frames(store: SceneStore) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Stitched frames that have a global pose: frames (N,H,W,3) uint8, W2C (N,4,4), names `s000_0007`."""
+    from tasks.segments import frames as segment_frames
+
+    segs = store.attrs("sfm")["segments"]
+    index, poses = store.array("sfm/frame_index"), store.array("sfm/poses")
+    keep = np.isfinite(poses).all(axis=(1, 2))
+    cache: dict[str, np.ndarray] = {}
+    out, names = [], []
+    for (a, i), ok in zip(index, keep, strict=True):
+        if ok:
+            seg = segs[a]
+            if seg not in cache:
+                cache[seg] = segment_frames(store, seg)
+            out.append(cache[seg][i])
+            names.append(f"{seg}_{int(i):04d}")
+    return np.stack(out), poses[keep], names
+
+
+def _render_size(width: int, height: int, K: np.ndarray, max_side: int) -> tuple[int, int, np.ndarray]:
+    s = min(1.0, max_side / max(width, height))
+    w, h = max(1, round(width * s)), max(1, round(height * s))
+    Ks = np.asarray(K, np.float64).copy()
+    Ks[0] *= w / width
+    Ks[1] *= h / height
+    return w, h, Ks
+
+
+def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
+    from wonderverse.exports import write_camera_path, write_colmap_text, write_nerfstudio
+    from wonderverse.media import write_mp4
+    from wonderverse.mesh import (
+        clean_mesh,
+        fuse_tsdf,
+        fusion_cameras,
+        gaussian_points,
+        scene_extent,
+        write_mesh,
+        write_points_ply,
+    )
+    from wonderverse.paths import flythrough_path, novel_view_path
+    from wonderverse.splats.model import GaussianModel, SceneNormalization
+    from wonderverse.splats.renderer import make_renderer
+    from wonderverse.splats.views import render_views
+
+    p = cfg.steps.outputs
+    out = Path(store.scene_dir)
+    splats = store.attrs("splats")
+    norm = SceneNormalization.from_dict(splats["normalization"])
+    arrays = {name: store.array(f"splats/{name}") for name in GaussianModel.PARAM_NAMES}
+    background = splats.get("metrics", {}).get("background_rgb")
+    frames, w2c, names = posed_frames(store)
+    K = store.array("sfm/K")
+    height, width = frames.shape[1:3]
+    w, h, Kr = _render_size(width, height, K, p.render_max_side_px)
+    renderer = make_renderer(cfg.steps.splats.renderer)
+    files: list[Path] = []
+
+    def render(poses: np.ndarray) -> list[Any]:
+        return list(render_views(arrays, norm, poses, Kr, w, h, renderer, background=background))
+
+    cloud = gaussian_points(arrays, norm, p.mesh.points_min_opacity)
+    files.append(write_points_ply(out / "points.ply", cloud))
+
+    cams = fusion_cameras(w2c, p.mesh.extra_views_per_gap)
+    views = render(cams)
+    depths = [v.depth for v in views]
+    extent = scene_extent(cams, depths)
+    raw = fuse_tsdf(((v.rgb, v.depth, Kr, c) for v, c in zip(views, cams, strict=True)), extent, p.mesh)
+    mesh = clean_mesh(raw, p.mesh)
+    files += [write_mesh(mesh, out / "mesh.ply"), write_mesh(mesh, out / "mesh.glb")]
+
+    if p.colmap:
+        points, colors = store.array("sfm/points3d"), store.array("sfm/colors")
+        files.append(write_colmap_text(out / "colmap", K, w2c, width, height, names, points, colors))
+    if p.nerfstudio:
+        files.append(write_nerfstudio(out / "nerfstudio", frames, K, w2c, names).parent)
+
+    finite = np.concatenate([d[np.isfinite(d)] for d in depths]) if depths else np.zeros(0)
+    look = float(np.median(finite)) if finite.size else None
+    fly = flythrough_path(w2c, p.video_frames)
+    files.append(write_camera_path(out / "camera_path.json", fly, Kr, w, h, p.video_fps))
+    for name, path in (
+        ("flythrough.mp4", fly),
+        ("novel.mp4", novel_view_path(w2c, p.video_frames, p.novel_offset_frac, look)),
+    ):
+        rgb = np.stack([np.round(v.rgb * 255).astype(np.uint8) for v in render(path)])
+        files.append(write_mp4(rgb, out / name, p.video_fps))
+
+    listed = [{"path": f.name, "bytes": _size(f)} for f in files]
+    stats = {"triangles": len(mesh.triangles), "vertices": len(mesh.vertices), "points": len(cloud.points)}
+    with store.staged("outputs", key, files=listed, mesh=stats | {"extent": extent}, render_size=[w, h]):
+        pass
+    return f"{len(files)} files: mesh {stats['triangles']} triangles, {stats['points']} points, 2 videos"
+
+
+def _size(path: Path) -> int:
+    return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() else path.stat().st_size
+
+
+STEP = Step("outputs", 1, ("splats",), _params, run, "mesh, point cloud, COLMAP/nerfstudio exports, videos")
