@@ -80,7 +80,21 @@ def generate(
     finally:
         progress.current.reset(token)
     console.print(progress.results_table(results))
+    from flows.report import write_report
+
+    report = write_report(scene_dir)
     out.print(f"scene: {scene_dir}", highlight=False)
+    for f in _output_files(scene_dir):
+        out.print(f"  {f}", highlight=False)
+    out.print(f"report: {report}", highlight=False)
+
+
+def _output_files(scene_dir: Path) -> list[Path]:
+    """The files the outputs step wrote (empty when it has not run)."""
+    from wonderverse.store import SceneStore
+
+    files = SceneStore.open(scene_dir).attrs("outputs").get("files", [])
+    return [Path(scene_dir) / f["path"] for f in files]
 
 
 @app.command()
@@ -137,6 +151,14 @@ def preview(scene_dir: Annotated[Path, typer.Argument(help="scene folder")]) -> 
     files = write_preview(scene_dir)
     for f in files:
         out.print(f"wrote {f}", highlight=False)
+
+
+@app.command()
+def report(scene_dir: Annotated[Path, typer.Argument(help="scene folder")]) -> None:
+    """Write report.html: plan, attempts and check plots, priors, training curves, timings, metrics, files."""
+    from flows.report import write_report
+
+    out.print(f"wrote {write_report(scene_dir)}", highlight=False)
 
 
 def main() -> None:

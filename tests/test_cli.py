@@ -138,3 +138,19 @@ def test_generate_through_prefect_engine(tmp_path: Path):
     r = run_cli(*args, env=env, timeout=400)
     assert r.returncode == 0 and r.stderr.count("cached") >= 2, r.stderr[-3000:]
     assert os.listdir(tmp_path / "prefect")  # Prefect really ran (its local database lives here)
+
+
+def test_generate_ends_with_the_outputs_and_the_report(tmp_path: Path):
+    d = tmp_path / "full"
+    cfg = tiny_file(tmp_path, prompt="a snowy mountain cabin", extensions={"rounds": 0})
+    r = run_cli("generate", "--config", str(cfg), "--out", str(d), "--engine", "local", timeout=900)
+    assert r.returncode == 0, r.stderr[-2000:]
+    for name in ("mesh.ply", "mesh.glb", "points.ply", "flythrough.mp4", "novel.mp4", "report.html"):
+        assert str(d / name) in r.stdout and (d / name).stat().st_size > 0, name
+
+
+def test_report_command(scene: Path, tmp_path: Path):
+    r = run_cli("report", str(scene))
+    assert r.returncode == 0 and (scene / "report.html").stat().st_size > 1000, r.stderr
+    r = run_cli("report", str(tmp_path / "nothing-here"))
+    assert r.returncode == 2 and r.stderr.count("\n") == 1 and r.stderr.startswith("error:"), r.stderr
