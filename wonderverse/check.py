@@ -50,7 +50,7 @@ class CheckParams(BaseModel):
     max_step_ratio: float = Field(3.5, gt=1, description="step ÷ median of the other steps (scale-free mode)")
     rot_thresh_rad: float = Field(0.5, gt=0, le=math.pi, description="T2: rotation between consecutive frames")
     max_rot_ratio: float | None = Field(
-        5.0, gt=1, description="also abnormal: a rotation step this many times the median one (None: off) ..."
+        3.0, gt=1, description="also abnormal: a rotation step this many times the median one (None: off) ..."
     )
     min_rot_jump_rad: float = Field(0.1, ge=0, description="... and above this, so jitter of a still camera is not")
     min_registered_frac: float = Field(0.8, ge=0, le=1)
