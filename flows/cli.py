@@ -55,6 +55,9 @@ def generate(
     until: Annotated[str | None, typer.Option(help="run only the steps this step needs")] = None,
     engine: Annotated[str, typer.Option(help="prefect (default) or local (plain in-process calls)")] = "prefect",
     seed: Annotated[int | None, typer.Option(help="scene seed (overrides the config)")] = None,
+    dask: Annotated[
+        str | None, typer.Option(help="existing Dask scheduler for per-segment work (tcp://host:8786)")
+    ] = None,
 ) -> None:
     """Plan, render and store a scene; cached steps are skipped."""
     from flows import progress
@@ -63,8 +66,10 @@ def generate(
 
     if engine not in ("prefect", "local"):
         raise WonderError(f"--engine must be prefect or local (got {engine!r})")
-    overrides = {"scene": {"seed": seed}} if seed is not None else None
-    cfg = build_config(prompt=prompt, preset=preset, config_file=config, overrides=overrides)
+    overrides: dict = {"scene": {"seed": seed}} if seed is not None else {}
+    if dask is not None:  # where work runs is not part of any cache key
+        overrides["steps"] = {"check": {"dask_address": dask}, "priors": {"dask_address": dask}}
+    cfg = build_config(prompt=prompt, preset=preset, config_file=config, overrides=overrides or None)
     try:
         steps = steps_until(until)
     except KeyError:

@@ -22,7 +22,7 @@ VERSION = 1
 
 
 def _params(cfg: RunConfig) -> dict[str, Any]:
-    return {"priors": cfg.steps.priors.model_dump(exclude={"workers"})}
+    return {"priors": cfg.steps.priors.model_dump(exclude={"workers", "dask_address"})}
 
 
 def _ground_truth(store: SceneStore, ap: str) -> Any:
@@ -105,7 +105,15 @@ def priors_segment(seg: str, scene_dir: str, cfg: RunConfig, step_key: str) -> d
 
 def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     segs = [s for s in segment_ids(store) if accepted_attempt(store, s) is not None]
-    out = map_segments(priors_segment, segs, str(store.scene_dir), cfg, key, workers=cfg.steps.priors.workers)
+    out = map_segments(
+        priors_segment,
+        segs,
+        str(store.scene_dir),
+        cfg,
+        key,
+        workers=cfg.steps.priors.workers,
+        address=cfg.steps.priors.dask_address,
+    )
     for stale in set(store.children("priors")) - set(segs):
         store.remove(f"priors/{stale}")
     store.mark_complete("priors", key)

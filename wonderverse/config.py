@@ -137,6 +137,7 @@ class PriorsStepParams(Model):
         4.0, gt=1, description="aligned depth beyond this many times the farthest SfM point seen in the frame is sky"
     )
     workers: int = Field(2, ge=1, le=256, description="segments processed at once (Dask)")
+    dask_address: str | None = Field(None, description="existing Dask scheduler, e.g. tcp://host:8786")
 
 
 class SplatsStepParams(Model):
