@@ -8,8 +8,10 @@ snaps round, objects move, or frames freeze; `GroundTruth.faults` says what and 
 
 from __future__ import annotations
 
+import functools
 import os
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import lru_cache
@@ -24,6 +26,7 @@ from wonderverse.video.shadows import build_cascades
 from wonderverse.video.texture import (
     Noise,
     PatternParams,
+    Sunlight,
     part_tables,
     rotate,
     rowdot,
@@ -211,25 +214,58 @@ def apply_pose_fault(path: np.ndarray, plan: FaultPlan | None, opts: ProceduralO
 
 @lru_cache(maxsize=8)
 def _camera_rays(width: int, height: int, k_key: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
-    """Camera-space ray directions through pixel centres (+0.5), row-major: (H*W,3) float32 with z = 1,
-    and their lengths (H*W,)."""
+    """Camera-space ray directions through pixel centres (+0.5), row-major: their x and y (2,H*W)
+    float32 (z = 1), and their lengths (H*W,). Read-only: they are shared between calls."""
     K = np.array(k_key, dtype=np.float64).reshape(3, 3)
     u, v = np.meshgrid(np.arange(width) + 0.5, np.arange(height) + 0.5)
     x = (u.ravel() - K[0, 2] - K[0, 1] * (v.ravel() - K[1, 2]) / K[1, 1]) / K[0, 0]
     y = (v.ravel() - K[1, 2]) / K[1, 1]
-    d = np.stack([x, y, np.ones_like(x)], axis=1).astype(np.float32)
-    return d, np.sqrt(x * x + y * y + 1.0).astype(np.float32)
+    xy = np.stack([x, y]).astype(np.float32)
+    length = np.sqrt(x * x + y * y + 1.0).astype(np.float32)
+    xy.setflags(write=False)
+    length.setflags(write=False)
+    return xy, length
+
+
+def world_directions(K: np.ndarray, w2c: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """The camera centre (3,) float32 in the world and every pixel's world ray direction (3,H*W)
+    float32, row-major; each direction has camera z = 1, so a hit's ray parameter is its depth."""
+    xy, _ = _camera_rays(width, height, tuple(np.asarray(K, dtype=np.float64).ravel()))
+    centre, M = _camera_frame(w2c)
+    return centre, _directions(xy, M)
+
+
+def _camera_frame(w2c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The camera centre (3,) and the camera-to-world rotation R^T (3,3), both float32."""
+    R = np.asarray(w2c[:3, :3], dtype=np.float64)
+    return (-R.T @ w2c[:3, 3]).astype(np.float32), R.T.astype(np.float32)
+
+
+def _directions(xy: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """World directions (3,n) float32 M (x, y, 1) of camera directions xy (2,n)."""
+    dirs = np.empty((3, xy.shape[1]), dtype=np.float32)
+    for j in range(3):
+        np.multiply(xy[0], M[j, 0], out=dirs[j])
+        dirs[j] += xy[1] * M[j, 1]
+        dirs[j] += M[j, 2]
+    return dirs
+
+
+def _pack_rays(origins: np.ndarray, dirs: np.ndarray) -> np.ndarray:
+    """(n,6) float32 rays [origin, direction] as Open3D takes them, from origins (3,n) or (3,) and
+    directions (3,n) or (3,)."""
+    n = dirs.shape[1] if np.ndim(dirs) == 2 else origins.shape[1]
+    rays = np.empty((n, 6), dtype=np.float32)
+    for j in range(3):  # column by column: broadcasting a 3-vector over (n,3) is ten times slower
+        rays[:, j] = origins[j]
+        rays[:, 3 + j] = dirs[j]
+    return rays
 
 
 def world_rays(K: np.ndarray, w2c: np.ndarray, width: int, height: int) -> np.ndarray:
     """(H*W,6) float32 rays [origin, direction] in the world for every pixel; each direction has camera
     z = 1, so a hit's ray parameter is its depth."""
-    dcam, _ = _camera_rays(width, height, tuple(np.asarray(K, dtype=np.float64).ravel()))
-    R = np.asarray(w2c[:3, :3], dtype=np.float64)
-    rays = np.empty((len(dcam), 6), dtype=np.float32)
-    rays[:, :3] = (-R.T @ w2c[:3, 3]).astype(np.float32)
-    rays[:, 3:] = rotate(dcam, R.T.astype(np.float32))  # world direction R^T d
-    return rays
+    return _pack_rays(*world_directions(K, w2c, width, height))
 
 
 @lru_cache(maxsize=4)
@@ -251,21 +287,14 @@ class Morph:
     cache: dict[Any, Any] = field(default_factory=dict)
 
 
-def _rays(origins: np.ndarray, dirs: np.ndarray) -> Any:
-    import open3d as o3d
-
-    rays = np.empty((len(dirs), 6), dtype=np.float32)
-    rays[:, :3] = origins
-    rays[:, 3:] = dirs
-    return o3d.core.Tensor.from_numpy(rays)
-
-
-def cast(scene: Any, rays: np.ndarray) -> dict[str, np.ndarray]:
+def cast(scene: Any, rays: np.ndarray, nthreads: int = 0) -> dict[str, np.ndarray]:
     """Open3D first hits of rays (n,6) [origin, direction]: t_hit (inf on a miss) in units of the
-    direction's length, primitive_ids, primitive_normals (world, by winding)."""
+    direction's length, primitive_ids, primitive_normals (world, by winding). nthreads: Open3D's
+    threads (0: all cores)."""
     import open3d as o3d
 
-    ans = scene.cast_rays(o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays, dtype=np.float32)))
+    rays = o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays, dtype=np.float32))
+    ans = scene.cast_rays(rays, nthreads=nthreads)
     # copies: the arrays then own their memory, whatever Open3D does with its tensors
     return {k: np.array(ans[k].numpy()) for k in ("t_hit", "primitive_ids", "primitive_normals")}
 
@@ -282,65 +311,103 @@ def render_view(
     """Render one view with a real ray caster. Returns rgb (H,W,3) uint8, depth (H,W) float32 camera z
     in metres (+inf for sky) and normals (H,W,3) float32 unit, camera space (OpenCV axes), facing the
     camera, 0 for sky."""
+    rgb = np.empty((height, width, 3), dtype=np.uint8)
+    depth = np.empty((height, width), dtype=np.float32)
+    normals = np.zeros((height, width, 3), dtype=np.float32)
+    _run(_view_chunks(world, K, w2c, width, height, opts, morph, (rgb, depth, normals)), opts.shading_threads)
+    return rgb, depth, normals
+
+
+def _view_chunks(
+    world: World,
+    K: np.ndarray,
+    w2c: np.ndarray,
+    width: int,
+    height: int,
+    opts: ProceduralOptions,
+    morph: Morph | None,
+    out: tuple[np.ndarray, np.ndarray, np.ndarray],
+) -> list[Callable[[], None]]:
+    """The work of `render_view` as independent pixel chunks, each writing its own rows of
+    out = (rgb (H,W,3) uint8, depth (H,W) float32, normals (H,W,3) float32 zeroed beforehand). Chunks
+    of several views can run together, so no thread waits for the end of each frame."""
+    if not all(a.flags.c_contiguous for a in out):
+        raise ValueError("_view_chunks writes into its outputs: they must be C-contiguous")
     fx = float(K[0, 0])
-    _, dnorm = _camera_rays(width, height, tuple(np.asarray(K, dtype=np.float64).ravel()))
-    rays = world_rays(K, w2c, width, height)
-    centre, dworld = rays[0, :3], rays[:, 3:]
+    xy, dnorm = _camera_rays(width, height, tuple(np.asarray(K, dtype=np.float64).ravel()))
+    centre, c2w = _camera_frame(w2c)
     Rf = np.asarray(w2c[:3, :3], dtype=np.float32)
     scene = world.scene if morph is None else morph.scene
-    ans = cast(scene, rays)
-    depth = ans["t_hit"]  # camera z = 1 along every ray, so the ray parameter is the depth
+    origin = centre[:, None]
     noise, sky_noise = _noise(opts.noise_seed), _noise(opts.noise_seed + 1)
     sunlight = _sunlight(world, opts, morph)
 
     part_tables(world, opts, noise)  # build shared caches before the chunks run in parallel
     n_pix = width * height
-    rgb = np.empty((n_pix, 3), dtype=np.uint8)
-    normals = np.zeros((n_pix, 3), dtype=np.float32)
+    rgb, depth, normals = out[0].reshape(n_pix, 3), out[1].reshape(n_pix), out[2].reshape(n_pix, 3)
 
-    def shade(s: int) -> None:
-        """Pixels s .. s+chunk: disjoint slices of rgb and normals, so chunks may run concurrently."""
-        sl = slice(s, min(n_pix, s + opts.chunk_px))
-        t_all = depth[sl]
+    def shade(sl: slice) -> None:
+        """Ray-cast and shade pixels `sl`: disjoint slices of the outputs, so chunks may run concurrently
+        (numpy releases the GIL). Vectors are (3,n) here (see texture.py); outputs are (n,3)."""
+        dworld = _directions(xy[:, sl], c2w)
+        # Open3D holds the GIL while it casts, stalling the other chunks' threads: let it use every core
+        ans = cast(scene, _pack_rays(centre, dworld), nthreads=0)
+        t_all = ans["t_hit"]  # camera z = 1 along every ray, so the ray parameter is the depth
+        depth[sl] = t_all
+        prim_ids, prim_normals = ans["primitive_ids"], ans["primitive_normals"]
         hit_mask = np.isfinite(t_all)
         hit = np.flatnonzero(hit_mask)
-        col = np.empty((len(t_all), 3), dtype=np.float32)
+        all_hit = len(hit) == len(t_all)
+        col = np.empty((3, len(t_all)), dtype=np.float32)
         if len(hit):
-            if len(hit) == len(t_all):  # no sky in this chunk (the usual case): views, no copies
-                t, d, n_geo = t_all, dworld[sl], ans["primitive_normals"][sl]
-                tri, ray_len = ans["primitive_ids"][sl], dnorm[sl]
+            if all_hit:  # no sky in this chunk (the usual case): views, no gathers
+                t, d, n_geo = t_all, dworld, np.ascontiguousarray(prim_normals.T)
+                tri, ray_len = prim_ids, dnorm[sl]
             else:
-                t, d, n_geo = (
-                    t_all.take(hit),
-                    dworld[sl].take(hit, axis=0),
-                    ans["primitive_normals"][sl].take(hit, axis=0),
-                )
-                tri, ray_len = ans["primitive_ids"][sl].take(hit), dnorm[sl].take(hit)
+                t, d, n_geo = t_all.take(hit), dworld.take(hit, axis=1), prim_normals.T.take(hit, axis=1)
+                tri, ray_len = prim_ids.take(hit), dnorm[sl].take(hit)
             n_dot_d = rowdot(n_geo, d)
-            n_face = np.where((n_dot_d > 0)[:, None], -n_geo, n_geo)
-            normals[s + hit] = rotate(n_face, Rf)
-            points = centre + t[:, None] * d
+            n_face = n_geo * np.where(n_dot_d > 0, np.float32(-1.0), np.float32(1.0))  # exact: a sign flip
+            n_cam = rotate(n_face, Rf)
+            for c in range(3):
+                if all_hit:
+                    normals[sl, c] = n_cam[c]
+                else:
+                    normals[sl, c][hit] = n_cam[c]
+            points = origin + t * d
             tex = _texture_points(world, points, tri, morph)
             dist = t * ray_len
             cos_inc = np.abs(n_dot_d) * t / dist
             footprint = t * np.float32(1.0 / fx) / np.maximum(cos_inc, np.float32(opts.min_cos_incidence))
-            col[hit] = surface_colour(world, opts, noise, sunlight, points, tex, n_geo, n_face, dist, footprint, tri)
-        if len(hit) < len(t_all):
+            surf = surface_colour(world, opts, noise, sunlight, points, tex, n_geo, n_face, dist, footprint, tri)
+            if all_hit:
+                col = surf
+            else:
+                for c in range(3):
+                    col[c][hit] = surf[c]
+        if not all_hit:
             miss = np.flatnonzero(~hit_mask)
-            col[miss] = sky_colour(world, opts, sky_noise, dworld[sl].take(miss, axis=0), fx)
+            sky = sky_colour(world, opts, sky_noise, dworld.take(miss, axis=1), fx)
+            for c in range(3):
+                col[c][miss] = sky[c]
         np.clip(col, 0.0, 1.0, out=col)
         col *= np.float32(255.0)
         col += np.float32(0.5)
-        rgb[sl] = col
+        for c in range(3):
+            rgb[sl, c] = col[c]
 
-    starts = range(0, n_pix, opts.chunk_px)
-    if opts.shading_threads > 1 and len(starts) > 1:
-        # numpy releases the GIL inside its loops, so chunks shade in parallel on several cores
-        list(_pool(opts.shading_threads).map(shade, starts))
+    # Chunk bounds are part of the picture: fbm normalises by the octaves that its chunk needs
+    return [functools.partial(shade, slice(s, min(n_pix, s + opts.chunk_px))) for s in range(0, n_pix, opts.chunk_px)]
+
+
+def _run(chunks: list[Callable[[], None]], n_threads: int) -> None:
+    """Run the chunks on the shading pool (in order, so a view's chunks finish close together)."""
+    if n_threads > 1 and len(chunks) > 1:
+        for f in [_pool(n_threads).submit(c) for c in chunks]:
+            f.result()
     else:
-        for s in starts:
-            shade(s)
-    return rgb.reshape(height, width, 3), depth.reshape(height, width), normals.reshape(height, width, 3)
+        for c in chunks:
+            c()
 
 
 def _pool(n_threads: int) -> ThreadPoolExecutor:
@@ -353,8 +420,8 @@ def _pool_of(n_threads: int, pid: int) -> ThreadPoolExecutor:
     return ThreadPoolExecutor(max_workers=n_threads, thread_name_prefix=f"wonderverse-shade-{pid}")
 
 
-def _sunlight(world: World, opts: ProceduralOptions, morph: Morph | None) -> Any:
-    """sunlight(points, normals) -> (n,) share of the sun reaching each point, or None without shadows."""
+def _sunlight(world: World, opts: ProceduralOptions, morph: Morph | None) -> Sunlight | None:
+    """The share of the sun reaching surface points, or None without shadows."""
     if not opts.shadows or world.kind != "outdoor":
         return None
     scene = world.scene if morph is None else morph.scene
@@ -362,31 +429,34 @@ def _sunlight(world: World, opts: ProceduralOptions, morph: Morph | None) -> Any
     if opts.shadow_method == "rays":
 
         def by_rays(points: np.ndarray, normals: np.ndarray) -> np.ndarray:
+            import open3d as o3d
+
             origins = points + normals * np.float32(opts.shadow_bias_m)
-            blocked = scene.test_occlusions(_rays(origins, np.broadcast_to(sun, origins.shape))).numpy()
+            blocked = scene.test_occlusions(o3d.core.Tensor.from_numpy(_pack_rays(origins, sun))).numpy()
             return np.where(blocked.astype(bool), np.float32(0.0), np.float32(1.0))
 
-        return by_rays
+        return Sunlight(by_rays, cheap=False)
     cache = world.cache if morph is None else morph.cache
     key = ("shadow", opts.shadow_map_px, opts.shadow_near_m)
     if key not in cache:
         verts = world.vertices if morph is None else morph.vertices
         cache[key] = build_cascades(scene, sun, verts, opts.shadow_near_m, opts.shadow_map_px)
     cascades = cache[key]
-    return lambda points, normals: cascades.light(points, normals, opts.shadow_bias_texels)
+    return Sunlight(lambda points, normals: cascades.light(points, normals, opts.shadow_bias_texels), cheap=True)
 
 
 def _texture_points(world: World, points: np.ndarray, tri: np.ndarray, morph: Morph | None) -> np.ndarray:
-    """Where the solid texture is read for each hit: the point where the surface was built (morphed
-    objects carry their texture along), shifted by the world's texture offset."""
-    tex = points + world.texture_offset
+    """Where the solid texture is read for each hit (3,n), from world points (3,n): the point where the
+    surface was built (morphed objects carry their texture along), shifted by the world's texture offset."""
+    offset = world.texture_offset[:, None]
+    tex = points + offset
     if morph is not None:
         obj = world.tri_object.take(tri)
         sel = np.flatnonzero(morph.moved.take(obj))
         if len(sel):
             o = obj.take(sel)
-            back = (points.take(sel, axis=0) - morph.new_pivot.take(o, axis=0)) / morph.scale.take(o)[:, None]
-            tex[sel] = back + morph.old_pivot.take(o, axis=0) + world.texture_offset
+            back = (points.take(sel, axis=1) - morph.new_pivot.take(o, axis=0).T) / morph.scale.take(o)
+            tex[:, sel] = back + morph.old_pivot.take(o, axis=0).T + offset
     return tex
 
 
@@ -522,16 +592,17 @@ class ProceduralVideo:
         T = len(poses)
         frames = np.empty((T, *shape), dtype=np.uint8)
         depth = np.empty((T, self.height, self.width), dtype=np.float32)
-        normals = np.empty((T, self.height, self.width, 3), dtype=np.float32)
+        normals = np.zeros((T, self.height, self.width, 3), dtype=np.float32)
         frozen = set(record["frames"][1:]) if record.get("type") == "freeze" else set()
+        chunks = []
         for i in range(T):
-            if i in frozen:  # the video holds the previous frame
-                frames[i], depth[i], normals[i] = frames[i - 1], depth[i - 1], normals[i - 1]
-                continue
-            m = morph if morph is not None and plan is not None and i >= plan.frame else None
-            frames[i], depth[i], normals[i] = render_view(
-                self.world, self.K, poses[i], self.width, self.height, self.options, m
-            )
+            if i not in frozen:
+                m = morph if morph is not None and plan is not None and i >= plan.frame else None
+                out = (frames[i], depth[i], normals[i])
+                chunks += _view_chunks(self.world, self.K, poses[i], self.width, self.height, self.options, m, out)
+        _run(chunks, self.options.shading_threads)  # all frames at once: threads never wait at a frame's end
+        for i in sorted(frozen):  # the video holds the previous frame
+            frames[i], depth[i], normals[i] = frames[i - 1], depth[i - 1], normals[i - 1]
         return Video(frames=frames, K=self.K.copy(), gt=GroundTruth(poses, depth, normals, record))
 
 

@@ -30,11 +30,11 @@ class ShadowMap:
     heights: np.ndarray
 
     def light(self, points: np.ndarray, normals: np.ndarray, bias_texels: float) -> tuple[np.ndarray, np.ndarray]:
-        """(lit, inside): lit (n,) float32 in [0,1] is the share of sunlight reaching each point
-        (bilinear over 4 texels, so shadow edges are soft rather than stair-stepped), inside (n,) bool
-        says which points the map covers (the others read as lit). Each point is first pushed off its
-        surface along its camera-facing normal and towards the sun by `bias_texels` texels, so that a
-        surface does not shadow itself."""
+        """(lit, inside) at points and normals (3,n): lit (n,) float32 in [0,1] is the share of sunlight
+        reaching each point (bilinear over 4 texels, so shadow edges are soft rather than stair-stepped),
+        inside (n,) bool says which points the map covers (the others read as lit). Each point is first
+        pushed off its surface along its camera-facing normal and towards the sun by `bias_texels`
+        texels, so that a surface does not shadow itself."""
         n = self.heights.shape[0]
         bias = np.float32(bias_texels * self.texel_m)
         p = points + normals * bias
@@ -46,7 +46,12 @@ class ShadowMap:
         fu, fv = u - iu, v - iv
         iu, iv = iu.astype(np.int32), iv.astype(np.int32)
         inside = (iu >= 0) & (iv >= 0) & (iu < n - 1) & (iv < n - 1)
-        idx = np.clip(iv, 0, n - 2) * np.int32(n) + np.clip(iu, 0, n - 2)
+        # clamped in place (np.clip's wrapper costs more than the work at these sizes)
+        np.minimum(np.maximum(iv, 0, out=iv), n - 2, out=iv)
+        np.minimum(np.maximum(iu, 0, out=iu), n - 2, out=iu)
+        idx = iv
+        idx *= np.int32(n)
+        idx += iu
         flat = self.heights.ravel()
         gu, gv = np.float32(1.0) - fu, np.float32(1.0) - fv
         lit = (gu * gv) * (h >= flat.take(idx))
@@ -98,19 +103,19 @@ class Cascades:
     far: ShadowMap
 
     def light(self, points: np.ndarray, normals: np.ndarray, bias_texels: float) -> np.ndarray:
-        """(n,) float32 sunlight share at world points with camera-facing normals: the fine map
+        """(n,) float32 sunlight share at world points (3,n) with camera-facing normals (3,n): the fine map
         wherever it reaches, the coarse one elsewhere."""
         lit, inside = self.near.light(points, normals, bias_texels)
         out = np.flatnonzero(~inside)
         if len(out):
-            lit[out] = self.far.light(points.take(out, axis=0), normals.take(out, axis=0), bias_texels)[0]
+            lit[out] = self.far.light(points.take(out, axis=1), normals.take(out, axis=1), bias_texels)[0]
         return lit
 
 
 def build_cascades(scene: Any, sun: np.ndarray, vertices: np.ndarray, near_half_m: float, resolution: int) -> Cascades:
     """Both cascades of a world whose mesh has `vertices` (V,3)."""
     lo, hi = vertices.min(axis=0).astype(np.float64), vertices.max(axis=0).astype(np.float64)
-    top = float(dot3(vertices, np.asarray(sun, dtype=np.float32)).max()) + 1.0
+    top = float(dot3(vertices.T, np.asarray(sun, dtype=np.float32)).max()) + 1.0
     near_lo = np.array([-near_half_m, -near_half_m, lo[2]])
     near_hi = np.array([near_half_m, near_half_m, hi[2]])
     return Cascades(
