@@ -15,6 +15,8 @@ import hashlib
 import json
 import os
 import shutil
+import socket
+import time
 import uuid
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -29,6 +31,7 @@ from wonderverse import STORE_FORMAT, __version__
 from wonderverse.errors import StoreError
 
 STORE_NAME = "scene.zarr"
+LOCK_NAME = ".wonderverse.lock"  # beside the store; see `scene_lock`
 _STAGING = "_staging"
 _TRASH = "_trash"
 
@@ -85,7 +88,7 @@ class SceneStore:
         else:
             if scene_dir.exists() and not scene_dir.is_dir():
                 raise StoreError(f"output path {scene_dir} exists and is not a folder")
-            if scene_dir.is_dir() and any(scene_dir.iterdir()):
+            if scene_dir.is_dir() and any(p.name != LOCK_NAME for p in scene_dir.iterdir()):
                 raise StoreError(f"output folder {scene_dir} is not empty and holds no scene; choose another --out")
             try:
                 scene_dir.mkdir(parents=True, exist_ok=True)
@@ -241,3 +244,65 @@ def write_array(group: zarr.Group, name: str, data: np.ndarray, chunks: tuple[in
     )
     arr[...] = data
     return arr
+
+
+def _holder(lock_file: Path) -> str:
+    """'pid N on HOST since T' from a lock file's content (written by its holder), or a vaguer phrase."""
+    try:
+        info = json.loads(lock_file.read_text() or "{}")
+        return f"pid {info['pid']} on {info['host']} since {info['since']}"
+    except (OSError, ValueError, KeyError, TypeError):
+        return "holder not yet recorded"  # it has the lock but has not written its details yet
+
+
+@contextmanager
+def scene_lock(scene_dir: Path | str, wait_s: float = 0.0, poll_s: float = 0.1) -> Iterator[Path]:
+    """Hold the one-writer lock of a scene while the block runs; yields the lock file's path.
+
+    An exclusive `fcntl.flock` on `<scene_dir>/.wonderverse.lock` (created, with the folder, when
+    absent). Non-blocking attempts every `poll_s` seconds for up to `wait_s` (0: one attempt;
+    math.inf: wait for ever); when the scene stays busy, raises StoreError naming the holder's pid,
+    host and start time. The kernel drops the lock when its holder exits or is killed, so a crashed
+    run never leaves the scene locked. The holder writes its details into the file and empties it
+    again on release; the file itself stays (deleting it would let two runs lock different inodes).
+    A folder that is non-empty and holds no scene is refused untouched, as `open_or_create` does.
+    """
+    import fcntl
+
+    scene_dir = Path(scene_dir)
+    lock_file = scene_dir / LOCK_NAME
+    if scene_dir.exists() and not scene_dir.is_dir():
+        raise StoreError(f"output path {scene_dir} exists and is not a folder")
+    foreign = scene_dir.is_dir() and not (scene_dir / STORE_NAME).exists() and not lock_file.exists()
+    if foreign and any(scene_dir.iterdir()):
+        raise StoreError(f"output folder {scene_dir} is not empty and holds no scene; choose another --out")
+    try:
+        scene_dir.mkdir(parents=True, exist_ok=True)
+        fd = os.open(lock_file, os.O_RDWR | os.O_CREAT, 0o644)  # no O_TRUNC: the holder's details stay readable
+    except OSError as e:
+        raise StoreError(f"cannot write to output folder {scene_dir}: {e.strerror or e}") from None
+    try:
+        deadline = time.monotonic() + wait_s
+        while True:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() >= deadline:
+                    waited = f" (waited {wait_s:g} s)" if wait_s > 0 else ""
+                    raise StoreError(
+                        f"scene {scene_dir} is being written by another run ({_holder(lock_file)}){waited}; "
+                        "wait for it to finish or use another --out"
+                    ) from None
+                time.sleep(poll_s)
+        since = time.strftime("%Y-%m-%d %H:%M:%S %z")
+        info = json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "since": since}).encode()
+        os.ftruncate(fd, 0)
+        os.pwrite(fd, info, 0)
+        try:
+            yield lock_file
+        finally:
+            os.ftruncate(fd, 0)  # before unlocking, so a later reader never sees a finished run's details
+            fcntl.flock(fd, fcntl.LOCK_UN)
+    finally:
+        os.close(fd)
