@@ -46,7 +46,9 @@ def _turn_forward() -> float:
         ("", "down", 0, -15, 0),
         ("look higher", "left", 0, 15, 0),
         ("show what is below the bridge", "left", 0, -15, 0),
-        ("go further down the valley", "left", 0, 0, 2),  # the first direction word wins
+        ("go further down the valley", "left", 0, 0, 2),  # "down the valley" is a way, not a tilt
+        ("look further left past the river", "right", 35, 0, None),  # a turning word beats "further"/"past"
+        ("a frozen lake beyond the trees on the left", "right", 35, 0, None),  # where the content is
         ("fly past the mountains", "left", 0, 0, 2),
         ("what lies beyond the gate", "right", 0, 0, 2),
         ("show the garden behind the house", "left", 0, 0, -2),

@@ -4,7 +4,11 @@ Understood: direction words (left, right, up, down, forward, back and ahead, beh
 below, further, farther, past, beyond, ...), explicit amounts ("go up 20 degrees", "move forward 3 metres",
 "turn left 45°", "turn 45 degrees to the left") and scene content with a positional word ("add a frozen lake
 on the left"). "turn" and "look" add nothing by themselves: "turn left" is left. An amount with a unit wins
-over a bare direction word; otherwise the first direction word wins; words with no direction keep the default.
+over a bare direction word; then a positional phrase ("on the left", "to the right": where the new content
+is, so "a frozen lake beyond the trees on the left" is left); then the first turning word (left, right, up,
+down and their synonyms, but not "down the valley": "look further left past the river" is left, "further"
+and "past" only say how far);
+then the first travel word (forward, back, ...); words with no direction keep the default.
 """
 
 from __future__ import annotations
@@ -46,6 +50,11 @@ _DIR_AMOUNT = re.compile(rf"{_DIR}(?:\s+by)?\s+(?P<num>{NUMBER})(?:\s*{_UNIT}|(?
 # "45 degrees to the left", "3 metres forward".
 _AMOUNT_DIR = re.compile(rf"(?P<num>{NUMBER})\s*{_UNIT}\s+(?:to\s+(?:the\s+)?)?{_DIR}", re.A)
 _DIR_WORD = re.compile(_DIR, re.A)
+_TURN_WORDS = {w for w, d in DIRECTION_WORDS.items() if d not in ("forward", "back")}
+# "down the valley", "up the road" name a way to travel, not a tilt
+_TURN_WORD = re.compile(rf"(?<![a-z])(?P<dir>{_alternation(_TURN_WORDS)})(?![a-z])(?!\s+the\s)", re.A)
+# "on the left", "to your right", "towards the left"
+_POSITIONAL = re.compile(rf"(?<![a-z])(?:on|to|at|towards?)\s+(?:the\s+|your\s+)?{_DIR}", re.A)
 _STEP_FIELD = {"yaw": "yaw_step_deg", "pitch": "pitch_step_deg", "forward": "forward_step_m"}
 
 
@@ -87,7 +96,7 @@ def _read_intent(words: str) -> tuple[Direction | None, float | None]:
         direction = DIRECTION_WORDS[m["dir"]]
         _check_unit(words, direction, m["unit"])
         return direction, float(m["num"])
-    m = _DIR_WORD.search(text)
+    m = _POSITIONAL.search(text) or _TURN_WORD.search(text) or _DIR_WORD.search(text)
     return (DIRECTION_WORDS[m["dir"]] if m else None), None
 
 
