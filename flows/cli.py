@@ -85,6 +85,11 @@ def generate(
     finally:
         progress.current.reset(token)
     console.print(progress.results_table(results))
+    _finish(scene_dir)
+
+
+def _finish(scene_dir: Path) -> None:
+    """Write the report and say where everything is."""
     from flows.report import write_report
 
     report = write_report(scene_dir)
@@ -100,6 +105,30 @@ def _output_files(scene_dir: Path) -> list[Path]:
 
     files = SceneStore.open(scene_dir).attrs("outputs").get("files", [])
     return [Path(scene_dir) / f["path"] for f in files]
+
+
+@app.command()
+def extend(
+    scene_dir: Annotated[Path, typer.Argument(help="scene folder made by `generate`")],
+    words: Annotated[str, typer.Argument(help="where to extend, e.g. 'a frozen lake beyond the trees on the left'")],
+    engine: Annotated[str, typer.Option(help="prefect (default) or local (plain in-process calls)")] = "prefect",
+) -> None:
+    """Extend a scene in words: plan, generate, check one more segment; update poses, priors, splats, outputs."""
+    from flows import progress
+    from flows.extend import extend as extend_scene
+    from tasks import STEPS
+
+    if engine not in ("prefect", "local"):
+        raise WonderError(f"--engine must be prefect or local (got {engine!r})")
+    if engine == "prefect":
+        _quiet_prefect()
+    token = progress.current.set(progress.RichReporter(console, len(STEPS)))
+    try:
+        results = extend_scene(scene_dir, words, engine=engine)
+    finally:
+        progress.current.reset(token)
+    console.print(progress.results_table(results))
+    _finish(scene_dir)
 
 
 @app.command()
@@ -145,6 +174,8 @@ def inspect(
             f"{mb:.1f}",
         )
     out.print(t)
+    for e in info["extensions"]:
+        out.print(f"extension {e['segment']}: {e['words']!r}", highlight=False)
     out.print(f"store size: {info['size_bytes'] / 1e6:.1f} MB")
 
 

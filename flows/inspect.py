@@ -75,6 +75,12 @@ def summarize(store: SceneStore) -> dict[str, Any]:
             }
         )
     root = dict(store.root.attrs)
+    added = ((root.get("spec") or {}).get("extensions") or {}).get("added") or []
+    # the added extensions are the last segments of the plan, in order
+    extensions = [
+        {"words": w, "segment": seg["id"]}
+        for w, seg in zip(added, segments[len(segments) - len(added) :], strict=False)
+    ]
     return {
         "scene_dir": str(store.scene_dir),
         "format": root.get("format"),
@@ -83,5 +89,6 @@ def summarize(store: SceneStore) -> dict[str, Any]:
         "order": store.attrs("segments").get("order", []),
         "steps": steps,
         "segments": segments,
+        "extensions": extensions,
         "size_bytes": store.size_bytes(),
     }

@@ -25,7 +25,10 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     from wonderverse.planning import make_planner
 
     planner = make_planner(cfg.scene.planner)
-    plan = planner.plan_scene(cfg.scene.prompt, cfg.scene.extensions, cfg.steps.plan, fov_deg=cfg.scene.video.fov_deg)
+    s, fov = cfg.scene, cfg.scene.video.fov_deg
+    plan = planner.plan_scene(s.prompt, s.extensions.model_copy(update={"added": ()}), cfg.steps.plan, fov_deg=fov)
+    for words in s.extensions.added:  # each later extension continues the plan as it stood (interactive)
+        plan = plan.extended(planner.plan_extension(s.prompt, words, plan, cfg.steps.plan, fov_deg=fov))
     with store.staged(
         "plan",
         key,

@@ -36,6 +36,30 @@ def _fill(poses: np.ndarray, known: np.ndarray) -> np.ndarray:
     return out
 
 
+def _keep_previous_frame(
+    store: SceneStore, frame_index: np.ndarray, segs: list[str], poses: np.ndarray, points: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, dict[str, Any] | None]:
+    """A new reconstruction mapped into the world frame of the previous one (Sim(3) of the camera centres of
+    the frames both posed), so an extended scene keeps its frame and its splats stay where they were. SfM's
+    frame is arbitrary; without a previous reconstruction (or < 3 shared frames) nothing changes."""
+    from wonderverse.camera import camera_centers, umeyama
+
+    if store.attrs("sfm").get("complete") is not True or store.attrs("sfm").get("source") != "sfm":
+        return poses, points, None
+    old_segs = store.attrs("sfm")["segments"]
+    old_index, old_poses = store.array("sfm/frame_index"), store.array("sfm/poses")
+    old = {(old_segs[a], int(i)): pose for (a, i), pose in zip(old_index, old_poses, strict=True)}
+    pairs = [(pose, old.get((segs[a], int(i)))) for (a, i), pose in zip(frame_index, poses, strict=True)]
+    pairs = [(n, o) for n, o in pairs if o is not None and np.isfinite(n).all() and np.isfinite(o).all()]
+    if len(pairs) < 3:
+        return poses, points, None
+    sim = umeyama(camera_centers(np.stack([n for n, _ in pairs])), camera_centers(np.stack([o for _, o in pairs])))
+    fin = np.isfinite(poses).all(axis=(1, 2))
+    out = poses.copy()
+    out[fin] = sim.transform_w2c(poses[fin])
+    return out, sim.apply(points) if len(points) else points, {"shared_frames": len(pairs), "scale": float(sim.s)}
+
+
 def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     p = cfg.steps.poses
     frames, index = stitched(store)
@@ -72,6 +96,8 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
             "timings": res.timings,
             "frames_used": len(sel),
         }
+    if p.source == "sfm":
+        poses, points, attrs["kept_frame"] = _keep_previous_frame(store, frame_index, segs, poses, points)
     with store.staged("sfm", key, **attrs) as g:
         write_array(g, "poses", poses, chunks=poses.shape)
         write_array(g, "registered", registered, chunks=registered.shape)

@@ -57,8 +57,27 @@ def project_points(points: np.ndarray, w2c: np.ndarray, K: np.ndarray) -> np.nda
     return np.column_stack([uv, z[front]])
 
 
+def _raw_depth(store: SceneStore, seg: str, ap: str, p: Any, frames: np.ndarray, gt: Any) -> Any:
+    """The depth network's output for a segment, computed once per attempt and model settings and kept in
+    `priors_raw/<seg>`: poses change whenever the scene is extended, this does not (it is the costly part)."""
+    from wonderverse.priors import make_depth_model
+    from wonderverse.priors.base import DepthPrediction
+
+    key = cache_key("priors_raw", VERSION, {"attempt": ap, "models": p}, [store.cache_key_of(f"segments/{seg}") or ""])
+    group = f"priors_raw/{seg}"
+    if store.is_complete(group, key):
+        conf = store.array(f"{group}/confidence").astype(np.float32) if store.exists(f"{group}/confidence") else None
+        return DepthPrediction(store.array(f"{group}/depth"), store.attrs(group)["kind"], conf)
+    pred = make_depth_model(p, gt).predict(frames)
+    with store.staged(group, key, kind=pred.kind) as g:
+        write_array(g, "depth", np.asarray(pred.depth, np.float32))
+        if pred.confidence is not None:
+            write_array(g, "confidence", np.asarray(pred.confidence, np.float16))
+    return pred
+
+
 def priors_segment(seg: str, scene_dir: str, cfg: RunConfig, step_key: str) -> dict[str, Any]:
-    from wonderverse.priors import align_scale_shift, make_depth_model, make_normal_model
+    from wonderverse.priors import align_scale_shift, make_normal_model
 
     store = SceneStore.open(scene_dir, mode="r+")
     ap = attempt_path(store, seg)
@@ -71,7 +90,7 @@ def priors_segment(seg: str, scene_dir: str, cfg: RunConfig, step_key: str) -> d
     gt = _ground_truth(store, ap)
     if "oracle" in (p.depth_backend, p.normal_backend) and gt is None:
         raise WonderError(f"segment {seg}: the oracle prior needs procedural ground truth; use depth_anything")
-    pred = make_depth_model(p, gt).predict(frames)
+    pred = _raw_depth(store, seg, ap, p, frames, gt)
     poses = segment_poses(store, seg, len(frames))
     points = store.array("sfm/points3d") if store.exists("sfm/points3d") else np.zeros((0, 3))
     depth = np.empty(frames.shape[:3], np.float32)
@@ -114,12 +133,13 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
         workers=cfg.steps.priors.workers,
         address=cfg.steps.priors.dask_address,
     )
-    for stale in set(store.children("priors")) - set(segs):
-        store.remove(f"priors/{stale}")
+    for group in ("priors", "priors_raw"):
+        for stale in set(store.children(group)) - set(segs):
+            store.remove(f"{group}/{stale}")
     store.mark_complete("priors", key)
     aligned = sum(s["aligned_frames"] for s in out)
     total = sum(s["frames"] for s in out)
     return f"{len(segs)} segments, {aligned}/{total} frames aligned to SfM ({out[0]['kind'] if out else '-'})"
 
 
-STEP = Step("priors", 2, ("poses",), _params, run, "depth and normal priors, aligned to SfM")
+STEP = Step("priors", 3, ("poses",), _params, run, "depth and normal priors, aligned to SfM")

@@ -25,20 +25,22 @@ def _params(cfg: RunConfig) -> dict[str, Any]:
     return {"splats": cfg.steps.splats.model_dump(exclude={"renderer"})}
 
 
-def load_views(store: SceneStore) -> Any:
-    """Every posed stitched frame with its priors, in SfM world units (frames without a pose skipped)."""
+def load_views(store: SceneStore) -> tuple[Any, list[str]]:
+    """Every posed stitched frame with its priors, in SfM world units (frames without a pose skipped), and
+    the frames' names (`s000_0007`: segment, generation-order index)."""
     from wonderverse.splats.trainer import Views
 
     segs = store.attrs("sfm")["segments"]
     index = store.array("sfm/frame_index")
     poses = store.array("sfm/poses")
     keep = np.isfinite(poses).all(axis=(1, 2))
-    frames, depth, normals = [], [], []
+    frames, depth, normals, names = [], [], [], []
     cache: dict[str, dict[str, np.ndarray]] = {}
     for (a, i), ok in zip(index, keep, strict=True):
         if not ok:
             continue
         seg = segs[a]
+        names.append(f"{seg}_{int(i):04d}")
         if seg not in cache:
             from tasks.segments import attempt_path
 
@@ -53,7 +55,8 @@ def load_views(store: SceneStore) -> Any:
         normals.append(cache[seg]["normals"][i].astype(np.float32))
     if not frames:
         raise WonderError("no posed frames to train on")
-    return Views(np.stack(frames), poses[keep], store.array("sfm/K"), np.stack(depth), np.stack(normals))
+    views = Views(np.stack(frames), poses[keep], store.array("sfm/K"), np.stack(depth), np.stack(normals))
+    return views, names
 
 
 def _initial_model(views: Any, points: np.ndarray, colors: np.ndarray, cfg: RunConfig) -> Any:
@@ -71,6 +74,53 @@ def _initial_model(views: Any, points: np.ndarray, colors: np.ndarray, cfg: RunC
     rgb = colors.astype(np.float64) / 255.0  # averaged as floats in [0,1], as init_from_points expects
     points, rgb = voxel_downsample(points, rgb, p.init_voxel_frac * auto_scene_scale(views.w2c, points))
     return init_from_points(points, rgb, p.train.sh_degree, init_opacity=p.init_opacity)
+
+
+def _train_digest(cfg: RunConfig) -> str:
+    """What must not change for an extension to continue the previous optimisation instead of restarting."""
+    return cache_key("splats_train", 1, _params(cfg))
+
+
+def _extendable(store: SceneStore, cfg: RunConfig, names: list[str]) -> dict[str, Any] | None:
+    """The previous `splats/` attrs when this run only adds frames to it (same training settings, every
+    previous frame still there, something new): the scene was extended; else None (train from scratch)."""
+    prev = store.attrs("splats")
+    if prev.get("complete") is not True or prev.get("train_digest") != _train_digest(cfg):
+        return None
+    old = set(prev.get("frames", []))
+    return prev if old and old < set(names) else None
+
+
+def _extended_model(
+    store: SceneStore, nviews: Any, norm: Any, names: list[str], previous: dict[str, Any], cfg: RunConfig
+) -> tuple[Any, int]:
+    """The previous Gaussians (moved into this run's training frame) followed by new ones seeded from the
+    prior depth of the new frames only, away from the old ones; returns (model, number of old Gaussians)."""
+    from scipy.spatial import cKDTree
+
+    from wonderverse.splats.data import backproject_depth
+    from wonderverse.splats.model import GaussianModel, SceneNormalization, init_from_points, voxel_downsample
+    from wonderverse.splats.ply import to_training_frame, to_world
+    from wonderverse.splats.trainer import Views, auto_scene_scale
+
+    p = cfg.steps.splats
+    old = {k: store.array(f"splats/{k}") for k in GaussianModel.PARAM_NAMES}
+    old = to_training_frame(to_world(old, SceneNormalization.from_dict(previous["normalization"])), norm)
+    seen = set(previous["frames"])
+    new = [i for i, n in enumerate(names) if n not in seen]
+    sub = Views(nviews.frames[new], nviews.w2c[new], nviews.K, nviews.prior_depth[new], nviews.prior_normals[new])
+    pts, cols = backproject_depth(sub, p.init_depth_stride_px, p.init_depth_frame_stride)
+    voxel = p.init_voxel_frac * auto_scene_scale(nviews.w2c, old["means"])
+    pts, rgb = voxel_downsample(pts, cols.astype(np.float64) / 255.0, voxel)
+    if len(pts) and len(old["means"]):  # where old Gaussians already are, the scene is modelled
+        far = cKDTree(old["means"]).query(pts)[0] > 2 * voxel
+        pts, rgb = pts[far], rgb[far]
+    n_old = len(old["means"])
+    if not len(pts):
+        return GaussianModel.from_numpy(old), n_old
+    seeds = init_from_points(pts, rgb, p.train.sh_degree, init_opacity=p.init_opacity).to_numpy()
+    both = {k: np.concatenate([np.asarray(old[k], np.float32), seeds[k]]) for k in GaussianModel.PARAM_NAMES}
+    return GaussianModel.from_numpy(both), n_old
 
 
 def _save_checkpoint(store: SceneStore, key: str, step: int, state: dict[str, Any]) -> None:
@@ -101,25 +151,40 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     from wonderverse.splats.trainer import normalize_views, train
 
     p = cfg.steps.splats
-    views = load_views(store)
+    views, names = load_views(store)
     if p.frame_stride > 1:
         from wonderverse.splats.trainer import Views
 
         sel = slice(None, None, p.frame_stride)
         views = Views(views.frames[sel], views.w2c[sel], views.K, views.prior_depth[sel], views.prior_normals[sel])
+        names = names[sel]
     views = downscale_views(views, p.max_side_px)
     points, colors = store.array("sfm/points3d"), store.array("sfm/colors")
     norm = SceneNormalization.from_cameras(views.w2c, points)  # train in a unit-sized frame
     nviews = normalize_views(views, norm)
-    model = _initial_model(nviews, norm.apply_points(points), colors, cfg)
+    previous = _extendable(store, cfg, names)
+    train_params, fixed = p.train, 0
+    if previous is None:
+        model = _initial_model(nviews, norm.apply_points(points), colors, cfg)
+    else:
+        model, fixed = _extended_model(store, nviews, norm, names, previous, cfg)
+        iters = max(1, round(p.train.iterations * p.extend_iterations_frac))
+        train_params = p.train.model_copy(update={"iterations": iters})
+        log.info(
+            "extending the splats: %d existing Gaussians kept, %d new, %d iterations",
+            fixed,
+            model.num_gaussians - fixed,
+            iters,
+        )
     renderer = make_renderer(p.renderer)
     model, curves, metrics = train(
         model,
         nviews,
-        p.train,
+        train_params,
         renderer,
         checkpoint_cb=lambda step, state: _save_checkpoint(store, key, step, state),
         resume_state=_load_checkpoint(store, key),
+        fixed_gaussians=fixed,
     )
     arrays = model.to_numpy()
     ply = write_ply(Path(store.scene_dir) / "splats.ply", arrays, norm)
@@ -129,6 +194,9 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
         normalization=norm.to_dict(),
         metrics=metrics,
         files=[ply.name],
+        frames=names,
+        train_digest=_train_digest(cfg),
+        extended_from=None if previous is None else {"frames": len(previous["frames"]), "kept_gaussians": fixed},
         curves={k: [float(x) for x in v] for k, v in curves.items()},
     ) as g:
         for name, arr in arrays.items():
@@ -138,4 +206,4 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     return f"{metrics['n_gaussians']} Gaussians, held-out PSNR {psnr:.2f} dB, {renderer.__class__.__name__}"
 
 
-STEP = Step("splats", 3, ("priors",), _params, run, "3D Gaussian splatting with depth and normal losses")
+STEP = Step("splats", 4, ("priors",), _params, run, "3D Gaussian splatting with depth and normal losses")

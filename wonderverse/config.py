@@ -38,6 +38,9 @@ class ExtensionSpec(Model):
     rounds: int = Field(1, ge=0, le=16, description="extension iterations n; each adds one segment per direction")
     directions: tuple[Direction, ...] = Field(("left", "right"), min_length=1)
     intents: tuple[str, ...] = Field((), description="the user's words for each extension, in order")
+    added: tuple[str, ...] = Field(
+        (), description="extensions added later (`wonderverse extend`), the user's words, oldest first"
+    )
 
 
 class VideoSpec(Model):
@@ -152,6 +155,9 @@ class SplatsStepParams(Model):
     init_depth_frame_stride: int = Field(4, ge=1, description="views back-projected: every Nth")
     init_voxel_frac: float = Field(0.01, gt=0, description="seeding voxel size, fraction of the scene scale")
     init_opacity: float = Field(0.1, gt=0, lt=1)
+    extend_iterations_frac: float = Field(
+        0.3, gt=0, le=1, description="after `extend`: iterations (share of train.iterations) continuing the old splats"
+    )
 
 
 class OutputsParams(Model):

@@ -141,8 +141,9 @@ class DefaultStrategy:
     max_gaussians: int | None = None
     split_factor: float = 1.6
 
-    def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
-        return {"grad2d": None, "count": None, "scene_scale": scene_scale}
+    def initialize_state(self, scene_scale: float = 1.0, n_fixed: int = 0) -> dict[str, Any]:
+        """n_fixed: the first n Gaussians (an extended scene's existing ones) are never grown, pruned or reset."""
+        return {"grad2d": None, "count": None, "scene_scale": scene_scale, "n_fixed": n_fixed}
 
     def regularization(self, params: Params) -> Tensor:
         """Extra loss terms this strategy needs (none)."""
@@ -186,12 +187,8 @@ class DefaultStrategy:
             state["count"] = torch.zeros_like(state["grad2d"])
         if self.reset_every > 0 and self.reset_opacity > 0 and step > 0 and step % self.reset_every == 0:
             cap = math.log(self.reset_opacity / (1.0 - self.reset_opacity))
-            set_values(
-                params,
-                optimizers,
-                torch.arange(params["means"].shape[0], device=params["means"].device),
-                {"logit_opacities": params["logit_opacities"].data.clamp_max(cap)},
-            )
+            idx = torch.arange(state.get("n_fixed", 0), params["means"].shape[0], device=params["means"].device)
+            set_values(params, optimizers, idx, {"logit_opacities": params["logit_opacities"].data[idx].clamp_max(cap)})
             stats["reset"] = 1
         return stats
 
@@ -199,6 +196,7 @@ class DefaultStrategy:
     def _grow(self, params: Params, optimizers: Optimizers, state: dict[str, Any]) -> dict[str, int]:
         grads = state["grad2d"] / state["count"].clamp_min(1)
         high = grads > self.grow_grad2d
+        high[: state.get("n_fixed", 0)] = False  # an extension densifies only the new region
         small = torch.exp(params["log_scales"]).amax(-1) <= self.grow_scale3d * state["scene_scale"]
         clone = high & small
         split = high & ~small
@@ -240,6 +238,7 @@ class DefaultStrategy:
         prune = torch.sigmoid(params["logit_opacities"].data) < self.prune_opa
         if step > self.reset_every > 0:
             prune |= torch.exp(params["log_scales"].data).amax(-1) > self.prune_scale3d * state["scene_scale"]
+        prune[: state.get("n_fixed", 0)] = False  # so the fixed Gaussians keep the first indices
         n = int(prune.sum())
         if n:
             keep_only(params, optimizers, ~prune)
@@ -285,7 +284,8 @@ class MCMCStrategy:
     opacity_reg: float = 0.01
     scale_reg: float = 0.01
 
-    def initialize_state(self, scene_scale: float = 1.0) -> dict[str, Any]:
+    def initialize_state(self, scene_scale: float = 1.0, n_fixed: int = 0) -> dict[str, Any]:
+        """n_fixed is not honoured: relocation may move any Gaussian (the budget is what MCMC keeps)."""
         return {"scene_scale": scene_scale}
 
     def regularization(self, params: Params) -> Tensor:

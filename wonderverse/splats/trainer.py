@@ -253,13 +253,15 @@ def train(
     renderer: Renderer,
     checkpoint_cb: Callable[[int, dict[str, Any]], None] | None = None,
     resume_state: dict[str, Any] | None = None,
+    fixed_gaussians: int = 0,
 ) -> tuple[GaussianModel, dict[str, list[float]], dict[str, Any]]:
     """Optimise `model` on `views` (see the module docstring). Returns (model, curves, metrics).
 
     curves: per iteration lists of every loss term, n_gaussians and step seconds ("skipped" marks steps
     with non-finite gradients). metrics: test/train PSNR and SSIM, view split, final Gaussian count, time.
     checkpoint_cb(step, state) is called every `checkpoint_every_iters` iterations and at the end; passing
-    such a state as `resume_state` continues training from it (same views and params).
+    such a state as `resume_state` continues training from it (same views and params). The first
+    `fixed_gaussians` Gaussians (an extended scene's existing ones) are optimised but never densified.
     """
     device = renderer.device
     model = model.to(device)
@@ -294,7 +296,7 @@ def train(
     bg_lr = params.lr_background if params.learn_background else 0.0
     bg_opt = _make_adam({"background": background}, {"background": bg_lr}, eps=1e-8)
     strategy = _make_strategy(params)
-    strategy_state = strategy.initialize_state(scene_scale) if strategy is not None else {}
+    strategy_state = strategy.initialize_state(scene_scale, fixed_gaussians) if strategy is not None else {}
     curves: dict[str, list[float]] = {}
     start = 0
     if resume_state is not None:

@@ -1,0 +1,89 @@
+"""`extend`: one more segment from the user's words; nothing already computed is recomputed, the splats
+continue from the existing Gaussians, the history is kept and shown by inspect."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from conftest import run_cli, tiny_config
+
+from flows.extend import extend, extended_config
+from flows.pipeline import execute
+from wonderverse.errors import WonderError
+from wonderverse.store import SceneStore
+
+VIDEO = {"width": 128, "height": 96, "frames_per_segment": 8}
+WORDS = "a frozen lake beyond the trees on the left"
+
+
+def _config():
+    cfg = tiny_config(video=VIDEO, extensions={"rounds": 1, "directions": ["right"]})
+    steps = cfg.steps.model_dump()
+    steps["check"] |= {"workers": 1}
+    steps["priors"] |= {"workers": 1}
+    steps["splats"] |= {"max_side_px": 96, "renderer": "torch"}
+    steps["splats"]["train"] |= {"iterations": 60, "holdout_every": 0}
+    steps["outputs"] |= {"video_frames": 6}
+    return cfg.model_validate({**cfg.model_dump(), "steps": steps})
+
+
+@pytest.fixture(scope="module")
+def scenes(tmp_path_factory) -> tuple[Path, dict]:
+    scene = tmp_path_factory.mktemp("extend") / "scene"
+    execute(scene, _config())
+    store = SceneStore.open(scene)
+    before = {
+        "keys": {
+            g: store.cache_key_of(g) for g in ("segments/s000", "segments/s001", "priors_raw/s000", "priors_raw/s001")
+        },
+        "checks": {s: store.attrs(f"segments/{s}/attempts/0/check") for s in ("s000", "s001")},
+        "n_gaussians": store.attrs("splats")["metrics"]["n_gaussians"],
+        "frames": store.attrs("splats")["frames"],
+    }
+    results = extend(scene, WORDS, engine="local")
+    return scene, {"before": before, "results": {r.step: r.status for r in results}}
+
+
+def test_only_the_new_segment_is_generated_and_checked(scenes) -> None:
+    scene, info = scenes
+    store = SceneStore.open(scene)
+    assert store.children("segments") == ["s000", "s001", "s002"]
+    new = store.attrs("segments/s002")
+    assert new["role"] == "left" and new["intent"] == WORDS
+    for group, key in info["before"]["keys"].items():
+        assert store.cache_key_of(group) == key, f"{group} was recomputed"
+    for seg, check in info["before"]["checks"].items():
+        assert store.attrs(f"segments/{seg}/attempts/0/check") == check
+    assert store.attrs("segments/s002/attempts/0/check")["accepted"] in (True, False)
+    assert info["results"]["outputs"] == "ran" and info["results"]["splats"] == "ran"
+
+
+def test_splats_continue_from_the_existing_gaussians(scenes) -> None:
+    scene, info = scenes
+    a = SceneStore.open(scene).attrs("splats")
+    assert a["extended_from"] == {
+        "frames": len(info["before"]["frames"]),
+        "kept_gaussians": info["before"]["n_gaussians"],
+    }
+    assert set(info["before"]["frames"]) < set(a["frames"]) and any(f.startswith("s002_") for f in a["frames"])
+    assert len(a["curves"]["total"]) == round(60 * 0.3)  # extend_iterations_frac of the preset's iterations
+
+
+def test_history_is_kept_and_inspect_shows_it(scenes) -> None:
+    scene, _ = scenes
+    r = run_cli("inspect", str(scene), "--json")
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["extensions"] == [{"words": WORDS, "segment": "s002"}]
+
+
+def test_bad_requests_are_refused() -> None:
+    cfg = _config()
+    for words, message in (("   ", "empty"), ("x" * 600, "600 characters")):
+        with pytest.raises(WonderError, match=message):
+            extended_config(cfg, words)
+    assert extended_config(extended_config(cfg, "go up"), "left a bit").scene.extensions.added == (
+        "go up",
+        "left a bit",
+    )
