@@ -16,7 +16,7 @@ from flows import progress
 from tasks import STEPS, Step, StepResult, step_keys, steps_until
 from wonderverse.config import RunConfig
 from wonderverse.errors import WonderError
-from wonderverse.store import SceneStore
+from wonderverse.store import SceneStore, scene_lock
 
 Call = Callable[[Step, str, RunConfig, str], str]
 Engine = Literal["prefect", "local"]
@@ -34,12 +34,20 @@ def _direct(step: Step, scene_dir: str, cfg: RunConfig, key: str) -> str:
     return step.run_in(scene_dir, cfg, key)
 
 
-def execute(scene_dir: Path | str, cfg: RunConfig, until: str | None = None, call: Call = _direct) -> list[StepResult]:
-    """Run the steps `until` needs (all by default); returns one StepResult per step."""
+def execute(
+    scene_dir: Path | str, cfg: RunConfig, until: str | None = None, call: Call = _direct, wait_s: float = 0.0
+) -> list[StepResult]:
+    """Run the steps `until` needs (all by default); returns one StepResult per step. One run writes a
+    scene at a time: a second one waits up to `wait_s` seconds for the first, then refuses (WonderError)."""
     try:
         steps = steps_until(until)
     except KeyError:
         raise WonderError(f"unknown step {until!r}; steps are: {', '.join(s.name for s in STEPS)}") from None
+    with scene_lock(scene_dir, wait_s=wait_s):
+        return _execute(scene_dir, cfg, steps, call)
+
+
+def _execute(scene_dir: Path | str, cfg: RunConfig, steps: list[Step], call: Call) -> list[StepResult]:
     store = SceneStore.open_or_create(scene_dir, spec=cfg.scene.model_dump(mode="json"))
     store.root.attrs["config"] = cfg.model_dump(mode="json")
     store.clean_staging()

@@ -10,11 +10,13 @@ import time
 from pathlib import Path
 
 import numpy as np
+import pytest
 import yaml
 from conftest import ROOT, tiny_config
 
 from flows.pipeline import execute
 from tasks.segments import stitched
+from wonderverse.errors import WonderError
 from wonderverse.store import SceneStore
 
 
@@ -135,3 +137,15 @@ def test_sigkill_during_generation_resumes_from_last_complete_segment(tmp_path: 
     assert statuses(results) == {"plan": "cached", "generate_segments": "ran"}
     rendered, cached = (int(x.split()[0]) for x in results[1].detail.split(", "))
     assert cached == len(committed) and rendered == 5 - len(committed)
+
+
+def test_a_second_writer_is_refused_and_changes_nothing(tmp_path: Path):
+    from wonderverse.store import scene_lock
+
+    scene = tmp_path / "s"
+    execute(scene, tiny_config(), until="plan")
+    before = SceneStore.open(scene).attrs("plan")
+    with scene_lock(scene), pytest.raises(WonderError, match="being written by another run"):
+        execute(scene, tiny_config(seed=7), until="plan")
+    assert SceneStore.open(scene).attrs("plan") == before
+    assert [r.status for r in execute(scene, tiny_config(), until="plan")] == ["cached"]
