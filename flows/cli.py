@@ -6,6 +6,7 @@ code 2; nothing already in the store is touched before the inputs are validated.
 
 from __future__ import annotations
 
+import glob
 import json
 import os
 import sys
@@ -105,6 +106,57 @@ def _output_files(scene_dir: Path) -> list[Path]:
 
     files = SceneStore.open(scene_dir).attrs("outputs").get("files", [])
     return [Path(scene_dir) / f["path"] for f in files]
+
+
+@app.command()
+def reconstruct(
+    clips: Annotated[list[str], typer.Argument(help="video files, image folders or globs; one segment each, in order")],
+    out_dir: Annotated[Path | None, typer.Option("--out", help="scene folder (default scenes/<first clip>)")] = None,
+    preset: Annotated[str | None, typer.Option(help="preview | standard | high")] = None,
+    on_failure: Annotated[
+        str, typer.Option(help="a clip that fails its check: keep_best (keep it, warned), drop, or fail")
+    ] = "keep_best",
+    fov_deg: Annotated[float | None, typer.Option(help="horizontal field of view when known (else guessed)")] = None,
+    engine: Annotated[str, typer.Option(help="prefect (default) or local (plain in-process calls)")] = "prefect",
+) -> None:
+    """Reconstruct your own clips (any video generator or a phone): check, poses, priors, splats, outputs."""
+    from flows import progress
+    from flows.pipeline import run_pipeline
+    from tasks import STEPS
+    from wonderverse.config import build_config
+    from wonderverse.video.files import group_sources
+
+    if engine not in ("prefect", "local"):
+        raise WonderError(f"--engine must be prefect or local (got {engine!r})")
+    paths = []
+    for source in group_sources(clips):  # a shell turns frames/*.png into many arguments: one clip again
+        if isinstance(source, list | tuple):
+            folders = {Path(f).resolve().parent for f in source}
+            if len(folders) != 1:
+                raise WonderError("images from several folders: give each folder as one clip")
+            source = folders.pop()
+        path = str(Path(source).resolve())
+        if not Path(path).exists() and not glob.glob(path):  # checked before the store is touched
+            raise WonderError(f"{source}: no such file or folder")
+        paths.append(path)
+    options = {} if fov_deg is None else {"fov_deg": fov_deg}
+    overrides = {
+        "scene": {"video": {"backend": "files", "clips": paths, "options": options}},
+        "steps": {"check": {"on_failure": on_failure}},
+    }
+    cfg = build_config(
+        prompt=f"reconstruction of {', '.join(Path(p).name for p in paths)}", preset=preset, overrides=overrides
+    )
+    scene_dir = out_dir or _default_out(Path(paths[0]).stem)
+    if engine == "prefect":
+        _quiet_prefect()
+    token = progress.current.set(progress.RichReporter(console, len(STEPS)))
+    try:
+        results = run_pipeline(scene_dir, cfg, engine=engine)  # type: ignore[arg-type]
+    finally:
+        progress.current.reset(token)
+    console.print(progress.results_table(results))
+    _finish(scene_dir)
 
 
 @app.command()

@@ -81,7 +81,8 @@ def check_segment(seg: str, scene_dir: str, cfg: RunConfig) -> dict[str, Any]:
     p = cfg.steps.check
     model = None
     checks: dict[int, dict[str, Any]] = {}
-    for k in range(p.max_attempts):
+    clips = cfg.scene.video.backend == "files"  # a user's clip cannot be regenerated
+    for k in range(1 if clips else p.max_attempts):
         if k not in attempt_ids(store, seg):
             if model is None:
                 from wonderverse.video import make_video_model

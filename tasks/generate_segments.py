@@ -40,8 +40,11 @@ def segment_prompt(scene_prompt: str, role: str, intent: str) -> str:
     return f"aerial shot, soft lighting,{around} realistic, high-quality, displaying {scene_prompt}.{extra}"
 
 
-def plan_paths(cfg: RunConfig, plan: Any, start_w2c: np.ndarray) -> dict[str, dict[str, Any]]:
-    """Per segment: conditioning path (T,4,4) W2C, parent, reference index, cache key; generation order."""
+def plan_paths(
+    cfg: RunConfig, plan: Any, start_w2c: np.ndarray, clip_lengths: list[int] | None = None
+) -> dict[str, dict[str, Any]]:
+    """Per segment: conditioning path (T,4,4) W2C, parent, reference index, cache key; generation order.
+    User clips (`clip_lengths` frames each) have no conditioning path (NaN) and no reference frame."""
     T = cfg.scene.video.frames_per_segment
     strafe = cfg.steps.plan.strafe_m_per_deg
     base = _params(cfg)
@@ -50,10 +53,13 @@ def plan_paths(cfg: RunConfig, plan: Any, start_w2c: np.ndarray) -> dict[str, di
         parent = out.get(s.reference_segment) if s.reference_segment else None
         if s.reference_segment and parent is None:
             raise ValueError(f"segment {s.id} continues from unknown segment {s.reference_segment}")
-        ref_idx = stitched_frame_index(parent["reversed"], T, s.reference) if parent else None
-        start = parent["path"][ref_idx] if parent else start_w2c
-        m = s.move
-        path = move_path(start, np.radians(m.yaw_deg), np.radians(m.pitch_deg), m.forward_m, strafe * m.yaw_deg, T)
+        if clip_lengths is not None:
+            ref_idx, path = None, np.full((clip_lengths[len(out)], 4, 4), np.nan)
+        else:
+            ref_idx = stitched_frame_index(parent["reversed"], T, s.reference) if parent else None
+            start = parent["path"][ref_idx] if parent else start_w2c
+            m = s.move
+            path = move_path(start, np.radians(m.yaw_deg), np.radians(m.pitch_deg), m.forward_m, strafe * m.yaw_deg, T)
         key = cache_key(
             "segment",
             SEGMENT_VERSION,
@@ -86,7 +92,10 @@ def render_attempt(store: SceneStore, cfg: RunConfig, model: Any, seg: str, atte
 def _render(
     cfg: RunConfig, model: Any, seg: str, attempt: int, role: str, intent: str, path: np.ndarray, ref: np.ndarray | None
 ) -> tuple[Any, int]:
-    """One generation: the paper's prompt for the segment, a seed of its own for this attempt."""
+    """One generation: the paper's prompt for the segment, a seed of its own for this attempt (a user clip is
+    read, not generated)."""
+    if cfg.scene.video.backend == "files":
+        return model.segment(int(seg.lstrip("s"))), 0
     seed = attempt_seed(cfg.scene.seed, seg, attempt)
     return model.generate(segment_prompt(cfg.scene.prompt, role, intent), path, seed, ref), seed
 
@@ -105,7 +114,7 @@ def write_attempt(group: Any, video: Any, seed: int, source: str) -> None:
 
 def _generate_one(store: SceneStore, cfg: RunConfig, model: Any, seg: str, info: dict[str, Any]) -> None:
     s = info["plan"]
-    ref = frames(store, info["parent"])[info["ref_idx"]] if info["parent"] else None
+    ref = frames(store, info["parent"])[info["ref_idx"]] if info["ref_idx"] is not None else None
     video, seed = _render(cfg, model, seg, 0, s.role, s.intent, info["path"], ref)
     v = cfg.scene.video
     K = video.K if video.K is not None else intrinsics(v.width, v.height, v.fov_deg)
@@ -116,6 +125,7 @@ def _generate_one(store: SceneStore, cfg: RunConfig, model: Any, seg: str, info:
         "intent": s.intent,
         "reference_segment": info["parent"],
         "reference_frame": info["ref_idx"],
+        "repeats_reference": info["ref_idx"] is not None,  # a generated extension's frame 0 is its reference
     }
     with store.staged(f"segments/{seg}", info["key"], **seg_attrs) as g:
         write_array(g, "path", info["path"], chunks=info["path"].shape)
@@ -129,7 +139,8 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
 
     plan = load_plan(store)
     model = make_video_model(cfg.scene)
-    info = plan_paths(cfg, plan, initial_pose(model))
+    clips = [len(c.frames) for c in model.clips] if cfg.scene.video.backend == "files" else None  # type: ignore[attr-defined]
+    info = plan_paths(cfg, plan, initial_pose(model), clips)
     todo = [seg for seg, i in info.items() if not store.is_complete(f"segments/{seg}", i["key"])]
     with ThreadPoolExecutor(cfg.steps.generate.max_workers) as pool:
         for wave in sorted({i["wave"] for i in info.values()}):

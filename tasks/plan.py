@@ -24,6 +24,13 @@ def _params(cfg: RunConfig) -> dict[str, Any]:
 def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     from wonderverse.planning import make_planner
 
+    if cfg.scene.video.backend == "files":
+        plan = clip_plan(cfg.scene.video.clips)
+        with store.staged(
+            "plan", key, plan=plan.model_dump(mode="json"), moves=[], intents=list(cfg.scene.video.clips)
+        ):
+            pass
+        return f"{len(plan.segments)} segments, one per clip"
     planner = make_planner(cfg.scene.planner)
     s, fov = cfg.scene, cfg.scene.video.fov_deg
     plan = planner.plan_scene(s.prompt, s.extensions.model_copy(update={"added": ()}), cfg.steps.plan, fov_deg=fov)
@@ -39,6 +46,18 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
         pass
     note = f" ({plan.fallback_reason})" if plan.fallback_reason else ""
     return f"{len(plan.segments)} segments by {plan.planner}{note}"
+
+
+def clip_plan(clips: tuple[str, ...]) -> Any:
+    """The user's clips as segments in the given order: the first as `init`, the rest as `right` ones (played
+    forward, after the previous); no camera moves are planned, none are generated."""
+    from wonderverse.planning import CameraMove, Plan
+    from wonderverse.planning.segments import next_segment
+
+    segments: list[Any] = []
+    for i, clip in enumerate(clips):
+        segments.append(next_segment(tuple(segments), "init" if i == 0 else "right", CameraMove(), clip))
+    return Plan(segments=tuple(segments), planner="clips")
 
 
 def load_plan(store: SceneStore) -> Any:

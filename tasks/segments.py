@@ -46,8 +46,9 @@ def stitched_frame_index(reversed_: bool, n_frames: int, which: str) -> int:
 def stitched(store: SceneStore) -> tuple[np.ndarray, list[tuple[str, int]]]:
     """The stitched video: frames (N,H,W,3) and, per frame, (segment id, generation-order index).
 
-    Left extensions play reversed; every extension's frame 0 repeats its reference frame and is
-    dropped so the video never stalls at a seam. Segments the check dropped are left out."""
+    Left extensions play reversed; every generated extension's frame 0 repeats its reference frame and
+    is dropped so the video never stalls at a seam (user clips keep all their frames). Segments the check
+    dropped are left out."""
     order = store.attrs("segments").get("order") or segment_ids(store)
     out, index = [], []
     for seg in order:
@@ -56,7 +57,7 @@ def stitched(store: SceneStore) -> tuple[np.ndarray, list[tuple[str, int]]]:
         attrs = store.attrs(f"segments/{seg}")
         f = frames(store, seg)
         idx = np.arange(len(f))
-        if attrs.get("role", "init") != "init":
+        if attrs.get("repeats_reference", attrs.get("role", "init") != "init"):
             idx = idx[1:]
         if attrs.get("reversed"):
             idx = idx[::-1]

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
 
 from wonderverse.check import CheckParams
 from wonderverse.errors import ConfigError
@@ -46,13 +46,24 @@ class ExtensionSpec(Model):
 class VideoSpec(Model):
     """The video backend and the shape of what it renders."""
 
-    backend: Literal["procedural"] = "procedural"
+    backend: Literal["procedural", "files"] = Field(
+        "procedural", description="procedural: the embedded world; files: the user's clips (`clips`), not generated"
+    )
+    clips: tuple[str, ...] = Field((), description="files backend: video files, image folders or globs, in order")
     frames_per_segment: int = Field(25, ge=2, le=1000)
     width: int = Field(480, ge=32, le=4096)
     height: int = Field(320, ge=32, le=4096)
     fps: float = Field(8.0, gt=0, le=240)
     fov_deg: float = Field(60.0, gt=5, lt=170, description="horizontal field of view")
     options: dict[str, Any] = Field(default_factory=dict, description="backend-specific, validated by it")
+
+    @model_validator(mode="after")
+    def _clips_match_backend(self) -> VideoSpec:
+        if self.backend == "files" and not self.clips:
+            raise ValueError("the files backend needs at least one clip")
+        if self.backend != "files" and self.clips:
+            raise ValueError(f"clips are only read by the files backend, not {self.backend!r}")
+        return self
 
 
 class PlannerSpec(Model):
@@ -190,6 +201,12 @@ class RunConfig(Model):
     preset: str = "standard"
     scene: SceneSpec
     steps: StepsConfig = StepsConfig()
+
+    @model_validator(mode="after")
+    def _poses_known(self) -> RunConfig:
+        if self.scene.video.backend == "files" and self.steps.poses.source == "conditioning":
+            raise ValueError("user clips have no conditioning path: use steps.poses.source sfm")
+        return self
 
 
 def deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:

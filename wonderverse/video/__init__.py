@@ -17,6 +17,10 @@ def make_video_model(scene: SceneSpec) -> VideoModel:
         from wonderverse.video.procedural import ProceduralVideo
 
         return ProceduralVideo(scene.prompt, scene.seed, v.width, v.height, v.fov_deg, v.options)
+    if v.backend == "files":
+        from wonderverse.video.files import ClipParams, FilesVideo
+
+        return FilesVideo(list(v.clips), ClipParams(**v.options))
     raise ValueError(f"unknown video backend {v.backend!r}")
 
 
