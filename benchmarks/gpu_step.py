@@ -11,8 +11,9 @@ held out.
 
 Last-line keys: `step_ratio_vs_gsplat` (mean wall time of our full training step over the last 1000
 iterations ÷ median gsplat `rasterization` forward + backward on the same Gaussians and camera; the trainer
-queues work without waiting and drains the queue every 50 steps, so only the mean is the true rate), `iters_per_s`, `peak_gpu_gb` (standard preset),
-`psnr_heldout`, `psnr_heldout_no_geo` (without depth and normal losses), `depth_absrel`,
+queues work without waiting and drains the queue every 50 steps, so only the mean is the true rate),
+`iters_per_s`, `peak_gpu_gb` (standard preset), `psnr_heldout`, `psnr_heldout_no_geo` (without depth and
+normal losses), `depth_absrel`,
 `depth_absrel_no_geo` (rendered depth on held-out views against ground truth).
 """
 
