@@ -13,6 +13,7 @@ mode, the default), `false_positive_rate` (clean segments rejected, scale-free m
 
 from __future__ import annotations
 
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -91,6 +92,8 @@ def main() -> None:
             for mode, cp in modes.items():
                 c = check_trajectory(res.poses, res.registered, cp, res.problems, points=res.points)
                 outcomes.setdefault((mode, kind), []).append(not c.accepted)
+            flagged = outcomes[("scale_free", kind)][-1]
+            print(f"segment {i} ({kind}): {'flagged' if flagged else 'accepted'}", file=sys.stderr, flush=True)
     rows = []
     for mode in modes:
         for kind in KINDS:
