@@ -16,6 +16,7 @@ from typing import Annotated
 import typer
 from rich.console import Console
 
+from flows.serve import batch_command, serve_command
 from wonderverse.errors import WonderError
 
 # Before torch loads: idle OpenMP threads sleep instead of spinning (measured 3-10x faster CPU splat
@@ -35,7 +36,8 @@ out = Console(width=None if sys.stdout.isatty() else 140)
 
 def _quiet_prefect() -> None:
     # Local runs: keep Prefect's own chatter and telemetry out of the user's terminal and network.
-    os.environ.setdefault("PREFECT_LOGGING_LEVEL", "WARNING")
+    # Warnings only in the terminal; INFO logs still reach the API (the UI, when PREFECT_API_URL is set).
+    os.environ.setdefault("PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL", "WARNING")
     os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
     os.environ.setdefault("PREFECT_CLI_PROMPT", "false")
     # A fresh Prefect home migrates its database on the first start: on 2 cores that outlasts the 20 s default.
@@ -247,6 +249,10 @@ def report(scene_dir: Annotated[Path, typer.Argument(help="scene folder")]) -> N
     from flows.report import write_report
 
     out.print(f"wrote {write_report(scene_dir)}", highlight=False)
+
+
+app.command("serve")(serve_command)
+app.command("batch")(batch_command)
 
 
 def main() -> None:

@@ -19,6 +19,7 @@ from wonderverse.errors import WonderError
 from wonderverse.store import SceneStore, scene_lock
 
 Call = Callable[[Step, str, RunConfig, str], str]
+OnCached = Callable[[Step, str], None]
 Engine = Literal["prefect", "local"]
 
 
@@ -34,20 +35,32 @@ def _direct(step: Step, scene_dir: str, cfg: RunConfig, key: str) -> str:
     return step.run_in(scene_dir, cfg, key)
 
 
+def _nothing(step: Step, key: str) -> None:
+    return None
+
+
 def execute(
-    scene_dir: Path | str, cfg: RunConfig, until: str | None = None, call: Call = _direct, wait_s: float = 0.0
+    scene_dir: Path | str,
+    cfg: RunConfig,
+    until: str | None = None,
+    call: Call = _direct,
+    wait_s: float = 0.0,
+    on_cached: OnCached = _nothing,
 ) -> list[StepResult]:
     """Run the steps `until` needs (all by default); returns one StepResult per step. One run writes a
-    scene at a time: a second one waits up to `wait_s` seconds for the first, then refuses (WonderError)."""
+    scene at a time: a second one waits up to `wait_s` seconds for the first, then refuses (WonderError).
+    `on_cached(step, key)` is called for each step skipped as complete (the flow records a "Cached" task run)."""
     try:
         steps = steps_until(until)
     except KeyError:
         raise WonderError(f"unknown step {until!r}; steps are: {', '.join(s.name for s in STEPS)}") from None
     with scene_lock(scene_dir, wait_s=wait_s):
-        return _execute(scene_dir, cfg, steps, call)
+        return _execute(scene_dir, cfg, steps, call, on_cached)
 
 
-def _execute(scene_dir: Path | str, cfg: RunConfig, steps: list[Step], call: Call) -> list[StepResult]:
+def _execute(
+    scene_dir: Path | str, cfg: RunConfig, steps: list[Step], call: Call, on_cached: OnCached
+) -> list[StepResult]:
     store = SceneStore.open_or_create(scene_dir, spec=cfg.scene.model_dump(mode="json"))
     store.root.attrs["config"] = cfg.model_dump(mode="json")
     store.clean_staging()
@@ -57,6 +70,7 @@ def _execute(scene_dir: Path | str, cfg: RunConfig, steps: list[Step], call: Cal
     for step in steps:
         key = keys[step.name]
         if store.is_complete(step.group, key):
+            on_cached(step, key)
             result = StepResult(step.name, "cached", 0.0, key)
         else:
             reporter.started(step.name, step.description)
@@ -78,8 +92,24 @@ def _prefect_call(step: Step, scene_dir: str, cfg: RunConfig, key: str) -> str:
     return step.task(scene_dir, cfg, key)
 
 
+def _cached_state(step: str, cache_key: str) -> Any:
+    """The final state of a skipped step's task run: Completed, named "Cached" in the Prefect UI."""
+    from prefect.states import Completed
+
+    return Completed(name="Cached", message=f"{step}: complete in the store under key {cache_key[:12]}")
+
+
+def _prefect_cached(step: Step, key: str) -> None:
+    if "cached" not in _flows:
+        from prefect import task
+        from prefect.cache_policies import NO_CACHE
+
+        _flows["cached"] = task(cache_policy=NO_CACHE, task_run_name="{step}")(_cached_state)
+    _flows["cached"].with_options(name=step.name)(step.name, key)
+
+
 def _generate_flow(scene_dir: str, config: RunConfig, until: str | None = None) -> list[StepResult]:
-    return execute(scene_dir, config, until, call=_prefect_call)
+    return execute(scene_dir, config, until, call=_prefect_call, on_cached=_prefect_cached)
 
 
 _flows: dict[str, Any] = {}

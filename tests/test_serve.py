@@ -3,6 +3,7 @@ deployment, runs through the REST API, and a local batch on Prefect's ephemeral 
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import socket
@@ -201,7 +202,7 @@ def test_serve_registers_a_cron_deployment_whose_runs_complete(tmp_path: Path):
         assert len(subflows) == 2 and {s["state_type"] for s in subflows} == {"COMPLETED"}
         first, second = (task_runs(api, s["id"]) for s in subflows)
         assert first == {"plan": "Completed", "generate_segments": "Completed"}
-        assert set(second.values()) <= {"Cached"}  # the scene was complete: no step ran again
+        assert second == {"plan": "Cached", "generate_segments": "Cached"}  # complete: shown as cached, not re-run
 
         # the later run found the scene complete: its log (sent to the server) says so
         later = max(runs, key=lambda r: _at(r["end_time"]))
@@ -279,3 +280,53 @@ def test_deployment_is_loadable_by_the_runner(tmp_path: Path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(WonderError, match="no scene specs"):
         build_deployment(tmp_path / "empty", tmp_path / "out")
+
+
+RETRY_SCRIPT = """
+import json, sys
+from prefect import flow
+from tasks.base import Step, is_transient
+from wonderverse.store import SceneStore
+
+SceneStore.open_or_create(sys.argv[1])
+calls = {"flaky": 0, "buggy": 0}
+
+def flaky(store, cfg, key):
+    calls["flaky"] += 1
+    if calls["flaky"] < 3:
+        raise ConnectionError("scheduler connection lost")
+    return "ok"
+
+def buggy(store, cfg, key):
+    calls["buggy"] += 1
+    raise ValueError("a bug")
+
+def task_of(name, fn):
+    return Step(name, 1, (), lambda cfg: None, fn).task.with_options(retry_delay_seconds=0)
+
+@flow
+def f():
+    try:
+        task_of("buggy", buggy)(sys.argv[1], None, "k")
+    except ValueError:
+        pass
+    return task_of("flaky", flaky)(sys.argv[1], None, "k")
+
+kinds = [is_transient(e) for e in (TimeoutError(), ConnectionResetError(), OSError(), ValueError())]
+print(json.dumps({"result": f(), **calls, "transient": kinds}))
+"""
+
+
+def test_step_tasks_retry_transient_failures_only(tmp_path: Path):
+    """A step that loses its connection twice succeeds on its third try; a bug fails at once."""
+    r = subprocess.run(
+        [sys.executable, "-c", RETRY_SCRIPT, str(tmp_path / "scene")],
+        cwd=ROOT,
+        env=prefect_env(tmp_path / "home", PREFECT_LOGGING_LEVEL="CRITICAL"),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert r.returncode == 0, r.stderr[-3000:]
+    out = json.loads(r.stdout.strip().splitlines()[-1])
+    assert out == {"result": "ok", "flaky": 3, "buggy": 1, "transient": [True, True, False, False]}
