@@ -106,6 +106,7 @@ def test_inspect_json_and_preview(scene: Path):
         "poses": "missing",
         "priors": "missing",
         "splats": "missing",
+        "outputs": "missing",
     }
     assert all(len(s["cache_key"]) == 64 for s in info["steps"] if s["status"] == "complete")
     assert len(info["segments"]) == 3 and info["spec"]["prompt"].startswith("a small house")
