@@ -154,7 +154,7 @@ def reconstruct(
         _quiet_prefect()
     token = progress.current.set(progress.RichReporter(console, len(STEPS)))
     try:
-        results = run_pipeline(scene_dir, cfg, engine=engine)  # type: ignore[arg-type]
+        results = run_pipeline(scene_dir, cfg, engine=engine, flow_name="reconstruct")  # type: ignore[arg-type]
     finally:
         progress.current.reset(token)
     console.print(progress.results_table(results))

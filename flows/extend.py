@@ -42,4 +42,4 @@ def extend(scene_dir: Path | str, words: str, engine: str = "local") -> list[Ste
     from flows.pipeline import run_pipeline
 
     cfg = extended_config(stored_config(scene_dir), words)
-    return run_pipeline(scene_dir, cfg, engine=engine)  # type: ignore[arg-type]
+    return run_pipeline(scene_dir, cfg, engine=engine, flow_name="extend")  # type: ignore[arg-type]

@@ -115,19 +115,27 @@ def _generate_flow(scene_dir: str, config: RunConfig, until: str | None = None) 
 _flows: dict[str, Any] = {}
 
 
-def generate_flow() -> Any:
-    """The Prefect flow `generate` (built on first use so plain imports stay light)."""
-    if "generate" not in _flows:
+FlowName = Literal["generate", "extend", "reconstruct"]
+
+
+def generate_flow(name: FlowName = "generate") -> Any:
+    """The Prefect flow `name` (built on first use so plain imports stay light). `generate`, `extend` and
+    `reconstruct` run the same cached steps; their names tell the runs apart in the UI."""
+    if name not in _flows:
         from prefect import flow
 
-        _flows["generate"] = flow(name="generate", log_prints=False, validate_parameters=False)(_generate_flow)
-    return _flows["generate"]
+        _flows[name] = flow(name=name, log_prints=False, validate_parameters=False)(_generate_flow)
+    return _flows[name]
 
 
 def run_pipeline(
-    scene_dir: Path | str, cfg: RunConfig, until: str | None = None, engine: Engine = "prefect"
+    scene_dir: Path | str,
+    cfg: RunConfig,
+    until: str | None = None,
+    engine: Engine = "prefect",
+    flow_name: FlowName = "generate",
 ) -> list[StepResult]:
-    """Run a scene with the chosen engine: a Prefect flow (default) or plain in-process calls."""
+    """Run a scene with the chosen engine: the Prefect flow `flow_name` (default) or plain in-process calls."""
     if engine == "local":
         return execute(scene_dir, cfg, until)
-    return generate_flow()(str(scene_dir), cfg, until)
+    return generate_flow(flow_name)(str(scene_dir), cfg, until)

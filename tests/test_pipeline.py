@@ -149,3 +149,11 @@ def test_a_second_writer_is_refused_and_changes_nothing(tmp_path: Path):
         execute(scene, tiny_config(seed=7), until="plan")
     assert SceneStore.open(scene).attrs("plan") == before
     assert [r.status for r in execute(scene, tiny_config(), until="plan")] == ["cached"]
+
+
+def test_each_entry_point_is_its_own_prefect_flow():
+    from flows.pipeline import generate_flow
+
+    names = {n: generate_flow(n).name for n in ("generate", "extend", "reconstruct")}
+    assert names == {"generate": "generate", "extend": "extend", "reconstruct": "reconstruct"}
+    assert generate_flow("extend") is generate_flow("extend")
