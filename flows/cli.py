@@ -10,8 +10,9 @@ import glob
 import json
 import os
 import sys
+from collections.abc import Callable
 from pathlib import Path
-from typing import Annotated
+from typing import Annotated, Any
 
 import typer
 from rich.console import Console
@@ -63,7 +64,6 @@ def generate(
     ] = None,
 ) -> None:
     """Plan, render and store a scene; cached steps are skipped."""
-    from flows import progress
     from flows.pipeline import run_pipeline, steps_until
     from wonderverse.config import build_config
 
@@ -80,11 +80,22 @@ def generate(
 
         raise WonderError(f"unknown step {until!r}; steps are: {', '.join(STEP_NAMES)}") from None
     scene_dir = out_dir or _default_out(cfg.scene.prompt)
+    _run_with_progress(scene_dir, engine, lambda: run_pipeline(scene_dir, cfg, until, engine=engine), len(steps))
+
+
+def _run_with_progress(scene_dir: Path, engine: str, run: Callable[[], list[Any]], n_steps: int | None = None) -> None:
+    """`run()` with the progress display (`n_steps` steps, all by default) and the closing table, then the
+    report and the list of files."""
+    from flows import progress
+    from tasks import STEPS
+
+    if engine not in ("prefect", "local"):
+        raise WonderError(f"--engine must be prefect or local (got {engine!r})")
     if engine == "prefect":
         _quiet_prefect()
-    token = progress.current.set(progress.RichReporter(console, len(steps)))
+    token = progress.current.set(progress.RichReporter(console, n_steps or len(STEPS)))
     try:
-        results = run_pipeline(scene_dir, cfg, until, engine=engine)  # type: ignore[arg-type]
+        results = run()
     finally:
         progress.current.reset(token)
     console.print(progress.results_table(results))
@@ -122,9 +133,7 @@ def reconstruct(
     engine: Annotated[str, typer.Option(help="prefect (default) or local (plain in-process calls)")] = "prefect",
 ) -> None:
     """Reconstruct your own clips (any video generator or a phone): check, poses, priors, splats, outputs."""
-    from flows import progress
     from flows.pipeline import run_pipeline
-    from tasks import STEPS
     from wonderverse.config import build_config
     from wonderverse.video.files import group_sources
 
@@ -150,15 +159,7 @@ def reconstruct(
         prompt=f"reconstruction of {', '.join(Path(p).name for p in paths)}", preset=preset, overrides=overrides
     )
     scene_dir = out_dir or _default_out(Path(paths[0]).stem)
-    if engine == "prefect":
-        _quiet_prefect()
-    token = progress.current.set(progress.RichReporter(console, len(STEPS)))
-    try:
-        results = run_pipeline(scene_dir, cfg, engine=engine, flow_name="reconstruct")  # type: ignore[arg-type]
-    finally:
-        progress.current.reset(token)
-    console.print(progress.results_table(results))
-    _finish(scene_dir)
+    _run_with_progress(scene_dir, engine, lambda: run_pipeline(scene_dir, cfg, engine=engine, flow_name="reconstruct"))
 
 
 @app.command()
@@ -168,21 +169,9 @@ def extend(
     engine: Annotated[str, typer.Option(help="prefect (default) or local (plain in-process calls)")] = "prefect",
 ) -> None:
     """Extend a scene in words: plan, generate, check one more segment; update poses, priors, splats, outputs."""
-    from flows import progress
     from flows.extend import extend as extend_scene
-    from tasks import STEPS
 
-    if engine not in ("prefect", "local"):
-        raise WonderError(f"--engine must be prefect or local (got {engine!r})")
-    if engine == "prefect":
-        _quiet_prefect()
-    token = progress.current.set(progress.RichReporter(console, len(STEPS)))
-    try:
-        results = extend_scene(scene_dir, words, engine=engine)
-    finally:
-        progress.current.reset(token)
-    console.print(progress.results_table(results))
-    _finish(scene_dir)
+    _run_with_progress(scene_dir, engine, lambda: extend_scene(scene_dir, words, engine=engine))
 
 
 @app.command()

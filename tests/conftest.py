@@ -40,6 +40,29 @@ def run_cli(*args: str, env: dict[str, str] | None = None, timeout: float = 300)
     )
 
 
+CHROMIUM = Path("/usr/bin/chromium")
+CHROMIUM_ARGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+
+
+def launch_browser(playwright: Any) -> Any:
+    """Headless Chromium from the system package; its absence fails the test unless explicitly allowed."""
+    if not CHROMIUM.is_file():
+        message = f"{CHROMIUM} is missing: install it with `bash scripts/install-browser.sh`"
+        if os.environ.get("WONDERVERSE_ALLOW_NO_BROWSER") == "1":
+            pytest.skip(message)
+        pytest.fail(message + " (or set WONDERVERSE_ALLOW_NO_BROWSER=1 to skip)")
+    return playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+
+
 @pytest.fixture
 def data_dir() -> Path:
     if not DATA.is_dir():

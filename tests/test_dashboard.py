@@ -13,20 +13,9 @@ from typing import Any
 
 import psutil
 import pytest
-from conftest import ROOT
+from conftest import ROOT, launch_browser
 from test_serve import flow_runs, prefect_env, prefect_server, write_tiny_spec
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 SCENE = "dashboard_scene"  # the spec's name: the scene's subflow run is named after it
 
 
@@ -49,16 +38,6 @@ def finished_run(tmp_path_factory: pytest.TempPathFactory) -> Iterator[dict[str,
         (run,) = flow_runs(api, flow_runs={"name": {"any_": [SCENE]}})
         assert run["state_type"] == "COMPLETED"
         yield {"proc": proc, "port": port, "api": api, "run": run, "ui": f"http://127.0.0.1:{port}"}
-
-
-def launch_browser(playwright: Any) -> Any:
-    """Headless Chromium from the system package; its absence fails the test unless explicitly allowed."""
-    if not CHROMIUM.is_file():
-        message = f"{CHROMIUM} is missing: install it with `bash scripts/install-browser.sh`"
-        if os.environ.get("WONDERVERSE_ALLOW_NO_BROWSER") == "1":
-            pytest.skip(message)
-        pytest.fail(message + " (or set WONDERVERSE_ALLOW_NO_BROWSER=1 to skip)")
-    return playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
 
 
 def png_size(path: Path) -> tuple[int, int]:

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import TINY_VIDEO, tiny_config
+from conftest import TINY_VIDEO, launch_browser, tiny_config
 from hypothesis import given, settings
 from hypothesis import strategies as st
 from PIL import Image
@@ -44,17 +44,6 @@ from wonderverse.report import (
 from wonderverse.store import SceneStore
 from wonderverse.video.procedural import ProceduralOptions, draw_fault
 
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = [
-    "--headless",
-    "--no-sandbox",
-    "--disable-gpu",
-    "--disable-quic",
-    "--no-first-run",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-]
 VIEWPORT = {"width": 1280, "height": 900}
 PROMPT = 'a snowy village <script>alert("x")</script> & <b>lanterns</b>'
 # A long jump: on 6-frame segments a short one can hide in the median step (measured 3.4x for 1.7 m).
@@ -289,16 +278,6 @@ def test_report_of_an_empty_store_and_of_no_store(tmp_path: Path):
 
 
 # -- in a browser -------------------------------------------------------------------------------
-
-
-def launch_browser(playwright):
-    """Headless Chromium from the system package; its absence fails the test unless explicitly allowed."""
-    if not CHROMIUM.is_file():
-        message = f"{CHROMIUM} is missing: install it with `apt-get install -y chromium`"
-        if os.environ.get("WONDERVERSE_ALLOW_NO_BROWSER") == "1":
-            pytest.skip(message)
-        pytest.fail(message + " (or set WONDERVERSE_ALLOW_NO_BROWSER=1 to skip)")
-    return playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
 
 
 def test_report_renders_in_headless_chromium(full_scene: Path):
