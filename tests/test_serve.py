@@ -55,6 +55,8 @@ def prefect_env(home: Path, api_url: str | None = None, **extra: str) -> dict[st
     """The environment of a child process with its own Prefect home (never the user's ~/.prefect)."""
     env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
     env |= {"PREFECT_HOME": str(home), "PREFECT_SERVER_ANALYTICS_ENABLED": "false", "PYTHONUNBUFFERED": "1"}
+    # a fresh home migrates its database at the first start: on 2 busy cores that outlasts the 20 s default
+    env["PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS"] = "180"
     if api_url:
         env["PREFECT_API_URL"] = api_url
     return env | extra
