@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import os
 import subprocess
 import sys
@@ -38,6 +39,15 @@ def run_cli(*args: str, env: dict[str, str] | None = None, timeout: float = 300)
         env=full_env,
         cwd=ROOT,
     )
+
+
+def tree_digest(folder: Path) -> str:
+    """One hash of every file's path and bytes under `folder` (to show a refused run changed nothing)."""
+    h = hashlib.sha256()
+    for p in sorted(folder.rglob("*")):
+        if p.is_file():
+            h.update(str(p.relative_to(folder)).encode() + p.read_bytes())
+    return h.hexdigest()
 
 
 CHROMIUM = Path("/usr/bin/chromium")

@@ -3,7 +3,6 @@ preview read a real scene; the Prefect engine runs the same flow."""
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 from pathlib import Path
@@ -11,20 +10,12 @@ from pathlib import Path
 import imageio.v2 as imageio
 import pytest
 import yaml
-from conftest import TINY_VIDEO, run_cli, tiny_config
+from conftest import TINY_VIDEO, run_cli, tiny_config, tree_digest
 from PIL import Image
 
 from flows.pipeline import execute
 from wonderverse import STORE_FORMAT
 from wonderverse.store import SceneStore
-
-
-def tree_digest(folder: Path) -> str:
-    h = hashlib.sha256()
-    for p in sorted(folder.rglob("*")):
-        if p.is_file():
-            h.update(str(p.relative_to(folder)).encode() + p.read_bytes())
-    return h.hexdigest()
 
 
 @pytest.fixture(scope="module")

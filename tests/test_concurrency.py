@@ -3,7 +3,6 @@ waits for it; a killed holder frees the scene. The holder is a real second proce
 
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import signal
@@ -15,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import tree_digest
 
 from wonderverse.errors import WonderError
 from wonderverse.store import LOCK_NAME, SceneStore, StoreError, scene_lock, write_array
@@ -27,14 +27,6 @@ with scene_lock(sys.argv[1]):
     print("locked", flush=True)
     time.sleep(float(sys.argv[2]))
 """
-
-
-def tree_digest(folder: Path) -> str:
-    h = hashlib.sha256()
-    for p in sorted(folder.rglob("*")):
-        if p.is_file():
-            h.update(str(p.relative_to(folder)).encode() + p.read_bytes())
-    return h.hexdigest()
 
 
 def hold(scene: Path, seconds: float) -> subprocess.Popen:
