@@ -96,10 +96,11 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     files.append(write_points_ply(out / "points.ply", cloud))
 
     cams = fusion_cameras(w2c, p.mesh.extra_views_per_gap)
-    views = render(cams)
-    depths = [v.depth for v in views]
+    # colour as uint8 and depth only: the fusion needs nothing else, and every view is held until the extent is known
+    views = [(np.round(v.rgb * 255).astype(np.uint8), v.depth) for v in render(cams)]
+    depths = [d for _, d in views]
     extent = scene_extent(cams, depths)
-    raw = fuse_tsdf(((v.rgb, v.depth, Kr, c) for v, c in zip(views, cams, strict=True)), extent, p.mesh)
+    raw = fuse_tsdf(((rgb, d, Kr, c) for (rgb, d), c in zip(views, cams, strict=True)), extent, p.mesh)
     mesh = clean_mesh(raw, p.mesh)
     files += [write_mesh(mesh, out / "mesh.ply"), write_mesh(mesh, out / "mesh.glb")]
 
