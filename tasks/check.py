@@ -119,7 +119,9 @@ def check_segment(seg: str, scene_dir: str, cfg: RunConfig) -> dict[str, Any]:
 def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     p = cfg.steps.check
     segs = segment_ids(store)
-    summaries = map_segments(check_segment, segs, str(store.scene_dir), cfg, workers=p.workers, address=p.dask_address)
+    summaries = map_segments(
+        check_segment, segs, str(store.scene_dir), cfg, workers=p.workers, address=p.dask_address, step="check"
+    )
     extra = [s["extra_trials"] for s in summaries]
     dropped = [s["segment"] for s in summaries if s["dropped"]]
     failing = [s["segment"] for s in summaries if s["reasons"] and not s["dropped"]]

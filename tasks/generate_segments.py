@@ -8,12 +8,12 @@ extension or re-running after a kill regenerates only what is missing.
 
 from __future__ import annotations
 
-from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
 import numpy as np
 
 from tasks.base import Step
+from tasks.parallel import fan_out
 from tasks.plan import load_plan
 from tasks.segments import frames, stitched_frame_index
 from wonderverse.camera import intrinsics, move_path
@@ -142,10 +142,14 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     clips = [len(c.frames) for c in model.clips] if cfg.scene.video.backend == "files" else None  # type: ignore[attr-defined]
     info = plan_paths(cfg, plan, initial_pose(model), clips)
     todo = [seg for seg, i in info.items() if not store.is_complete(f"segments/{seg}", i["key"])]
-    with ThreadPoolExecutor(cfg.steps.generate.max_workers) as pool:
-        for wave in sorted({i["wave"] for i in info.values()}):
-            batch = [seg for seg in todo if info[seg]["wave"] == wave]
-            list(pool.map(lambda seg: _generate_one(store, cfg, model, seg, info[seg]), batch))
+    for wave in sorted({i["wave"] for i in info.values()}):
+        batch = [seg for seg in todo if info[seg]["wave"] == wave]
+        fan_out(
+            "generate_segments",
+            batch,
+            lambda seg: _generate_one(store, cfg, model, seg, info[seg]),
+            cfg.steps.generate.max_workers,
+        )
     for stale in set(store.children("segments")) - set(info):
         store.remove(f"segments/{stale}")
     store.mark_complete("segments", key, order=stitched_order(plan.segments))

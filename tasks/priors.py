@@ -132,6 +132,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
         key,
         workers=cfg.steps.priors.workers,
         address=cfg.steps.priors.dask_address,
+        step="priors",
     )
     for group in ("priors", "priors_raw"):
         for stale in set(store.children(group)) - set(segs):

@@ -4,7 +4,7 @@ preview read a real scene; the Prefect engine runs the same flow."""
 from __future__ import annotations
 
 import json
-import os
+import sqlite3
 from pathlib import Path
 
 import imageio.v2 as imageio
@@ -117,19 +117,35 @@ def test_inspect_json_and_preview(scene: Path):
     assert Image.open(scene / "contact_sheet.png").size[0] > 100
 
 
+def prefect_task_runs(home: Path) -> dict[str, str]:
+    """{task run name: state name} from the Prefect database that an ephemeral-API run left in `home`."""
+    with sqlite3.connect(home / "prefect.db") as db:
+        return dict(db.execute("SELECT name, state_name FROM task_run").fetchall())
+
+
 def test_generate_through_prefect_engine(tmp_path: Path):
-    """The default engine: a real Prefect flow (ephemeral local API, no server to start)."""
-    env = {"PREFECT_HOME": str(tmp_path / "prefect"), "PREFECT_SERVER_ANALYTICS_ENABLED": "false"}
-    cfg = tiny_file(tmp_path, prompt="a cosy reading room with shelves", extensions={"rounds": 0})
-    args = ("generate", "--config", str(cfg), "--out", str(tmp_path / "s"), "--until", "generate_segments")
+    """The default engine: a real Prefect flow (ephemeral local API, no server to start) whose task runs are the
+    steps and, nested in them, one per segment; a re-run records the steps as cached."""
+    home = tmp_path / "prefect"
+    env = {"PREFECT_HOME": str(home), "PREFECT_SERVER_ANALYTICS_ENABLED": "false"}
+    cfg = tiny_file(tmp_path, prompt="a cosy reading room with shelves", extensions={"rounds": 1})
+    args = ("generate", "--config", str(cfg), "--out", str(tmp_path / "s"), "--until", "check")
     r = run_cli(*args, env=env, timeout=400)
     assert r.returncode == 0, r.stderr[-3000:]
     assert "generate_segments" in r.stderr and "ran" in r.stderr
     store = SceneStore.open(tmp_path / "s")
-    assert store.children("segments") == ["s000"]
+    assert store.children("segments") == ["s000", "s001", "s002"]
+    runs = prefect_task_runs(home)
+    per_segment = {f"{step} {seg}" for step in ("generate_segments", "check") for seg in ("s000", "s001", "s002")}
+    assert per_segment <= set(runs), sorted(runs)
+    assert {runs[name] for name in per_segment} == {"Completed"}
+    steps = {name.rsplit("-", 1)[0] for name in set(runs) - per_segment}  # step task runs: '<step>-<3 hex>'
+    assert steps == {"plan", "generate_segments", "check"}, sorted(runs)
+
     r = run_cli(*args, env=env, timeout=400)
-    assert r.returncode == 0 and r.stderr.count("cached") >= 2, r.stderr[-3000:]
-    assert os.listdir(tmp_path / "prefect")  # Prefect really ran (its local database lives here)
+    assert r.returncode == 0 and r.stderr.count("cached") >= 3, r.stderr[-3000:]
+    cached = {name for name, state in prefect_task_runs(home).items() if state == "Cached"}
+    assert cached == {"plan", "generate_segments", "check"}  # recorded as cached, nothing per segment re-ran
 
 
 def test_generate_ends_with_the_outputs_and_the_report(tmp_path: Path):

@@ -145,8 +145,8 @@ def _at(ts: str) -> datetime:
 
 def test_serve_registers_a_cron_deployment_whose_runs_complete(tmp_path: Path):
     """serve over a folder with one spec: the cron schedule creates runs on the minute, a run triggered through
-    the API and a cron run both complete, each scene is a subflow whose task runs are the steps, logs reach
-    the server, and the scene store holds the completed step."""
+    the API and a cron run both complete, each scene is a subflow whose task runs are the steps (and one per
+    segment), logs reach the server, and the scene store holds the completed step."""
     specs = tmp_path / "specs"
     spec = write_tiny_spec(specs, "reading_room")
     out = tmp_path / "scenes"
@@ -203,7 +203,7 @@ def test_serve_registers_a_cron_deployment_whose_runs_complete(tmp_path: Path):
         subflows = flow_runs(api, flow_runs={"name": {"any_": ["reading_room"]}}, sort="START_TIME_ASC")
         assert len(subflows) == 2 and {s["state_type"] for s in subflows} == {"COMPLETED"}
         first, second = (task_runs(api, s["id"]) for s in subflows)
-        assert first == {"plan": "Completed", "generate_segments": "Completed"}
+        assert first == {"plan": "Completed", "generate_segments": "Completed", "generate_segments s000": "Completed"}
         assert second == {"plan": "Cached", "generate_segments": "Cached"}  # complete: shown as cached, not re-run
 
         # the later run found the scene complete: its log (sent to the server) says so
