@@ -46,8 +46,10 @@ class ExtensionSpec(Model):
 class VideoSpec(Model):
     """The video backend and the shape of what it renders."""
 
-    backend: Literal["procedural", "files"] = Field(
-        "procedural", description="procedural: the embedded world; files: the user's clips (`clips`), not generated"
+    backend: Literal["procedural", "files", "diffusers"] = Field(
+        "procedural",
+        description="procedural: the embedded world; files: the user's clips (`clips`), not generated; "
+        "diffusers: a video diffusion model (CogVideoX, Wan, HunyuanVideo; `options` = DiffusionParams)",
     )
     clips: tuple[str, ...] = Field((), description="files backend: video files, image folders or globs, in order")
     frames_per_segment: int = Field(25, ge=2, le=1000)

@@ -2,10 +2,14 @@
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import numpy as np
 
-from wonderverse.config import SceneSpec
 from wonderverse.video.base import GroundTruth, Video, VideoModel
+
+if TYPE_CHECKING:  # the config pulls in YAML and every step's params; backends import only what they use
+    from wonderverse.config import SceneSpec
 
 __all__ = ["GroundTruth", "Video", "VideoModel", "initial_pose", "make_video_model"]
 
@@ -21,6 +25,18 @@ def make_video_model(scene: SceneSpec) -> VideoModel:
         from wonderverse.video.files import ClipParams, FilesVideo
 
         return FilesVideo(list(v.clips), ClipParams(**v.options))
+    if v.backend == "diffusers":
+        from pydantic import ValidationError
+
+        from wonderverse.config import format_validation_error
+        from wonderverse.errors import ConfigError
+        from wonderverse.video.diffusion import DiffusionParams, DiffusionVideo
+
+        try:
+            params = DiffusionParams(**v.options)
+        except ValidationError as e:
+            raise ConfigError(f"scene.video.options: {format_validation_error(e)}") from None
+        return DiffusionVideo(v.width, v.height, v.frames_per_segment, v.fov_deg, params)
     raise ValueError(f"unknown video backend {v.backend!r}")
 
 
