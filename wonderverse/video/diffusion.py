@@ -7,8 +7,8 @@ reaches them only through the words of the prompt. The returned K is the pinhole
 horizontal fov; neither it nor the path is known to the model, so downstream steps should estimate
 poses (SfM) rather than trust the conditioning path.
 
-Frame count and frame size are validated, not resampled: a family needs `num_frames = 4k+1` and
-sides that are multiples of 16 (VAE x patch), and a mismatch is a `WonderError` naming the setting
+Frame count and frame size are validated, not resampled: Wan and HunyuanVideo need `num_frames = 4k+1`,
+CogVideoX `8k+1`, all sides that are multiples of 16 (VAE x patch), and a mismatch is a `WonderError` naming the setting
 and the nearest valid value. Resampling would change the frame rate or the intrinsics silently.
 
 Heavy imports (torch, diffusers, PIL) happen on the first `generate`; loaded pipelines are shared
@@ -36,20 +36,26 @@ Family = Literal["cogvideox", "wan", "hunyuan"]
 @dataclass(frozen=True)
 class FamilySpec:
     """What one model family needs: its diffusers pipelines per mode, its default weights and its
-    size rules (frames = temporal_factor * k + 1, sides multiples of side_multiple_px)."""
+    size rules (frames = frame_step * k + 1, sides multiples of side_multiple_px)."""
 
     t2v_pipeline: str
     i2v_pipeline: str
     t2v_default: str
     i2v_default: str
-    temporal_factor: int = 4
-    side_multiple_px: int = 16
+    frame_step: int = 4  # the VAE's temporal compression, or a multiple of it
+    side_multiple_px: int = 16  # VAE spatial compression x transformer patch
     needs_ftfy: bool = False
 
 
 FAMILIES: dict[str, FamilySpec] = {
+    # CogVideoX's causal VAE decodes an even number of latent frames to 4 frames each (not 4k+1), so only
+    # an odd latent count, i.e. 8k+1 frames (9, 17, 25, 49), comes back at the requested length
     "cogvideox": FamilySpec(
-        "CogVideoXPipeline", "CogVideoXImageToVideoPipeline", "THUDM/CogVideoX-5b", "THUDM/CogVideoX-5b-I2V"
+        "CogVideoXPipeline",
+        "CogVideoXImageToVideoPipeline",
+        "THUDM/CogVideoX-5b",
+        "THUDM/CogVideoX-5b-I2V",
+        frame_step=8,
     ),
     # diffusers' Wan prompt cleaning calls ftfy unguarded in the image-to-video pipeline
     "wan": FamilySpec(
@@ -91,10 +97,10 @@ class DiffusionParams(BaseModel):
     vae_slicing: bool = Field(False, description="decode batch items one at a time")
 
 
-def nearest_frame_count(n: int, temporal_factor: int) -> int:
-    """The valid frame count (factor*k + 1, at least factor + 1) closest to n; ties go up."""
-    k = max(1, round((n - 1) / temporal_factor + 1e-9))
-    return temporal_factor * k + 1
+def nearest_frame_count(n: int, step: int) -> int:
+    """The valid frame count (step*k + 1, at least step + 1) closest to n; ties go up."""
+    k = max(1, int(np.floor((n - 1) / step + 0.5)))
+    return step * k + 1
 
 
 def nearest_side(px: int, multiple: int) -> int:
@@ -105,7 +111,7 @@ def nearest_side(px: int, multiple: int) -> int:
 def check_size(family: str, frames: int, width: int, height: int, where: str = "scene.video") -> None:
     """Raise WonderError naming the first setting the family cannot render, and its nearest valid value."""
     spec = FAMILIES[family]
-    f = spec.temporal_factor
+    f = spec.frame_step
     if frames < f + 1 or (frames - 1) % f:
         raise WonderError(
             f"{where}.frames_per_segment: {family} renders {f}k+1 frames (k >= 1); {frames} is not, "
