@@ -8,8 +8,13 @@ horizontal fov; neither it nor the path is known to the model, so downstream ste
 poses (SfM) rather than trust the conditioning path.
 
 Frame count and frame size are validated, not resampled: Wan and HunyuanVideo need `num_frames = 4k+1`,
-CogVideoX `8k+1`, all sides that are multiples of 16 (VAE x patch), and a mismatch is a `WonderError` naming the setting
-and the nearest valid value. Resampling would change the frame rate or the intrinsics silently.
+CogVideoX `8k+1`, all sides multiples of 16 (VAE x patch); a mismatch is a `WonderError` naming the
+setting and the nearest valid value. Resampling would change the frame rate or the intrinsics silently.
+The models were trained at particular sizes (CogVideoX 720x480, 49 frames; Wan 832x480, 81 frames):
+other valid sizes run, with lower quality.
+
+`guidance_scale` goes to the pipeline as is; for HunyuanVideo it is the distilled (embedded) guidance,
+and a negative prompt only acts there with true CFG, which this backend does not switch on.
 
 Heavy imports (torch, diffusers, PIL) happen on the first `generate`; loaded pipelines are shared
 within the process (keyed by everything that shapes them), so a second model built from the same
