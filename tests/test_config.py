@@ -51,6 +51,11 @@ def test_example_scene_loads():
         ("ok", {"scene": {"video": {"fov_deg": 200}}}, r"scene\.video\.fov_deg: .*got 200"),
         ("ok", {"scene": {"extensions": {"directions": ["sideways"]}}}, r"directions\.0: .*got 'sideways'"),
         ("ok", {"scene": {"seed": -1}}, r"scene\.seed: .*got -1"),
+        (
+            "ok",
+            {"scene": {"video": {"backend": "diffusers"}}, "steps": {"poses": {"source": "conditioning"}}},
+            r"take no camera input: use steps\.poses\.source sfm",
+        ),
     ],
 )
 def test_bad_values_name_field_and_value(prompt, overrides, message):

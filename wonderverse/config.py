@@ -206,8 +206,12 @@ class RunConfig(Model):
 
     @model_validator(mode="after")
     def _poses_known(self) -> RunConfig:
-        if self.scene.video.backend == "files" and self.steps.poses.source == "conditioning":
+        if self.steps.poses.source != "conditioning":
+            return self
+        if self.scene.video.backend == "files":
             raise ValueError("user clips have no conditioning path: use steps.poses.source sfm")
+        if self.scene.video.backend == "diffusers":  # the path reaches these models only as words
+            raise ValueError("diffusers video models take no camera input: use steps.poses.source sfm")
         return self
 
 
