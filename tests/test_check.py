@@ -9,8 +9,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from hypothesis import given, settings
-from hypothesis import strategies as st
 
 from wonderverse.camera import camera_centers, look_at
 from wonderverse.check import CheckParams, CheckResult, check_trajectory
@@ -121,34 +119,6 @@ def test_absolute_mode_uses_t1_in_sfm_units_scale_free_does_not_care() -> None:
     assert "translation step 6 > 5 between frames 5 and 6" in check_trajectory(big, all_reg(12), absolute).reasons
 
 
-@settings(max_examples=40, deadline=None)
-@given(
-    scale=st.floats(1e-3, 1e3),
-    angle=st.floats(-np.pi, np.pi),
-    shift=st.tuples(st.floats(-100, 100), st.floats(-100, 100), st.floats(-100, 100)),
-    jump=st.floats(0.0, 20.0),
-)
-def test_scale_free_verdict_is_invariant_to_similarity_transforms(scale, angle, shift, jump) -> None:
-    poses = orbit(np.arange(14) * 2.0)
-    c = camera_centers(poses)
-    c[7:] += np.array([0.0, 0.0, jump * 0.1745])  # ~ `jump` orbit steps upwards between 6 and 7
-    for i in range(14):
-        poses[i, :3, 3] = -poses[i, :3, :3] @ c[i]
-    ref = check_trajectory(poses, all_reg(14))
-    # New world x' = s R x + t: rotations R_c R^T, centres s R c + t.
-    ca, sa = np.cos(angle), np.sin(angle)
-    R = np.array([[ca, 0.0, sa], [0.0, 1.0, 0.0], [-sa, 0.0, ca]])
-    moved = poses.copy()
-    moved[:, :3, :3] = poses[:, :3, :3] @ R.T
-    c2 = scale * c @ R.T + np.array(shift)
-    moved[:, :3, 3] = -np.einsum("nij,nj->ni", moved[:, :3, :3], c2)
-    res = check_trajectory(moved, all_reg(14))
-    assert res.accepted == ref.accepted
-    assert res.flagged_frames == ref.flagged_frames
-    np.testing.assert_allclose(res.step_ratio, ref.step_ratio, rtol=1e-6, atol=1e-6)
-    np.testing.assert_allclose(res.rot_steps, ref.rot_steps, atol=1e-6)
-
-
 def test_short_segment_jump_is_caught_by_the_leave_one_out_median() -> None:
     poses = line(3, step=1.0)
     c = camera_centers(poses)
@@ -220,45 +190,10 @@ def test_static_camera_is_rejected() -> None:
     assert len(res.reasons) == 1 and res.reasons[0].startswith("camera does not move (median step 0")
 
 
-def test_pure_rotation_is_judged_on_rotation() -> None:
-    base = np.repeat(line(1), 16, axis=0)
-    poses = np.concatenate([yawed(base[i : i + 1], 0.03 * i) for i in range(16)])
-    np.testing.assert_allclose(camera_centers(poses), camera_centers(base), atol=1e-12)
-    res = check_trajectory(poses, all_reg(16))
-    assert res.accepted, res.reasons
-    assert any(n.startswith("camera only rotates") for n in res.notes)
-    np.testing.assert_allclose(res.rot_steps, 0.03, atol=1e-9)
-    jerk = np.concatenate([yawed(base[i : i + 1], 0.03 * i + (0.7 if i >= 9 else 0.0)) for i in range(16)])
-    res2 = check_trajectory(jerk, all_reg(16))
-    assert res2.flagged_frames == [8]
-    assert not res2.accepted
-
-
-def test_pure_rotation_with_points_uses_scene_depth_as_noise_floor() -> None:
-    rng = np.random.default_rng(0)
-    base = np.repeat(line(1), 12, axis=0)
-    poses = np.concatenate([yawed(base[i : i + 1], 0.05 * i) for i in range(12)])
-    # SfM-like noise on the centres: 1e-4 of a 10-unit scene depth.
-    c = camera_centers(poses) + rng.normal(0, 1e-3, (12, 3))
-    for i in range(12):
-        poses[i, :3, 3] = -poses[i, :3, :3] @ c[i]
-    points = c[0] + rng.normal(0, 1, (500, 3)) + np.array([0, 10.0, 0])
-    with_depth = check_trajectory(poses, all_reg(12), points=points)
-    assert with_depth.accepted, with_depth.reasons
-    assert "of scene depth" in with_depth.notes[0]
-
-
 def test_sfm_problems_reject_and_are_quoted() -> None:
     res = check_trajectory(line(10), all_reg(10), sfm_problems=["focal 5030 px implausible for 720 px frame"])
     assert not res.accepted
     assert res.reasons == ["SfM: focal 5030 px implausible for 720 px frame"]
-
-
-def test_nan_pose_marked_registered_counts_as_unregistered() -> None:
-    poses = line(10)
-    poses[4] = np.nan
-    res = check_trajectory(poses, all_reg(10))
-    assert "unregistered frame 4 splits the segment" in res.reasons
 
 
 def test_bad_shapes_raise() -> None:

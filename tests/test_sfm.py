@@ -142,15 +142,6 @@ def _pure_rotation_video(n: int = 12) -> np.ndarray:
 
 
 @pytest.mark.slow
-def test_pure_rotation_video_fails_the_gates_in_words() -> None:
-    res = reconstruct(_pure_rotation_video())
-    # Without parallax almost nothing triangulates: whatever registers, the model must not pass.
-    assert not res.gates_passed
-    assert res.problems and all(isinstance(p, str) and p for p in res.problems)
-    assert any("3D points" in p or "registered" in p for p in res.problems), res.problems
-
-
-@pytest.mark.slow
 def test_reconstruct_from_images_reports_k_in_full_size_pixels() -> None:
     paths = sorted(need(FOX / "images").glob("*.jpg"))[:8]
     res = reconstruct_from_images(paths, SfmParams(max_image_size_px=320, camera_model="PINHOLE"))

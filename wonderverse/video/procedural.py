@@ -49,6 +49,14 @@ class ProceduralOptions(BaseModel):
 
     world: Literal["auto", "outdoor", "indoor"] = "auto"
     layout: WorldParams = WorldParams()
+    scene_scale: float = Field(
+        1.0,
+        gt=0,
+        allow_inf_nan=False,
+        description="presents the same world with every distance times this factor (1e-3: a 40 m village spans "
+        "0.04 units): paths consumed, poses, depth, start pose and fault distances reported; frames are identical "
+        "at any scale (layout and fault ranges stay in native metres)",
+    )
     patterns: PatternParams = PatternParams()
     # faults (per generation attempt)
     fault_probability: float = Field(0.2, ge=0, le=1)
@@ -534,6 +542,26 @@ def validate_path(path: np.ndarray) -> np.ndarray:
     return arr
 
 
+def _rescaled(poses: np.ndarray, factor: float) -> np.ndarray:
+    """W2C poses (T,4,4) of the same cameras in a world scaled by `factor` (translations times it);
+    the poses themselves when factor is 1, so scale 1 is bit for bit what it always was."""
+    if factor == 1.0:
+        return poses
+    out = np.array(poses, dtype=np.float64, copy=True)
+    out[:, :3, 3] *= factor
+    return out
+
+
+def _rescaled_record(record: dict[str, Any], factor: float) -> dict[str, Any]:
+    """A fault record with its distances (teleport, morph: magnitude and offset_m) in scaled units."""
+    if record.get("unit") != "m":
+        return record
+    out = dict(record, magnitude=record["magnitude"] * factor)
+    if "offset_m" in out:
+        out["offset_m"] = [x * factor for x in out["offset_m"]]
+    return out
+
+
 class ProceduralVideo:
     """VideoModel over a procedural world chosen by (scene_prompt, scene_seed), shared by all segments."""
 
@@ -569,12 +597,19 @@ class ProceduralVideo:
         return self._world
 
     def render(self, w2c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """One clean frame at a W2C pose: rgb (H,W,3) uint8, depth (H,W) f32, normals (H,W,3) f32."""
-        return render_view(self.world, self.K, validate_path(w2c[None])[0], self.width, self.height, self.options)
+        """One clean frame at a W2C pose in scene units: rgb (H,W,3) uint8, depth (H,W) f32 scene units,
+        normals (H,W,3) f32."""
+        s = self.options.scene_scale
+        native = _rescaled(validate_path(w2c[None]), 1.0 / s)[0]
+        rgb, depth, normals = render_view(self.world, self.K, native, self.width, self.height, self.options)
+        if s != 1.0:
+            depth *= np.float32(s)
+        return rgb, depth, normals
 
     def generate(self, prompt: str, path: np.ndarray, seed: int, reference: np.ndarray | None) -> Video:
-        """Render `path` (T,4,4 W2C). `prompt` is not used (the world comes from the scene prompt);
-        `seed` (>= 0) decides the attempt's fault. Returns frames (T,H,W,3) uint8, K and GroundTruth."""
+        """Render `path` (T,4,4 W2C, scene units). `prompt` is not used (the world comes from the scene
+        prompt); `seed` (>= 0) decides the attempt's fault. Returns frames (T,H,W,3) uint8, K and GroundTruth
+        (poses, depth and fault distances in scene units: native metres times `scene_scale`)."""
         del prompt
         path = validate_path(path)
         if seed < 0:
@@ -583,7 +618,9 @@ class ProceduralVideo:
         if reference is not None and np.shape(reference) != shape:
             raise ValueError(f"reference frame has shape {np.shape(reference)}, this video renders {shape}")
         plan = draw_fault(self.scene_seed, seed, len(path), self.options)
-        poses, record = apply_pose_fault(path, plan, self.options)
+        s = self.options.scene_scale
+        native = _rescaled(path, 1.0 / s)  # the world renders in native metres whatever the scale
+        poses, record = apply_pose_fault(native, plan, self.options)
         morph = None
         if plan is not None and plan.type == "morph":
             w2c_k = poses[plan.frame]
@@ -603,6 +640,10 @@ class ProceduralVideo:
         _run(chunks, self.options.shading_threads)  # all frames at once: threads never wait at a frame's end
         for i in sorted(frozen):  # the video holds the previous frame
             frames[i], depth[i], normals[i] = frames[i - 1], depth[i - 1], normals[i - 1]
+        if s != 1.0:  # report in scene units; frames the fault left alone keep the path exactly
+            moved = ~(poses == native).all(axis=(1, 2))
+            poses, record = np.where(moved[:, None, None], _rescaled(poses, s), path), _rescaled_record(record, s)
+            depth *= np.float32(s)
         return Video(frames=frames, K=self.K.copy(), gt=GroundTruth(poses, depth, normals, record))
 
 

@@ -282,6 +282,8 @@ class World:
     vert_object (V,) int32 likewise (objects never share vertices); tri_part (F,) int32 numbers the
     primitives (a book, a rock) so their colours can vary. colors_a/colors_b (M,3) float32 are the
     palette of this world; texture_offset shifts the solid texture so worlds with equal materials differ.
+    Geometry is always in native metres; scene_scale only changes the units the world is presented in
+    (`start_pose`, and through the video backend its paths, poses and depth).
     """
 
     kind: Literal["outdoor", "indoor"]
@@ -300,12 +302,16 @@ class World:
     sky: Sky
     texture_offset: np.ndarray
     start: np.ndarray
+    scene_scale: float = 1.0
     _scene: Any = field(default=None, repr=False, compare=False)
     cache: dict[Any, Any] = field(default_factory=dict, repr=False, compare=False)
 
     def start_pose(self) -> np.ndarray:
-        """W2C (4,4) float64 pose where the first video starts."""
-        return self.start.copy()
+        """W2C (4,4) float64 pose where the first video starts, in scene units (native metres times
+        `scene_scale`: the frame the video backend consumes and reports in)."""
+        pose = self.start.copy()
+        pose[:3, 3] *= self.scene_scale
+        return pose
 
     @property
     def scene(self) -> o3d.t.geometry.RaycastingScene:
@@ -1124,16 +1130,18 @@ def _sky(rng: np.random.Generator, p: WorldParams, kind: str, theme: str, night:
 def build_world(prompt: str, seed: int, opts: Any = None) -> World:
     """The world a prompt and a seed describe; identical inputs give an identical world.
 
-    opts: a `ProceduralOptions` (uses its `world` kind override and `layout` params) or a `WorldParams`
-    or None for defaults. Returns a `World` (world frame +z up, metres).
+    opts: a `ProceduralOptions` (uses its `world` kind override, `layout` params and `scene_scale`) or a
+    `WorldParams` or None for defaults. Returns a `World` (world frame +z up, geometry in metres).
     """
     kind_override: Literal["auto", "outdoor", "indoor"] = "auto"
     params = WorldParams()
+    scene_scale = 1.0
     if isinstance(opts, WorldParams):
         params = opts
     elif opts is not None:
         kind_override = opts.world
         params = opts.layout
+        scene_scale = float(opts.scene_scale)
     kind, theme, layout, night = classify_prompt(prompt, kind_override)
     rng = np.random.default_rng(prompt_seed(prompt, seed))
     builder = MeshBuilder()
@@ -1167,4 +1175,5 @@ def build_world(prompt: str, seed: int, opts: Any = None) -> World:
         sky=_sky(rng, params, kind, theme, night),
         texture_offset=rng.uniform(-100, 100, 3).astype(np.float32),
         start=start,
+        scene_scale=scene_scale,
     )
