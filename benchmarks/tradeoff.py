@@ -1,0 +1,264 @@
+"""What each preset buys: speed against accuracy on the same procedural scenes, faults switched on.
+
+- Scenes: one outdoor ("a small house decorated for Christmas") and one indoor ("a cosy reading room with
+  shelves and armchairs"), 3 segments each (initial + left + right), procedural faults at 30 % per attempt.
+- Per preset and scene, the whole pipeline (plan → outputs, local engine, the preset as shipped) runs in a
+  fresh process, so its peak memory is its own: peak RSS of the process and its children (MB) and, on CUDA,
+  torch's peak allocated GPU memory.
+- Scored against the procedural ground truth, never against the pipeline's own output:
+  - `ate_frac`: global SfM poses vs the true poses (Sim(3)-aligned), RMSE / length of the true path;
+  - `depth_absrel`: the splats' rendered depth at the held-out frames (their SfM poses, video resolution),
+    in metres through the Sim(3) scale, vs the true depth (where alpha > 0.5 and the truth is finite);
+  - `psnr`: held-out PSNR from the splat step (frames the optimisation never saw);
+  - `fscore_1pct`: the exported mesh.ply mapped into the world by that Sim(3), against points sampled on the
+    world's surfaces that the true cameras see within the fusion's reach; threshold 1 % of the scene extent;
+  - `extra_trials`: regenerated segment attempts per segment (check step); `niqe`: mean NIQE (no reference,
+    lower is better) of 8 frames of novel.mp4.
+- Pareto: presets sorted by mean seconds; `pareto` is true when each slower preset has a higher mean
+  F-score (by > 0.01) and a higher mean PSNR (by > 0.1 dB) than the faster one before it.
+- Results of runs on different machines (the CPU for preview, a GPU for standard and high) merge with
+  `--merge A.json B.json`: one table, one plot (seconds vs F-score, one point per preset), one JSON line.
+
+Usage: `python -m benchmarks.tradeoff [--quick] [--presets preview,standard,high] [--out DIR]`; --quick
+shrinks every preset to 128x96 frames, 9 per segment and 60 iterations (a smoke run, not a measurement).
+Last line: {"presets": [{"name", "seconds", "peak_mb", "ate_frac", "depth_absrel", "psnr", "fscore_1pct"}, ...],
+"pareto": bool} — means over the scenes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from benchmarks.common import machine, report
+
+SCENES = {
+    "outdoor": "a small house decorated for Christmas",
+    "indoor": "a cosy reading room with shelves and armchairs",
+}
+FAULT_PROBABILITY = 0.3
+NIQE_FRAMES = 8
+PARETO_MIN_FSCORE_GAIN = 0.01
+PARETO_MIN_PSNR_GAIN_DB = 0.1
+KEYS = ("seconds", "peak_mb", "ate_frac", "depth_absrel", "psnr", "fscore_1pct")
+
+
+def scene_config(preset: str, prompt: str, quick: bool) -> Any:
+    from wonderverse.config import build_config
+
+    video: dict[str, Any] = {"options": {"fault_probability": FAULT_PROBABILITY}}
+    steps: dict[str, Any] = {}
+    if quick:
+        video |= {"width": 128, "height": 96, "frames_per_segment": 9}
+        steps = {
+            "splats": {"max_side_px": 128, "train": {"iterations": 60}},
+            "outputs": {"video_frames": 12, "render_max_side_px": 256},
+        }
+    return build_config(prompt, preset=preset, overrides={"scene": {"video": video}, "steps": steps})
+
+
+def run_one(preset: str, scene: str, scene_dir: Path, quick: bool) -> dict[str, Any]:
+    """Run the pipeline for one preset and scene in this process; timings, memory and scores."""
+    from flows.pipeline import execute
+
+    cfg = scene_config(preset, SCENES[scene], quick)
+    t0 = time.perf_counter()
+    results = execute(scene_dir, cfg)
+    seconds = time.perf_counter() - t0
+    kb = max(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss, resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)
+    out: dict[str, Any] = {"preset": preset, "scene": scene, "seconds": seconds, "peak_mb": kb / 1024}
+    out["steps_s"] = {r.step: r.seconds for r in results}
+    import torch
+
+    out["peak_gpu_mb"] = torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else 0.0
+    return out | score(scene_dir, cfg)
+
+
+def _scored_frames(store: Any) -> dict[str, Any]:
+    """SfM and true poses, true depth and names of the posed frames (the splat step's order)."""
+    from tasks.segments import attempt_path
+
+    segs, index, poses = store.attrs("sfm")["segments"], store.array("sfm/frame_index"), store.array("sfm/poses")
+    ok = np.isfinite(poses).all(axis=(1, 2))
+    paths = {a: attempt_path(store, segs[a]) for a in np.unique(index[:, 0])}
+    gt = {a: (store.array(f"{p}/gt/poses"), store.array(f"{p}/gt/depth")) for a, p in paths.items()}
+    rows = [(a, int(i)) for (a, i), keep in zip(index, ok, strict=True) if keep]
+    return {
+        "names": [f"{segs[a]}_{i:04d}" for a, i in rows],
+        "w2c": poses[ok],
+        "gt_w2c": np.stack([gt[a][0][i] for a, i in rows]),
+        "gt_depth": np.stack([gt[a][1][i] for a, i in rows]),
+        "all_gt_w2c": np.concatenate([gt[a][0][i][None] for a, i in index]),
+        "all_w2c": poses,
+    }
+
+
+def score(scene_dir: Path, cfg: Any) -> dict[str, Any]:
+    import imageio.v3 as iio
+    import trimesh
+
+    from benchmarks.mesh import visible_gt_points
+    from wonderverse.camera import camera_centers, umeyama
+    from wonderverse.mesh import scene_extent
+    from wonderverse.metrics import ate, chamfer_fscore, depth_errors, sample_mesh_points
+    from wonderverse.quality import niqe_many
+    from wonderverse.splats.model import GaussianModel, SceneNormalization
+    from wonderverse.splats.renderer import make_renderer
+    from wonderverse.splats.views import render_views
+    from wonderverse.store import SceneStore
+    from wonderverse.video import make_video_model
+
+    store = SceneStore.open(scene_dir)
+    f = _scored_frames(store)
+    to_world = umeyama(camera_centers(f["w2c"]), camera_centers(f["gt_w2c"]), with_scale=True)
+    splats = store.attrs("splats")
+    metrics = splats["metrics"]
+    test = [f["names"].index(splats["frames"][j]) for j in metrics.get("test_views", [])]
+
+    # rendered depth at the held-out frames, in metres, against the truth
+    arrays = {n: store.array(f"splats/{n}") for n in GaussianModel.PARAM_NAMES}
+    norm = SceneNormalization.from_dict(splats["normalization"])
+    v = cfg.scene.video
+    absrel = []
+    views = render_views(arrays, norm, f["w2c"][test], store.array("sfm/K"), v.width, v.height, make_renderer("auto"))
+    for i, view in zip(test, views, strict=True):
+        mask = np.isfinite(view.depth) & np.isfinite(f["gt_depth"][i])
+        absrel.append(depth_errors(view.depth * to_world.s, f["gt_depth"][i], mask)["absrel"])
+
+    # the exported mesh in the world, against the true surfaces the cameras see within the fusion's reach
+    world = make_video_model(cfg.scene).world
+    mesh = trimesh.load(scene_dir / "mesh.ply", force="mesh")
+    pred = to_world.apply(sample_mesh_points(np.asarray(mesh.vertices), np.asarray(mesh.faces), 300_000, seed=1))
+    reach = cfg.steps.outputs.mesh.max_depth_frac * store.attrs("outputs")["mesh"]["extent"] * to_world.s
+    extent = scene_extent(f["gt_w2c"], f["gt_depth"])
+    K_true = make_video_model(cfg.scene).K
+    gt_pts = visible_gt_points(world, K_true, f["gt_w2c"], f["gt_depth"], reach)
+    fs = chamfer_fscore(pred, gt_pts, [0.01 * extent])
+
+    novel = iio.imread(scene_dir / "novel.mp4")
+    picks = novel[np.linspace(0, len(novel) - 1, NIQE_FRAMES).round().astype(int)]
+    return {
+        "extra_trials": float(store.attrs("check")["mean_extra_trials"]),
+        "ate_frac": ate(f["all_w2c"], f["all_gt_w2c"])["rmse_frac"],
+        "depth_absrel": float(np.mean(absrel)),
+        "psnr": float(metrics["test_psnr"]),
+        "fscore_1pct": float(fs["fscore"][0]),
+        "niqe": niqe_many(list(picks)) if min(picks.shape[1:3]) >= 192 else float("nan"),
+        "gaussians": int(metrics["n_gaussians"]),
+    }
+
+
+def run_preset(preset: str, quick: bool, tmp: Path) -> list[dict[str, Any]]:
+    """Each scene of `preset` in a fresh interpreter (its own peak memory); their result rows."""
+    rows = []
+    for scene in SCENES:
+        cmd = [sys.executable, "-m", "benchmarks.tradeoff", "--one", preset, scene, str(tmp / f"{preset}_{scene}")]
+        r = subprocess.run(cmd + (["--quick"] if quick else []), capture_output=True, text=True)
+        if r.returncode != 0:
+            raise RuntimeError(f"{preset}/{scene} failed:\n{r.stderr[-4000:]}")
+        rows.append(json.loads(r.stdout.strip().splitlines()[-1]))
+        print(f"{preset}/{scene}: {rows[-1]['seconds']:.0f} s", file=sys.stderr, flush=True)
+    return rows
+
+
+def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
+    """Per preset, the means over its scenes; sorted by seconds; and whether they form a Pareto front."""
+    presets = []
+    for name in dict.fromkeys(r["preset"] for r in rows):
+        mine = [r for r in rows if r["preset"] == name]
+        presets.append({"name": name} | {k: round(float(np.mean([r[k] for r in mine])), 4) for k in KEYS})
+    presets.sort(key=lambda p: p["seconds"])
+    pareto = all(
+        b["fscore_1pct"] > a["fscore_1pct"] + PARETO_MIN_FSCORE_GAIN and b["psnr"] > a["psnr"] + PARETO_MIN_PSNR_GAIN_DB
+        for a, b in itertools.pairwise(presets)
+    )
+    return {"presets": presets, "pareto": bool(pareto and len(presets) > 1)}
+
+
+def plot(rows: list[dict[str, Any]], path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
+    for p in summary(rows)["presets"]:
+        ax.scatter(p["seconds"], p["fscore_1pct"], s=40)
+        where = next(r.get("machine", "") for r in rows if r["preset"] == p["name"])
+        ax.annotate(
+            f"{p['name']}\n{where}",
+            (p["seconds"], p["fscore_1pct"]),
+            fontsize=7,
+            xytext=(4, 4),
+            textcoords="offset points",
+        )
+    ax.set_xscale("log")
+    ax.set_xlabel("seconds, prompt to outputs (mean of scenes)")
+    ax.set_ylabel("mesh F-score @ 1 % of extent")
+    ax.set_title("WonderVerse presets: speed against accuracy")
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(path)
+
+
+def show(rows: list[dict[str, Any]], out: Path) -> None:
+    table = [
+        {
+            "preset": r["preset"],
+            "scene": r["scene"],
+            "machine": r.get("machine", ""),
+            "seconds": r["seconds"],
+            "splats_s": r["steps_s"].get("splats", 0.0),
+            "peak_mb": r["peak_mb"],
+            "gpu_mb": r["peak_gpu_mb"],
+            "extra_trials": r["extra_trials"],
+            "ate_frac": r["ate_frac"],
+            "depth_absrel": r["depth_absrel"],
+            "psnr": r["psnr"],
+            "fscore_1pct": r["fscore_1pct"],
+            "niqe": r["niqe"],
+        }
+        for r in rows
+    ]
+    plot(rows, out / "tradeoff.png")
+    report(f"tradeoff (plot: {out / 'tradeoff.png'})", table, summary(rows))  # type: ignore[arg-type]
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--quick", action="store_true", help="tiny frames and few iterations (smoke run)")
+    p.add_argument("--presets", default="preview", help="comma-separated preset names")
+    p.add_argument("--out", default=".", help="folder for tradeoff_<presets>.json and tradeoff.png")
+    p.add_argument("--merge", nargs="+", metavar="JSON", help="combine earlier runs' JSON files instead of running")
+    p.add_argument("--one", nargs=3, metavar=("PRESET", "SCENE", "DIR"), help=argparse.SUPPRESS)
+    args = p.parse_args()
+    if args.one:
+        os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+        preset, scene, d = args.one
+        print(json.dumps(run_one(preset, scene, Path(d), args.quick) | {"machine": machine()}), flush=True)
+        return
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    if args.merge:
+        rows = [r for f in args.merge for r in json.loads(Path(f).read_text())]
+    else:
+        names = args.presets.split(",")
+        with tempfile.TemporaryDirectory(prefix="wv_tradeoff_") as tmp:
+            rows = [r for name in names for r in run_preset(name, args.quick, Path(tmp))]
+        (out / f"tradeoff_{'_'.join(names)}.json").write_text(json.dumps(rows, indent=1))
+    show(rows, out)
+
+
+if __name__ == "__main__":
+    main()

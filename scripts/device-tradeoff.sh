@@ -1,0 +1,52 @@
+#!/usr/bin/env bash
+# The GPU half of `python -m benchmarks.tradeoff` on the lent device (CUDA, no network, a 64 MiB carry per
+# call, idle machines given back after 30 s), in calls made back to back:
+#   stage DIR   copy a carried folder of wheels (or parts of one) to /tmp/stage
+#   install     join split wheels, install everything into /tmp/site, build gsplat, check imports
+#   start P,..  run `benchmarks.tradeoff --one` for each preset x scene at once, in the background
+#   collect     wait for them (at most $WAIT_S s); rows into $OUT/tradeoff_gpu.json, logs into $OUT
+# open3d's import of its plotly viewer is made optional in the installed copy (the viewer needs dash).
+set -uo pipefail
+REPO=$(pwd)
+OUT=${OUT:-/tmp/out}
+RUN=/tmp/tradeoff
+mkdir -p "$OUT" /tmp/stage "$RUN"
+export PYTHONUNBUFFERED=1 MAX_JOBS=16 TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} CUDA_HOME=/usr/local/cuda
+export PYTHONPATH=/tmp/site:$REPO
+case "$1" in
+stage) cp -r "$REPO/$2"/. /tmp/stage/ && ls -la /tmp/stage | tail -n +2 | wc -l ;;
+install)
+  cd /tmp/stage
+  for first in *.part-aa; do cat "${first%.part-aa}".part-* > "${first%.part-aa}" && rm "${first%.part-aa}".part-*; done
+  python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site ./*.whl || exit 1
+  sed -i 's/^from .draw_plotly import draw_plotly$/try:\n    from .draw_plotly import draw_plotly\nexcept ImportError:  # the plotly viewer needs dash\n    pass/' \
+    /tmp/site/open3d/visualization/__init__.py
+  (cd /tmp && tar xzf /tmp/stage/gsplat-1.5.3.tar.gz && cd gsplat-1.5.3 &&
+    python3 -m pip install -q --no-build-isolation --no-deps --no-index --target /tmp/site . > "$OUT/build.log" 2>&1) ||
+    { tail -20 "$OUT/build.log"; exit 1; }
+  command -v ffmpeg || echo "no ffmpeg on PATH"
+  python3 scripts/gpu_video_diffusion.py 2>&1 | tee "$OUT/gpu_video_diffusion.log" | tail -12
+  python3 -c "import open3d, pycolmap, zarr, gsplat, torch, imageio, trimesh, dask.distributed
+from tasks import STEPS; import benchmarks.tradeoff
+print('imports ok', open3d.__version__, pycolmap.__version__, gsplat.__version__, torch.cuda.get_device_name())" ;;
+start)
+  IFS=, read -ra presets <<< "$2"
+  for p in "${presets[@]}"; do for s in outdoor indoor; do
+    setsid nohup python3 -m benchmarks.tradeoff --one "$p" "$s" "$RUN/$p-$s" > "$RUN/$p-$s.out" 2> "$RUN/$p-$s.err" &
+  done; done
+  sleep 5; ls "$RUN" ;;
+collect)
+  end=$((SECONDS + ${WAIT_S:-540}))
+  while pgrep -f "benchmarks.tradeoff --one" > /dev/null && [ $SECONDS -lt $end ]; do sleep 10; done
+  for f in "$RUN"/*.err; do echo "== $f"; grep -v "^[EWI]2026" "$f" | tail -3; done
+  python3 - "$RUN" "$OUT/tradeoff_gpu.json" <<'PY'
+import json, pathlib, sys
+rows = []
+for f in sorted(pathlib.Path(sys.argv[1]).glob("*.out")):
+    lines = [x for x in f.read_text().splitlines() if x.startswith("{")]
+    print(f.name, "done" if lines else "not finished")
+    rows += [json.loads(lines[-1])] if lines else []
+pathlib.Path(sys.argv[2]).write_text(json.dumps(rows, indent=1))
+PY
+  tar czf "$OUT/tradeoff_logs.tgz" -C "$RUN" $(cd "$RUN" && ls *.err *.out) ;;
+esac
