@@ -195,15 +195,10 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
     fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
     for p in summary(rows)["presets"]:
         ax.scatter(p["seconds"], p["fscore_1pct"], s=40)
-        where = next(r.get("machine", "") for r in rows if r["preset"] == p["name"])
-        ax.annotate(
-            f"{p['name']}\n{where}",
-            (p["seconds"], p["fscore_1pct"]),
-            fontsize=7,
-            xytext=(4, 4),
-            textcoords="offset points",
-        )
-    ax.set_xscale("log")
+        where = next(r.get("machine", "") for r in rows if r["preset"] == p["name"]).split(", Python")[0]
+        label = f"{p['name']} ({where})\nPSNR {p['psnr']:.1f} dB"
+        ax.annotate(label, (p["seconds"], p["fscore_1pct"]), fontsize=7, xytext=(4, 4), textcoords="offset points")
+    ax.margins(0.4)
     ax.set_xlabel("seconds, prompt to outputs (mean of scenes)")
     ax.set_ylabel("mesh F-score @ 1 % of extent")
     ax.set_title("WonderVerse presets: speed against accuracy")
