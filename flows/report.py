@@ -428,6 +428,13 @@ def _metrics(store: SceneStore, segments: list[SegmentInfo]) -> tuple[dict[str, 
         }
         if m.get("test_psnr") is not None:
             headline["held-out PSNR"] = f"{m['test_psnr']:.2f} dB"
+    q = store.attrs("outputs").get("quality") if store.attrs("outputs").get("complete") is True else None
+    if q:
+        metrics["Novel views, no reference"] = {
+            "NIQE (lower is better)": q.get("niqe"),
+            "CLIP-S (0..2.5)": q.get("clip_s"),
+            "Q-Align": q.get("q_align"),
+        }
     return metrics, headline
 
 

@@ -72,6 +72,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
         write_points_ply,
     )
     from wonderverse.paths import flythrough_path, novel_view_path
+    from wonderverse.quality import score_views
     from wonderverse.splats.model import GaussianModel, SceneNormalization
     from wonderverse.splats.renderer import make_renderer
     from wonderverse.splats.views import render_views
@@ -120,10 +121,14 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     ):
         rgb = np.stack([np.round(v.rgb * 255).astype(np.uint8) for v in render(path)])
         files.append(write_mp4(rgb, out / name, p.video_fps))
+    picks = np.linspace(0, len(rgb) - 1, min(p.quality_frames, len(rgb))).round().astype(int)
+    quality = score_views(list(rgb[picks]), cfg.scene.prompt, p.quality)  # of the novel views, as the paper
 
     listed = [{"path": f.name, "bytes": _size(f)} for f in files]
     stats = {"triangles": len(mesh.triangles), "vertices": len(mesh.vertices), "points": len(cloud.points)}
-    with store.staged("outputs", key, files=listed, mesh=stats | {"extent": extent}, render_size=[w, h]):
+    with store.staged(
+        "outputs", key, files=listed, mesh=stats | {"extent": extent}, render_size=[w, h], quality=quality
+    ):
         pass
     return f"{len(files)} files: mesh {stats['triangles']} triangles, {stats['points']} points, 2 videos"
 
@@ -132,4 +137,4 @@ def _size(path: Path) -> int:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() else path.stat().st_size
 
 
-STEP = Step("outputs", 1, ("splats",), _params, run, "mesh, point cloud, COLMAP/nerfstudio exports, videos")
+STEP = Step("outputs", 2, ("splats",), _params, run, "mesh, point cloud, COLMAP/nerfstudio exports, videos")

@@ -47,6 +47,8 @@ def test_files_are_listed_and_a_rerun_is_cached(scene: Path) -> None:
     expected = {"points.ply", "mesh.ply", "mesh.glb", "colmap", "nerfstudio", "camera_path.json"}
     assert listed == expected | {"flythrough.mp4", "novel.mp4"}
     assert all((scene / f).exists() for f in listed)
+    # novel views of 160x112 are under NIQE's two 96-px blocks per side, and no CLIP/Q-Align weights are given
+    assert store.attrs("outputs")["quality"] == {"niqe": None, "clip_s": None, "q_align": None}
     cfg_dump = store.root.attrs["config"]
     from wonderverse.config import RunConfig
 

@@ -290,3 +290,20 @@ def test_missing_model_folders_and_bad_settings_are_user_errors(tmp_path: Path) 
         QualityParams(clip_weight=0)
     with pytest.raises(ValidationError):
         QualityParams(niqe_model="x")  # extra fields are refused
+
+
+def test_score_views_gathers_the_configured_metrics(models: dict[str, Path], rendered: np.ndarray) -> None:
+    """What the outputs step stores: NIQE always (None under two blocks per side), CLIP-S against the prompt and
+    Q-Align only with weights."""
+    from wonderverse.quality import ClipScorer, score_views
+
+    frames = [rendered, np.ascontiguousarray(rendered[:, ::-1])]
+    bare = score_views(frames, "a quiet village", QualityParams())
+    assert bare == {"niqe": pytest.approx(niqe_many(frames)), "clip_s": None, "q_align": None}
+    assert score_views([rendered[:150]], "x", QualityParams())["niqe"] is None  # 150 rows < 2 x 96
+
+    params = QualityParams(clip_model=str(models["clip"]), qalign_model=str(models["llava"]), device="cpu")
+    full = score_views(frames, "a quiet village", params)
+    clip = ClipScorer(models["clip"], device="cpu").score(frames, ["a quiet village"] * 2)
+    assert full["clip_s"] == pytest.approx(float(np.mean(clip)))
+    assert 1.0 <= full["q_align"] <= 5.0 and full["niqe"] == bare["niqe"]

@@ -16,6 +16,7 @@ from wonderverse.check import CheckParams
 from wonderverse.errors import ConfigError
 from wonderverse.mesh import MeshParams
 from wonderverse.priors.params import PriorsParams
+from wonderverse.quality.params import QualityParams
 from wonderverse.sfm import SfmParams
 from wonderverse.splats.params import TrainParams
 
@@ -185,6 +186,10 @@ class OutputsParams(Model):
     )
     colmap: bool = Field(True, description="write colmap/ (cameras.txt, images.txt, points3D.txt)")
     nerfstudio: bool = Field(True, description="write nerfstudio/ (transforms.json + images/)")
+    quality: QualityParams = Field(
+        QualityParams(), description="no-reference metrics of novel views: NIQE always; CLIP-S, Q-Align with weights"
+    )
+    quality_frames: int = Field(8, ge=1, le=1000, description="novel-view frames scored, evenly spaced")
 
 
 class StepsConfig(Model):

@@ -15,9 +15,10 @@ _LAZY = {
     "niqe_many": "wonderverse.quality.niqe_metric",
     "ClipScorer": "wonderverse.quality.clip_score",
     "QAlignScorer": "wonderverse.quality.qalign",
+    "score_views": "wonderverse.quality.views",
 }
 
-__all__ = ["ClipScorer", "QAlignScorer", "QualityParams", "niqe", "niqe_many"]
+__all__ = ["ClipScorer", "QAlignScorer", "QualityParams", "niqe", "niqe_many", "score_views"]
 
 
 def __getattr__(name: str) -> Any:
