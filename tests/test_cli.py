@@ -128,15 +128,15 @@ def test_generate_through_prefect_engine(tmp_path: Path):
     steps and, nested in them, one per segment; a re-run records the steps as cached."""
     home = tmp_path / "prefect"
     env = {"PREFECT_HOME": str(home), "PREFECT_SERVER_ANALYTICS_ENABLED": "false"}
-    cfg = tiny_file(tmp_path, prompt="a cosy reading room with shelves", extensions={"rounds": 1})
+    cfg = tiny_file(tmp_path, prompt="a cosy reading room with shelves", extensions={"directions": ["left"]})
     args = ("generate", "--config", str(cfg), "--out", str(tmp_path / "s"), "--until", "check")
     r = run_cli(*args, env=env, timeout=400)
     assert r.returncode == 0, r.stderr[-3000:]
     assert "generate_segments" in r.stderr and "ran" in r.stderr
     store = SceneStore.open(tmp_path / "s")
-    assert store.children("segments") == ["s000", "s001", "s002"]
+    assert store.children("segments") == ["s000", "s001"]
     runs = prefect_task_runs(home)
-    per_segment = {f"{step} {seg}" for step in ("generate_segments", "check") for seg in ("s000", "s001", "s002")}
+    per_segment = {f"{step} {seg}" for step in ("generate_segments", "check") for seg in ("s000", "s001")}
     assert per_segment <= set(runs), sorted(runs)
     assert {runs[name] for name in per_segment} == {"Completed"}
     steps = {name.rsplit("-", 1)[0] for name in set(runs) - per_segment}  # step task runs: '<step>-<3 hex>'
