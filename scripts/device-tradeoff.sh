@@ -5,7 +5,12 @@
 #   install     join split wheels, install everything into /tmp/site, build gsplat, check imports
 #   start P,..  run `benchmarks.tradeoff --one` for each preset x scene at once, in the background
 #   collect     wait for them (at most $WAIT_S s); rows into $OUT/tradeoff_gpu.json, logs into $OUT
-# open3d's import of its plotly viewer is made optional in the installed copy (the viewer needs dash).
+# What the image lacks, carried (cp312 manylinux wheels; the two large ones split with `split -b 60m` into
+# NAME.whl.part-aa, -ab, ... across the carried folders): open3d-cpu 0.19.0 (100 MB), imageio-ffmpeg (68 MB:
+# the image has no ffmpeg), pycolmap 4.2.1, zarr and its codecs, pydantic, dask/distributed and their small
+# dependencies, trimesh, plyfile, rich, the gsplat 1.5.3 sdist, diffusers; and `.gl/` (the libGL/libglvnd
+# .debs the device README names: open3d's module links libGL.so.1), unpacked with dpkg -x by `install`.
+# open3d imports its plotly viewer and its ML package eagerly; the installed copy makes both optional.
 set -uo pipefail
 REPO=$(pwd)
 OUT=${OUT:-/tmp/out}
@@ -16,20 +21,23 @@ export PYTHONPATH=/tmp/site:$REPO
 case "$1" in
 stage) cp -r "$REPO/$2"/. /tmp/stage/ && ls -la /tmp/stage | tail -n +2 | wc -l ;;
 install)
+  for f in "$REPO"/.gl/*.deb; do dpkg -x "$f" /; done; ldconfig
   cd /tmp/stage
   for first in *.part-aa; do cat "${first%.part-aa}".part-* > "${first%.part-aa}" && rm "${first%.part-aa}".part-*; done
   python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site ./*.whl || exit 1
-  sed -i 's/^from .draw_plotly import draw_plotly$/try:\n    from .draw_plotly import draw_plotly\nexcept ImportError:  # the plotly viewer needs dash\n    pass/' \
+  sed -i -E 's/^from .draw_plotly import (draw_plotly|draw_plotly_server)$/try:\n    from .draw_plotly import \1\nexcept ImportError:\n    pass/' \
     /tmp/site/open3d/visualization/__init__.py
+  sed -i -E 's/^( *)import open3d\.ml$/\1try:\n\1    import open3d.ml\n\1except ImportError:\n\1    pass/' /tmp/site/open3d/__init__.py
   (cd /tmp && tar xzf /tmp/stage/gsplat-1.5.3.tar.gz && cd gsplat-1.5.3 &&
     python3 -m pip install -q --no-build-isolation --no-deps --no-index --target /tmp/site . > "$OUT/build.log" 2>&1) ||
     { tail -20 "$OUT/build.log"; exit 1; }
-  command -v ffmpeg || echo "no ffmpeg on PATH"
-  python3 scripts/gpu_video_diffusion.py 2>&1 | tee "$OUT/gpu_video_diffusion.log" | tail -12
+  python3 "$REPO/scripts/gpu_video_diffusion.py" 2>&1 | tee "$OUT/gpu_video_diffusion.log" | tail -12
   python3 -c "import open3d, pycolmap, zarr, gsplat, torch, imageio, trimesh, dask.distributed
 from tasks import STEPS; import benchmarks.tradeoff
 print('imports ok', open3d.__version__, pycolmap.__version__, gsplat.__version__, torch.cuda.get_device_name())" ;;
 start)
+  IMAGEIO_FFMPEG_EXE=$(python3 -c "import imageio_ffmpeg; print(imageio_ffmpeg.get_ffmpeg_exe())")
+  export IMAGEIO_FFMPEG_EXE
   IFS=, read -ra presets <<< "$2"
   for p in "${presets[@]}"; do for s in outdoor indoor; do
     setsid nohup python3 -m benchmarks.tradeoff --one "$p" "$s" "$RUN/$p-$s" > "$RUN/$p-$s.out" 2> "$RUN/$p-$s.err" &
