@@ -14,15 +14,16 @@
     world's surfaces that the true cameras see within the fusion's reach; threshold 1 % of the scene extent;
   - `extra_trials`: regenerated segment attempts per segment (check step); `niqe`: mean NIQE (no reference,
     lower is better) of 8 frames of novel.mp4.
-- Pareto: presets sorted by mean seconds; `pareto` is true when each slower preset has a higher mean
-  F-score (by > 0.01) and a higher mean PSNR (by > 0.1 dB) than the faster one before it.
+- Pareto: per machine, presets sorted by mean seconds; `pareto` is true when, on every machine that ran two
+  presets or more, each slower preset has a higher mean F-score (by > 0.01) and a higher mean PSNR (by > 0.1 dB)
+  than the faster one before it.
 - Results of runs on different machines (the CPU for preview, a GPU for standard and high) merge with
   `--merge A.json B.json`: one table, one plot (seconds vs F-score, one point per preset), one JSON line.
 
 Usage: `python -m benchmarks.tradeoff [--quick] [--presets preview,standard,high] [--out DIR]`; --quick
 shrinks every preset to 128x96 frames, 9 per segment and 60 iterations (a smoke run, not a measurement).
-Last line: {"presets": [{"name", "seconds", "peak_mb", "ate_frac", "depth_absrel", "psnr", "fscore_1pct"}, ...],
-"pareto": bool} — means over the scenes.
+Last line: {"presets": [{"name", "seconds", "peak_mb", "ate_frac", "depth_absrel", "psnr", "fscore_1pct",
+"machine"}, ...], "pareto": bool} — means over the scenes, one entry per preset and machine.
 """
 
 from __future__ import annotations
@@ -82,6 +83,7 @@ def run_one(preset: str, scene: str, scene_dir: Path, quick: bool) -> dict[str, 
     import torch
 
     out["peak_gpu_mb"] = torch.cuda.max_memory_allocated() / 2**20 if torch.cuda.is_available() else 0.0
+    out["gpu"] = torch.cuda.get_device_name() if torch.cuda.is_available() else ""
     return out | score(scene_dir, cfg)
 
 
@@ -173,17 +175,22 @@ def run_preset(preset: str, quick: bool, tmp: Path) -> list[dict[str, Any]]:
 
 
 def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """Per preset, the means over its scenes; sorted by seconds; and whether they form a Pareto front."""
+    """Per preset and machine, the means over its scenes, sorted by seconds; `pareto`: on every machine that
+    ran two presets or more, each slower preset is more accurate than the faster one before it."""
     presets = []
-    for name in dict.fromkeys(r["preset"] for r in rows):
-        mine = [r for r in rows if r["preset"] == name]
-        presets.append({"name": name} | {k: round(float(np.mean([r[k] for r in mine])), 4) for k in KEYS})
+    for name, where in dict.fromkeys((r["preset"], r.get("machine", "")) for r in rows):
+        mine = [r for r in rows if r["preset"] == name and r.get("machine", "") == where]
+        means = {k: round(float(np.mean([r[k] for r in mine])), 4) for k in KEYS}
+        presets.append({"name": name} | means | {"machine": where})
     presets.sort(key=lambda p: p["seconds"])
-    pareto = all(
+    fronts = [[p for p in presets if p["machine"] == where] for where in dict.fromkeys(p["machine"] for p in presets)]
+    fronts = [f for f in fronts if len(f) > 1]
+    pareto = bool(fronts) and all(
         b["fscore_1pct"] > a["fscore_1pct"] + PARETO_MIN_FSCORE_GAIN and b["psnr"] > a["psnr"] + PARETO_MIN_PSNR_GAIN_DB
-        for a, b in itertools.pairwise(presets)
+        for front in fronts
+        for a, b in itertools.pairwise(front)
     )
-    return {"presets": presets, "pareto": bool(pareto and len(presets) > 1)}
+    return {"presets": presets, "pareto": pareto}
 
 
 def plot(rows: list[dict[str, Any]], path: Path) -> None:
@@ -195,8 +202,7 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
     fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
     for p in summary(rows)["presets"]:
         ax.scatter(p["seconds"], p["fscore_1pct"], s=40)
-        where = next(r.get("machine", "") for r in rows if r["preset"] == p["name"]).split(", Python")[0]
-        label = f"{p['name']} ({where})\nPSNR {p['psnr']:.1f} dB"
+        label = f"{p['name']} ({p['machine'].split(', Python')[0]})\nPSNR {p['psnr']:.1f} dB"
         ax.annotate(label, (p["seconds"], p["fscore_1pct"]), fontsize=7, xytext=(4, 4), textcoords="offset points")
     ax.margins(0.4)
     ax.set_xlabel("seconds, prompt to outputs (mean of scenes)")
