@@ -139,13 +139,12 @@ def score(scene_dir: Path, cfg: Any) -> dict[str, Any]:
         absrel.append(depth_errors(view.depth * to_world.s, f["gt_depth"][i], mask)["absrel"])
 
     # the exported mesh in the world, against the true surfaces the cameras see within the fusion's reach
-    world = make_video_model(cfg.scene).world
+    video = make_video_model(cfg.scene)  # builds the world: once
     mesh = trimesh.load(scene_dir / "mesh.ply", force="mesh")
     pred = to_world.apply(sample_mesh_points(np.asarray(mesh.vertices), np.asarray(mesh.faces), 300_000, seed=1))
     reach = cfg.steps.outputs.mesh.max_depth_frac * store.attrs("outputs")["mesh"]["extent"] * to_world.s
     extent = scene_extent(f["gt_w2c"], f["gt_depth"])
-    K_true = make_video_model(cfg.scene).K
-    gt_pts = visible_gt_points(world, K_true, f["gt_w2c"], f["gt_depth"], reach)
+    gt_pts = visible_gt_points(video.world, video.K, f["gt_w2c"], f["gt_depth"], reach)
     fs = chamfer_fscore(pred, gt_pts, [0.01 * extent])
 
     novel = iio.imread(scene_dir / "novel.mp4")

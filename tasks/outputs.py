@@ -115,14 +115,16 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     look = float(np.median(finite)) if finite.size else None
     fly = flythrough_path(w2c, p.video_frames)
     files.append(write_camera_path(out / "camera_path.json", fly, Kr, w, h, p.video_fps))
-    for name, path in (
-        ("flythrough.mp4", fly),
-        ("novel.mp4", novel_view_path(w2c, p.video_frames, p.novel_offset_frac, look)),
-    ):
-        rgb = np.stack([np.round(v.rgb * 255).astype(np.uint8) for v in render(path)])
+
+    def video(poses: np.ndarray, name: str) -> np.ndarray:
+        rgb = np.stack([np.round(v.rgb * 255).astype(np.uint8) for v in render(poses)])
         files.append(write_mp4(rgb, out / name, p.video_fps))
-    picks = np.linspace(0, len(rgb) - 1, min(p.quality_frames, len(rgb))).round().astype(int)
-    quality = score_views(list(rgb[picks]), cfg.scene.prompt, p.quality)  # of the novel views, as the paper
+        return rgb
+
+    video(fly, "flythrough.mp4")
+    novel = video(novel_view_path(w2c, p.video_frames, p.novel_offset_frac, look), "novel.mp4")
+    picks = np.linspace(0, len(novel) - 1, min(p.quality_frames, len(novel))).round().astype(int)
+    quality = score_views(list(novel[picks]), cfg.scene.prompt, p.quality)  # of the novel views, as the paper
 
     listed = [{"path": f.name, "bytes": _size(f)} for f in files]
     stats = {"triangles": len(mesh.triangles), "vertices": len(mesh.vertices), "points": len(cloud.points)}

@@ -36,9 +36,10 @@ def fan_out(step: str, items: Sequence[Any], work: Callable[[Any], T], concurren
     from prefect.cache_policies import NO_CACHE
 
     per_item = task(name=f"{step} segment", cache_policy=NO_CACHE)(work)
+    size = max(concurrency, 1)
     out: list[T] = []
-    for start in range(0, len(items), max(concurrency, 1)):
-        chunk = items[start : start + max(concurrency, 1)]
+    for start in range(0, len(items), size):
+        chunk = items[start : start + size]
         futures = [per_item.with_options(task_run_name=f"{step} {item}").submit(item) for item in chunk]
         out += [f.result() for f in futures]
     return out
