@@ -1,8 +1,9 @@
 """`wonderverse extend`: the paper's interactive extension. The user's words become one more extension in the
 scene spec (`extensions.added`, the history); the planner continues the stored plan from them, and the
 pipeline re-runs with every step cached except what the new segment changes: the new segment is generated
-and checked; priors of the old segments keep their network output (`priors_raw/`); the global poses are
-re-solved and mapped into the previous world frame; the splats continue from the existing Gaussians, new
+and checked; priors of the old segments keep their network output (`priors_raw/`); the new frames are
+registered into the stored reconstruction with the old poses held fixed (a full re-solve, mapped into the
+previous world frame, when that fails its gates); the splats continue from the existing Gaussians, new
 ones seeded and densified only where the new frames see something new; the outputs are refreshed."""
 
 from __future__ import annotations

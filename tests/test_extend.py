@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
 import pytest
 from conftest import run_cli, tiny_config
 
@@ -29,6 +30,14 @@ def _config():
     return cfg.model_validate({**cfg.model_dump(), "steps": steps})
 
 
+def _poses_by_frame(store: SceneStore) -> dict[tuple[str, int], object]:
+    segs = store.attrs("sfm")["segments"]
+    return {
+        (segs[a], int(i)): pose
+        for (a, i), pose in zip(store.array("sfm/frame_index"), store.array("sfm/poses"), strict=True)
+    }
+
+
 @pytest.fixture(scope="module")
 def scenes(tmp_path_factory) -> tuple[Path, dict]:
     scene = tmp_path_factory.mktemp("extend") / "scene"
@@ -41,6 +50,7 @@ def scenes(tmp_path_factory) -> tuple[Path, dict]:
         "checks": {s: store.attrs(f"segments/{s}/attempts/0/check") for s in ("s000", "s001")},
         "n_gaussians": store.attrs("splats")["metrics"]["n_gaussians"],
         "frames": store.attrs("splats")["frames"],
+        "sfm": _poses_by_frame(store),
     }
     results = extend(scene, WORDS, engine="local")
     return scene, {"before": before, "results": {r.step: r.status for r in results}}
@@ -58,6 +68,18 @@ def test_only_the_new_segment_is_generated_and_checked(scenes) -> None:
         assert store.attrs(f"segments/{seg}/attempts/0/check") == check
     assert store.attrs("segments/s002/attempts/0/check")["accepted"] in (True, False)
     assert info["results"]["outputs"] == "ran" and info["results"]["splats"] == "ran"
+
+
+def test_poses_register_only_the_new_frames_and_old_frames_keep_their_poses(scenes) -> None:
+    scene, info = scenes
+    store = SceneStore.open(scene)
+    a = store.attrs("sfm")
+    assert a["solve"] == "incremental", a.get("incremental_problems")
+    assert a["new_frames"] == VIDEO["frames_per_segment"] - 1  # s002 without the frame repeating its reference
+    after = _poses_by_frame(store)
+    for frame, pose in info["before"]["sfm"].items():
+        assert (after[frame] == pose).all() or not np.isfinite(pose).all(), frame  # exactly, where posed before
+    assert any(np.isfinite(pose).all() for (seg, _), pose in after.items() if seg == "s002")
 
 
 def test_splats_continue_from_the_existing_gaussians(scenes) -> None:

@@ -18,6 +18,11 @@ weakest frame saw fewer than `min_points_per_image` points.
 Without a focal prior, global's view-graph calibration also writes its focal estimate into the database,
 which the incremental fallback then starts from. Reproducibility: with `num_threads=1` and a fixed
 `random_seed` two runs give bit-identical poses; with 2 threads they differ slightly (measured).
+
+Frame pairs are those of COLMAP's sequential matcher (`sequential_pairs`), matched as an imported list so
+that the caller's frame order counts, not the order of the image names. `reconstruct(names=...,
+keep_workspace=True)` hands back the COLMAP database and kept model (`SfmWorkspace`), into which
+`sfm_extend.extend_reconstruction` later registers new frames.
 """
 
 from __future__ import annotations
@@ -93,6 +98,41 @@ class SfmParams(BaseModel):
         return self
 
 
+@dataclass(frozen=True)
+class SfmWorkspace:
+    """A reconstruction's COLMAP state as bytes, so that a pipeline step can keep it in the store and a
+    later extension can register new frames into it (`sfm_extend.extend_reconstruction`) instead of
+    re-solving every frame.
+
+    database: the SQLite database (camera, images, SIFT features, matches, two-view geometries).
+    model: the kept model's COLMAP binary files (`Reconstruction.write`), file name -> bytes.
+    Image names in both are the caller's (`reconstruct(names=...)`), so they stay stable across extensions.
+    """
+
+    database: bytes
+    model: dict[str, bytes]
+
+    @classmethod
+    def pack(cls, db_path: Path, rec: Any, folder: Path) -> SfmWorkspace:
+        """The database file at `db_path` (closed) and `rec` written under `folder` (created), as bytes."""
+        folder.mkdir(parents=True, exist_ok=True)
+        rec.write(folder)
+        model = {f.name: f.read_bytes() for f in sorted(folder.iterdir()) if f.is_file()}
+        return cls(database=Path(db_path).read_bytes(), model=model)
+
+    def restore(self, folder: Path) -> tuple[Path, Path]:
+        """Write the database and the model into `folder`; returns (database path, model folder)."""
+        folder.mkdir(parents=True, exist_ok=True)
+        db_path, model_dir = folder / "database.db", folder / "model"
+        db_path.write_bytes(self.database)
+        model_dir.mkdir(exist_ok=True)
+        for name, data in self.model.items():
+            if Path(name).name != name:
+                raise ValueError(f"workspace model file names must be plain names, got {name!r}")
+            (model_dir / name).write_bytes(data)
+        return db_path, model_dir
+
+
 @dataclass
 class SfmResult:
     """One segment's reconstruction.
@@ -102,6 +142,7 @@ class SfmResult:
     intrinsics in pixels of the input frames (NaN if nothing was reconstructed). reproj_error_px: mean
     reprojection error (NaN if none). mapper: which mapper produced the kept model ("" if none).
     timings: seconds per stage. gates_passed: every quality gate held. problems: what failed, in words.
+    workspace: the COLMAP database and kept model, only when asked for (`keep_workspace`) and a model exists.
     """
 
     poses: np.ndarray
@@ -115,6 +156,7 @@ class SfmResult:
     timings: dict[str, float] = field(default_factory=dict)
     gates_passed: bool = False
     problems: list[str] = field(default_factory=list)
+    workspace: SfmWorkspace | None = None
 
     @property
     def n_registered(self) -> int:
@@ -341,6 +383,70 @@ def _run_mapper(kind: str, db_path: Path, image_dir: Path, out_dir: Path, params
     return _largest_model(models)
 
 
+def sequential_pairs(n_frames: int, overlap: int, quadratic: bool) -> list[tuple[int, int]]:
+    """Index pairs (i, j), i < j, that COLMAP's sequential matcher (4.2.1) chooses for frames in this order:
+    each frame with the next `overlap` ones or, when `quadratic`, with those 2^k ahead (k < overlap) instead.
+
+    Generated here rather than by `match_sequential`, which orders frames by image name: our names are stable
+    ids (`s002_0005.png`), and a left extension plays its frames reversed and before the others."""
+    pairs = []
+    for i in range(n_frames):
+        for k in range(overlap):
+            j = i + (1 << k if quadratic else k + 1)
+            if j >= n_frames:
+                break
+            pairs.append((i, j))
+    return pairs
+
+
+def _extract(
+    db_path: Path, image_dir: Path, names: list[str], params: SfmParams, reader: pycolmap.ImageReaderOptions
+) -> None:
+    """SIFT on `names` (files in `image_dir`) into the database, all with one camera."""
+    import pycolmap
+
+    extraction = pycolmap.FeatureExtractionOptions()
+    extraction.num_threads = params.num_threads
+    extraction.use_gpu = False
+    extraction.max_image_size = params.max_image_size_px
+    extraction.sift.max_num_features = params.max_num_features
+    pycolmap.extract_features(
+        db_path,
+        image_dir,
+        image_names=names,
+        camera_mode=pycolmap.CameraMode.SINGLE,
+        reader_options=reader,
+        extraction_options=extraction,
+        device=pycolmap.Device.cpu,
+    )
+
+
+def _match(db_path: Path, pairs: list[tuple[str, str]], params: SfmParams) -> pycolmap.TwoViewGeometryOptions:
+    """Match and verify the given image-name pairs (never loop detection: offline it aborts the process);
+    returns the verification options used."""
+    import pycolmap
+
+    matching = pycolmap.FeatureMatchingOptions()
+    matching.num_threads = params.num_threads
+    matching.use_gpu = False
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed = params.random_seed
+    if not pairs:
+        return verification
+    pair_file = db_path.with_name("pairs.txt")
+    pair_file.write_text("".join(f"{a} {b}\n" for a, b in pairs))
+    pairing = pycolmap.ImportedPairingOptions()
+    pairing.match_list_path = pair_file
+    pycolmap.match_image_pairs(
+        db_path,
+        matching_options=matching,
+        pairing_options=pairing,
+        verification_options=verification,
+        device=pycolmap.Device.cpu,
+    )
+    return verification
+
+
 def _reconstruct_dir(
     image_dir: Path,
     names: list[str],
@@ -349,8 +455,10 @@ def _reconstruct_dir(
     K_prior: np.ndarray | None,
     work: Path,
     timings: dict[str, float],
+    keep_workspace: bool = False,
 ) -> SfmResult:
-    """SIFT + sequential matching + mapping over `names` in `image_dir` (all of size `size_wh`)."""
+    """SIFT + sequential matching + mapping over `names` in `image_dir` (all of size `size_wh`, in sequence
+    order); with `keep_workspace` the result carries the database and the kept model."""
     import pycolmap
 
     pycolmap.set_random_seed(params.random_seed)
@@ -361,48 +469,20 @@ def _reconstruct_dir(
     if K_prior is not None:
         # The prior both fixes the initial focal and marks it as trusted (has_prior_focal_length).
         reader.camera_params = _camera_params_string(K_prior, params.camera_model)
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.num_threads = params.num_threads
-    extraction.use_gpu = False
-    extraction.max_image_size = params.max_image_size_px
-    extraction.sift.max_num_features = params.max_num_features
     t = time.perf_counter()
-    pycolmap.extract_features(
-        db_path,
-        image_dir,
-        image_names=names,
-        camera_mode=pycolmap.CameraMode.SINGLE,
-        reader_options=reader,
-        extraction_options=extraction,
-        device=pycolmap.Device.cpu,
-    )
+    _extract(db_path, image_dir, names, params, reader)
     timings["extract"] = time.perf_counter() - t
 
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = params.num_threads
-    matching.use_gpu = False
-    pairing = pycolmap.SequentialPairingOptions()
-    pairing.overlap = params.matcher_overlap
-    pairing.quadratic_overlap = params.quadratic_overlap
-    pairing.num_threads = params.num_threads
-    pairing.loop_detection = False  # never: offline it tries to download a vocabulary tree and aborts
-    verification = pycolmap.TwoViewGeometryOptions()
-    verification.ransac.random_seed = params.random_seed
     t = time.perf_counter()
-    pycolmap.match_sequential(
-        db_path,
-        matching_options=matching,
-        pairing_options=pairing,
-        verification_options=verification,
-        device=pycolmap.Device.cpu,
-    )
+    pairs = sequential_pairs(len(names), params.matcher_overlap, params.quadratic_overlap)
+    verification = _match(db_path, [(names[i], names[j]) for i, j in pairs], params)
     timings["match"] = time.perf_counter() - t
 
     feature_problems, n_verified = _feature_problems(db_path, names, verification.min_num_inliers)
     if n_verified == 0:
         return empty_result(len(names), ["COLMAP registered no frames", *feature_problems], timings)
 
-    def run(kind: str) -> SfmResult | None:
+    def run(kind: str) -> tuple[SfmResult, Any] | None:
         t0 = time.perf_counter()
         if kind == "global" and K_prior is None:
             # Without a focal prior the global mapper fails at random; calibrating the view graph fixes it.
@@ -411,28 +491,53 @@ def _reconstruct_dir(
             pycolmap.calibrate_view_graph(db_path, calibration)
         rec = _run_mapper(kind, db_path, image_dir, work, params)
         timings[f"map_{kind}"] = time.perf_counter() - t0
-        return None if rec is None else _result_from_model(rec, names, size_wh, kind, params)
+        return None if rec is None else (_result_from_model(rec, names, size_wh, kind, params), rec)
 
     kinds = list(params.auto_order) if params.mapper == "auto" else [params.mapper]
-    tried: list[tuple[str, SfmResult | None]] = []
+    tried: list[tuple[str, tuple[SfmResult, Any] | None]] = []
     for kind in kinds:
-        res = run(kind)
-        tried.append((kind, res))
-        if res is not None and res.gates_passed:
+        out = run(kind)
+        tried.append((kind, out))
+        if out is not None and out[0].gates_passed:
             break
-    results = [r for _, r in tried if r is not None]
+    results = [out for _, out in tried if out is not None]
     if not results:
         return empty_result(len(names), ["COLMAP registered no frames", *feature_problems], timings)
-    best = max(results, key=lambda r: (r.gates_passed, r.n_registered, r.n_points))
+    best, best_rec = max(results, key=lambda o: (o[0].gates_passed, o[0].n_registered, o[0].n_points))
     if not best.gates_passed:
         # Say what each mapper got wrong, so a rejection can be diagnosed from the words alone.
         best.problems = [
             f"{kind}: {p}" if len(kinds) > 1 else p
-            for kind, r in tried
-            for p in (r.problems if r is not None else ["COLMAP registered no frames"])
+            for kind, out in tried
+            for p in (out[0].problems if out is not None else ["COLMAP registered no frames"])
         ] + ([p for p in feature_problems if best.n_registered < len(names)])
+    if keep_workspace:
+        best.workspace = SfmWorkspace.pack(db_path, best_rec, work / "kept")
     best.timings = timings
     return best
+
+
+def write_png_frames(image_dir: Path, names: Sequence[str], frames: Sequence[np.ndarray]) -> None:
+    """Frames as PNG files (lossless, so SIFT sees exactly the frames) named `names` in `image_dir`."""
+    import imageio.v3 as iio
+
+    for name, f in zip(names, frames, strict=True):
+        iio.imwrite(image_dir / name, f)
+
+
+def _checked_names(names: Sequence[str] | None, n_frames: int) -> list[str]:
+    """Image file names for the frames: the caller's (unique plain .png names) or frame positions."""
+    if names is None:
+        return [f"{i:06d}.png" for i in range(n_frames)]
+    out = list(names)
+    if len(out) != n_frames:
+        raise ValueError(f"names: need one per frame ({n_frames}), got {len(out)}")
+    bad = [n for n in out if not isinstance(n, str) or Path(n).name != n or not n.endswith(".png")]
+    if bad:
+        raise ValueError(f"names must be plain file names ending in .png, got {bad[0]!r}")
+    if len(set(out)) != len(out):
+        raise ValueError("names must be unique")
+    return out
 
 
 def reconstruct(
@@ -440,34 +545,37 @@ def reconstruct(
     params: SfmParams | None = None,
     K_prior: np.ndarray | None = None,
     workdir: Path | None = None,
+    names: Sequence[str] | None = None,
+    keep_workspace: bool = False,
 ) -> SfmResult:
-    """Reconstruct one segment: (T,H,W,3) uint8 frames (or a list of (H,W,3) uint8) -> SfmResult.
+    """Reconstruct one segment: (T,H,W,3) uint8 frames (or a list of (H,W,3) uint8), in sequence order ->
+    SfmResult.
 
     K_prior (3,3, pixels of these frames) seeds the shared camera's focal length; without it the
     incremental mapper starts from COLMAP's 1.2·max(W,H) and the global one calibrates the view graph.
     workdir keeps the images, database and models there (for debugging); otherwise a temp dir is used.
+    names: one unique `.png` file name per frame, used for the images in COLMAP (default: the frame's
+    position); give stable ids when the workspace is to be extended later. keep_workspace: return the
+    database and kept model in `result.workspace` (for `sfm_extend.extend_reconstruction`).
     """
     params = params or SfmParams()
     frame_list = _validate_frames(frames)
     K = _validate_K(K_prior)
+    names = _checked_names(names, len(frame_list))
     t_start = time.perf_counter()
     sizes = [(int(f.shape[1]), int(f.shape[0])) for f in frame_list]
     problems = _input_problems(sizes)
     if problems:
         return empty_result(len(frame_list), problems)
-    import imageio.v3 as iio
-
     with tempfile.TemporaryDirectory(prefix="wv-sfm-") as tmp:
         work = Path(workdir) if workdir is not None else Path(tmp)
         image_dir = work / "images"
         image_dir.mkdir(parents=True, exist_ok=True)
         timings: dict[str, float] = {}
         t = time.perf_counter()
-        names = [f"{i:06d}.png" for i in range(len(frame_list))]
-        for name, f in zip(names, frame_list, strict=True):
-            iio.imwrite(image_dir / name, f)  # PNG: lossless, so SIFT sees exactly the frames
+        write_png_frames(image_dir, names, frame_list)
         timings["write"] = time.perf_counter() - t
-        res = _reconstruct_dir(image_dir, names, sizes[0], params, K, work, timings)
+        res = _reconstruct_dir(image_dir, names, sizes[0], params, K, work, timings, keep_workspace)
     res.timings["total"] = time.perf_counter() - t_start
     return res
 
