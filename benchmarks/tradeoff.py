@@ -87,6 +87,26 @@ def run_one(preset: str, scene: str, scene_dir: Path, quick: bool) -> dict[str, 
     return out | score(scene_dir, cfg)
 
 
+def mesh_voxel_rows(scene_dir: Path, cfg: Any, voxel_fracs: list[float]) -> list[dict[str, Any]]:
+    """The same splats meshed again at other TSDF voxel sizes (only `outputs` re-runs: its parameters are
+    all that changed), each scored like the preset's own mesh: what the mesh voxel alone does to accuracy."""
+    from flows.pipeline import execute
+
+    rows = []
+    for frac in voxel_fracs:
+        mesh = cfg.steps.outputs.mesh.model_copy(update={"voxel_frac": frac})
+        outputs = cfg.steps.outputs.model_copy(update={"mesh": mesh})
+        alt = cfg.model_copy(update={"steps": cfg.steps.model_copy(update={"outputs": outputs})})
+        t = time.perf_counter()
+        execute(scene_dir, alt)
+        s = score(scene_dir, alt)
+        rows.append(
+            {"voxel_frac": frac, "outputs_s": time.perf_counter() - t}
+            | {k: s[k] for k in ("fscore_1pct", "precision_1pct", "recall_1pct")}
+        )
+    return rows
+
+
 def _scored_frames(store: Any) -> dict[str, Any]:
     """SfM and true poses, true depth and names of the posed frames (the splat step's order)."""
     from tasks.segments import attempt_path
@@ -155,6 +175,8 @@ def score(scene_dir: Path, cfg: Any) -> dict[str, Any]:
         "depth_absrel": float(np.mean(absrel)),
         "psnr": float(metrics["test_psnr"]),
         "fscore_1pct": float(fs["fscore"][0]),
+        "precision_1pct": float(fs["precision"][0]),
+        "recall_1pct": float(fs["recall"][0]),
         "niqe": niqe_many(list(picks)) if min(picks.shape[1:3]) >= 192 else float("nan"),
         "gaussians": int(metrics["n_gaussians"]),
     }
@@ -242,11 +264,22 @@ def main() -> None:
     p.add_argument("--out", default=".", help="folder for tradeoff_<presets>.json and tradeoff.png")
     p.add_argument("--merge", nargs="+", metavar="JSON", help="combine earlier runs' JSON files instead of running")
     p.add_argument("--one", nargs=3, metavar=("PRESET", "SCENE", "DIR"), help=argparse.SUPPRESS)
+    p.add_argument(
+        "--mesh-voxels",
+        type=float,
+        nargs="+",
+        default=[],
+        help="with --one: also re-mesh the same splats at these TSDF voxel fractions and score each",
+    )
     args = p.parse_args()
     if args.one:
         os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
         preset, scene, d = args.one
-        print(json.dumps(run_one(preset, scene, Path(d), args.quick) | {"machine": machine()}), flush=True)
+        row = run_one(preset, scene, Path(d), args.quick) | {"machine": machine()}
+        if args.mesh_voxels:
+            cfg = scene_config(preset, SCENES[scene], args.quick)
+            row["mesh_voxels"] = mesh_voxel_rows(Path(d), cfg, args.mesh_voxels)
+        print(json.dumps(row), flush=True)
         return
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

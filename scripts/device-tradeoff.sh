@@ -2,8 +2,10 @@
 # The GPU half of `python -m benchmarks.tradeoff` on the lent device (CUDA, no network, a 64 MiB carry per
 # call, idle machines given back after 30 s), in calls made back to back:
 #   stage DIR   copy a carried folder of wheels (or parts of one) to /tmp/stage
-#   install     join split wheels, install everything into /tmp/site, build gsplat, check imports
+#   install     join split wheels, install everything into /tmp/site, build gsplat, check imports (and
+#               run scripts/gpu_video_diffusion.py unless SKIP_DIFFUSION is set)
 #   start P,..  run `benchmarks.tradeoff --one` for each preset x scene at once, in the background
+#               (SCENES="indoor" picks scenes; ONE_ARGS="--mesh-voxels 0.0039" adds arguments)
 #   collect     wait for them (at most $WAIT_S s); rows into $OUT/tradeoff_gpu.json, logs into $OUT
 # What the image lacks, carried (cp312 manylinux wheels; the two large ones split with `split -b 60m` into
 # NAME.whl.part-aa, -ab, ... across the carried folders): open3d-cpu 0.19.0 (100 MB), imageio-ffmpeg (68 MB:
@@ -31,7 +33,7 @@ install)
   (cd /tmp && tar xzf /tmp/stage/gsplat-1.5.3.tar.gz && cd gsplat-1.5.3 &&
     python3 -m pip install -q --no-build-isolation --no-deps --no-index --target /tmp/site . > "$OUT/build.log" 2>&1) ||
     { tail -20 "$OUT/build.log"; exit 1; }
-  python3 "$REPO/scripts/gpu_video_diffusion.py" 2>&1 | tee "$OUT/gpu_video_diffusion.log" | tail -12
+  [ -n "${SKIP_DIFFUSION:-}" ] || python3 "$REPO/scripts/gpu_video_diffusion.py" 2>&1 | tee "$OUT/gpu_video_diffusion.log" | tail -12
   python3 -c "import open3d, pycolmap, zarr, gsplat, torch, imageio, trimesh, dask.distributed
 from tasks import STEPS; import benchmarks.tradeoff
 print('imports ok', open3d.__version__, pycolmap.__version__, gsplat.__version__, torch.cuda.get_device_name())" ;;
@@ -39,8 +41,9 @@ start)
   IMAGEIO_FFMPEG_EXE=$(python3 -c "import imageio_ffmpeg; print(imageio_ffmpeg.get_ffmpeg_exe())")
   export IMAGEIO_FFMPEG_EXE
   IFS=, read -ra presets <<< "$2"
-  for p in "${presets[@]}"; do for s in outdoor indoor; do
-    setsid nohup python3 -m benchmarks.tradeoff --one "$p" "$s" "$RUN/$p-$s" > "$RUN/$p-$s.out" 2> "$RUN/$p-$s.err" &
+  # shellcheck disable=SC2086  # SCENES and ONE_ARGS split into words on purpose
+  for p in "${presets[@]}"; do for s in ${SCENES:-outdoor indoor}; do
+    setsid nohup python3 -m benchmarks.tradeoff --one "$p" "$s" "$RUN/$p-$s" ${ONE_ARGS:-} > "$RUN/$p-$s.out" 2> "$RUN/$p-$s.err" &
   done; done
   sleep 5; ls "$RUN" ;;
 collect)
