@@ -47,13 +47,8 @@ MAX_OLD_DRIFT_FRAC = 1e-9
 def _extension_options(params: SfmParams) -> Any:
     """The relaxed incremental options, with existing frames and the camera held fixed and one model only
     (a new model for frames that do not connect would be in another, unrelated frame)."""
-    opts = _incremental_options(params)
+    opts = _incremental_options(params, hold_camera=True)
     opts.fix_existing_frames = True
-    opts.ba_refine_focal_length = False
-    opts.ba_refine_principal_point = False
-    opts.ba_refine_extra_params = False
-    opts.mapper.abs_pose_refine_focal_length = False
-    opts.mapper.abs_pose_refine_extra_params = False
     opts.multiple_models = False
     # Colours are taken from the new frames only (below); the old frames' files are not at hand.
     opts.extract_colors = False
