@@ -3,6 +3,7 @@ not raise, reproducibility, priors and gates."""
 
 from __future__ import annotations
 
+from itertools import pairwise
 from pathlib import Path
 
 import numpy as np
@@ -219,8 +220,8 @@ def test_low_parallax_turn_is_solved_by_holding_the_camera_at_its_prior() -> Non
     assert res.gates_passed and res.mapper == PRIOR_FOCAL, res.problems
     assert res.registered.all()
     np.testing.assert_allclose(res.K, video.K, rtol=1e-9)
-    steps = [geodesic_angle(a[:3, :3], b[:3, :3]) for a, b in zip(res.poses[:-1], res.poses[1:], strict=True)]
-    truth = [geodesic_angle(a[:3, :3], b[:3, :3]) for a, b in zip(path[:-1], path[1:], strict=True)]
+    steps = [geodesic_angle(a[:3, :3], b[:3, :3]) for a, b in pairwise(res.poses)]
+    truth = [geodesic_angle(a[:3, :3], b[:3, :3]) for a, b in pairwise(path)]
     np.testing.assert_allclose(steps, truth, atol=0.005)
     # no prior, no fallback: the mappers tried are the configured ones only
     assert reconstruct(video.frames, params).mapper != PRIOR_FOCAL
