@@ -23,7 +23,8 @@
 Usage: `python -m benchmarks.tradeoff [--quick] [--presets preview,standard,high] [--out DIR]`; --quick
 shrinks every preset to 128x96 frames, 9 per segment and 60 iterations (a smoke run, not a measurement).
 Last line: {"presets": [{"name", "seconds", "peak_mb", "ate_frac", "depth_absrel", "psnr", "fscore_1pct",
-"machine"}, ...], "pareto": bool} — means over the scenes, one entry per preset and machine.
+"machine", "scenes"}, ...], "pareto": bool} — one entry per preset and machine: means over the scenes
+that every preset on that machine ran (and over repeated runs).
 """
 
 from __future__ import annotations
@@ -195,14 +196,25 @@ def run_preset(preset: str, quick: bool, tmp: Path) -> list[dict[str, Any]]:
     return rows
 
 
+def _shared_scenes(rows: list[dict[str, Any]], where: str) -> list[str]:
+    """The scenes every preset run on machine `where` has: means over other scenes would not compare."""
+    here = [r for r in rows if r.get("machine", "") == where]
+    per_preset = [{r["scene"] for r in here if r["preset"] == p} for p in dict.fromkeys(r["preset"] for r in here)]
+    return sorted(set.intersection(*per_preset)) if per_preset else []
+
+
 def summary(rows: list[dict[str, Any]]) -> dict[str, Any]:
-    """Per preset and machine, the means over its scenes, sorted by seconds; `pareto`: on every machine that
-    ran two presets or more, each slower preset is more accurate than the faster one before it."""
+    """Per preset and machine, the means over the scenes all presets on that machine ran (repeated runs
+    averaged too), sorted by seconds; `pareto`: on every machine that ran two presets or more, each slower
+    preset is more accurate than the faster one before it."""
     presets = []
     for name, where in dict.fromkeys((r["preset"], r.get("machine", "")) for r in rows):
-        mine = [r for r in rows if r["preset"] == name and r.get("machine", "") == where]
+        scenes = _shared_scenes(rows, where)
+        mine = [r for r in rows if r["preset"] == name and r.get("machine", "") == where and r["scene"] in scenes]
+        if not mine:
+            continue
         means = {k: round(float(np.mean([r[k] for r in mine])), 4) for k in KEYS}
-        presets.append({"name": name} | means | {"machine": where})
+        presets.append({"name": name} | means | {"machine": where, "scenes": scenes})
     presets.sort(key=lambda p: p["seconds"])
     fronts = [[p for p in presets if p["machine"] == where] for where in dict.fromkeys(p["machine"] for p in presets)]
     fronts = [f for f in fronts if len(f) > 1]
