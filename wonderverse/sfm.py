@@ -64,7 +64,9 @@ class SfmParams(BaseModel):
     max_image_size_px: int = Field(1024, ge=64, le=8192, description="SIFT runs on frames downscaled to this")
     max_num_features: int = Field(4096, ge=64, le=65536, description="SIFT features per frame")
     matcher_overlap: int = Field(10, ge=1, le=1000, description="each frame is matched to this many next ones")
-    quadratic_overlap: bool = Field(True, description="also match frames 2^k apart (cheap, links far frames)")
+    quadratic_overlap: bool = Field(
+        True, description="match frames 2^k apart (k < overlap) instead of the next ones: COLMAP 4.2.1's quadratic mode"
+    )
     mapper: Literal["incremental", "global", "auto"] = Field(
         "auto", description="auto: the mappers of `auto_order` in turn, until a model passes the gates"
     )
