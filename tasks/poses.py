@@ -50,7 +50,7 @@ def _fill(poses: np.ndarray, known: np.ndarray) -> np.ndarray:
 
 
 def _keep_previous_frame(
-    store: SceneStore, frame_index: np.ndarray, segs: list[str], poses: np.ndarray, points: np.ndarray
+    store: SceneStore, index: list[tuple[str, int]], poses: np.ndarray, points: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, dict[str, Any] | None, Sim3]:
     """A new reconstruction mapped into the world frame of the previous one (Sim(3) of the camera centres of
     the frames both posed), so an extended scene keeps its frame and its splats stay where they were. SfM's
@@ -61,7 +61,7 @@ def _keep_previous_frame(
     if store.attrs("sfm").get("complete") is not True or store.attrs("sfm").get("source") != "sfm":
         return poses, points, None, Sim3.identity()
     old = _previous_poses(store)
-    pairs = [(pose, old.get((segs[a], int(i)))) for (a, i), pose in zip(frame_index, poses, strict=True)]
+    pairs = [(pose, old.get(key)) for key, pose in zip(index, poses, strict=True)]
     pairs = [(n, o) for n, o in pairs if o is not None and np.isfinite(n).all() and np.isfinite(o).all()]
     if len(pairs) < 3:
         return poses, points, None, Sim3.identity()
@@ -73,13 +73,11 @@ def _keep_previous_frame(
     return out, sim.apply(points) if len(points) else points, info, sim
 
 
-def _previous_poses(store: SceneStore, registered_only: bool = False) -> dict[tuple[str, int], np.ndarray]:
-    """(segment, generation-order index) -> W2C pose of the previous `sfm` group (finite ones only when
-    `registered_only`: the frames SfM itself posed, not those interpolated between them)."""
+def _previous_poses(store: SceneStore) -> dict[tuple[str, int], np.ndarray]:
+    """(segment, generation-order index) -> W2C pose of the previous `sfm` group, in its stored order."""
     old_segs = store.attrs("sfm")["segments"]
     old_index, old_poses = store.array("sfm/frame_index"), store.array("sfm/poses")
-    keep = store.array("sfm/registered") if registered_only else np.ones(len(old_poses), bool)
-    return {(old_segs[a], int(i)): pose for (a, i), pose, k in zip(old_index, old_poses, keep, strict=True) if k}
+    return {(old_segs[a], int(i)): pose for (a, i), pose in zip(old_index, old_poses, strict=True)}
 
 
 def _selection(index: list[tuple[str, int]], stride: int) -> np.ndarray:
@@ -159,14 +157,15 @@ def _incremental_poses(
     registered = np.zeros(n, bool)
     poses[sel[res.registered]] = sim.transform_w2c(res.poses[res.registered])
     registered[sel] = res.registered
-    old_registered, old_all = _previous_poses(store, registered_only=True), _previous_poses(store)
+    old = _previous_poses(store)
+    old_registered = {key for key, r in zip(old, store.array("sfm/registered"), strict=True) if r}
     for k, key in enumerate(index):  # the frames SfM posed before stay anchors, with their stored poses
         if key in old_registered:
-            poses[k], registered[k] = old_registered[key], True
+            poses[k], registered[k] = old[key], True
     poses = _fill(poses, registered)
     for k, key in enumerate(index):
-        if key in old_all and np.isfinite(old_all[key]).all():
-            poses[k] = old_all[key]
+        if key in old and np.isfinite(old[key]).all():
+            poses[k] = old[key]
     return poses, registered, sim.apply(res.points) if len(res.points) else res.points
 
 
@@ -205,8 +204,7 @@ def _sfm_poses(
         registered = np.zeros(len(frames), bool)
         registered[sel] = res.registered
         poses = _fill(poses, registered)
-        frame_index = np.array([(segs.index(s), i) for s, i in index], dtype=np.int32)
-        poses, points, kept, sim = _keep_previous_frame(store, frame_index, segs, poses, res.points)
+        poses, points, kept, sim = _keep_previous_frame(store, index, poses, res.points)
         model_to_world = {"s": float(sim.s), "R": sim.R.tolist(), "t": sim.t.tolist()}
         attrs |= {"solve": "full", "kept_frame": kept, "model_to_world": model_to_world}
     attrs |= {
