@@ -95,9 +95,9 @@ def mesh_voxel_rows(scene_dir: Path, cfg: Any, voxel_fracs: list[float]) -> list
 
     rows = []
     for frac in voxel_fracs:
-        mesh = cfg.steps.outputs.mesh.model_copy(update={"voxel_frac": frac})
-        outputs = cfg.steps.outputs.model_copy(update={"mesh": mesh})
-        alt = cfg.model_copy(update={"steps": cfg.steps.model_copy(update={"outputs": outputs})})
+        data = cfg.model_dump()
+        data["steps"]["outputs"]["mesh"]["voxel_frac"] = frac
+        alt = type(cfg).model_validate(data)
         t = time.perf_counter()
         execute(scene_dir, alt)
         s = score(scene_dir, alt)
@@ -284,6 +284,15 @@ def main() -> None:
         help="with --one: also re-mesh the same splats at these TSDF voxel fractions and score each",
     )
     args = p.parse_args()
+    if args.mesh_voxels:  # refuse a bad voxel before the run it would follow, not after it
+        from pydantic import ValidationError
+
+        from wonderverse.mesh import MeshParams
+
+        try:
+            [MeshParams(voxel_frac=f) for f in args.mesh_voxels]
+        except ValidationError as e:
+            p.error(f"--mesh-voxels: {e.errors()[0]['msg']}")
     if args.one:
         os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
         preset, scene, d = args.one
