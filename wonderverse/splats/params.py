@@ -94,5 +94,7 @@ class TrainParams(BaseModel):
     far: float = Field(1e10, gt=0)
     seed: int = Field(0, ge=0)
     compile_loss: bool = Field(
-        True, description="on CUDA, fuse the loss into a few kernels with torch.compile (eager when it cannot)"
+        True,
+        description="on CUDA, fuse the loss into a few kernels with torch.compile and replay them as a CUDA "
+        "graph (eager when it cannot)",
     )

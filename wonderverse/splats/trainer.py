@@ -334,7 +334,10 @@ def train(
         }
 
     has_sky = data.sky.flatten(1).any(1).tolist()
-    loss_fn = Compiled(total_loss, enabled=params.compile_loss and torch.device(device).type == "cuda")
+    # CUDA graphs: the loss sees image-sized tensors only, whose shapes never change during a run
+    loss_fn = Compiled(
+        total_loss, enabled=params.compile_loss and torch.device(device).type == "cuda", cuda_graphs=True
+    )
     pending: list[_Pending] = []
     t_start = time.perf_counter()
     for step in range(start, params.iterations):
