@@ -78,7 +78,8 @@ def _initial_model(views: Any, points: np.ndarray, colors: np.ndarray, cfg: RunC
 
 def _train_digest(cfg: RunConfig) -> str:
     """What must not change for an extension to continue the previous optimisation instead of restarting."""
-    return cache_key("splats_train", 1, _params(cfg))
+    p = cfg.steps.splats.model_dump(exclude={"renderer", "extend_iterations_frac", "extend_new_view_share"})
+    return cache_key("splats_train", 2, {"splats": p})
 
 
 def _extendable(store: SceneStore, cfg: RunConfig, names: list[str]) -> dict[str, Any] | None:
@@ -148,7 +149,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     from wonderverse.splats.model import SceneNormalization
     from wonderverse.splats.ply import write_ply
     from wonderverse.splats.renderer import make_renderer
-    from wonderverse.splats.trainer import normalize_views, train
+    from wonderverse.splats.trainer import continuation_params, normalize_views, train
 
     p = cfg.steps.splats
     views, names = load_views(store)
@@ -163,18 +164,21 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     norm = SceneNormalization.from_cameras(views.w2c, points)  # train in a unit-sized frame
     nviews = normalize_views(views, norm)
     previous = _extendable(store, cfg, names)
-    train_params, fixed = p.train, 0
+    train_params, fixed, new_views = p.train, 0, []
     if previous is None:
         model = _initial_model(nviews, norm.apply_points(points), colors, cfg)
     else:
         model, fixed = _extended_model(store, nviews, norm, names, previous, cfg)
-        iters = max(1, round(p.train.iterations * p.extend_iterations_frac))
-        train_params = p.train.model_copy(update={"iterations": iters})
+        train_params = continuation_params(p.train, p.extend_iterations_frac)
+        seen = set(previous["frames"])
+        new_views = [i for i, n in enumerate(names) if n not in seen]
         log.info(
-            "extending the splats: %d existing Gaussians kept, %d new, %d iterations",
+            "extending the splats: %d existing Gaussians kept, %d new, %d iterations (%.0f %% on %d new views)",
             fixed,
             model.num_gaussians - fixed,
-            iters,
+            train_params.iterations,
+            100 * p.extend_new_view_share,
+            len(new_views),
         )
     renderer = make_renderer(p.renderer)
     model, curves, metrics = train(
@@ -185,6 +189,8 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
         checkpoint_cb=lambda step, state: _save_checkpoint(store, key, step, state),
         resume_state=_load_checkpoint(store, key),
         fixed_gaussians=fixed,
+        focus_views=new_views,
+        focus_share=p.extend_new_view_share,
     )
     arrays = model.to_numpy()
     ply = write_ply(Path(store.scene_dir) / "splats.ply", arrays, norm)

@@ -90,7 +90,8 @@ def test_splats_continue_from_the_existing_gaussians(scenes) -> None:
         "kept_gaussians": info["before"]["n_gaussians"],
     }
     assert set(info["before"]["frames"]) < set(a["frames"]) and any(f.startswith("s002_") for f in a["frames"])
-    assert len(a["curves"]["total"]) == round(60 * 0.3)  # extend_iterations_frac of the preset's iterations
+    splats = _config().steps.splats
+    assert len(a["curves"]["total"]) == round(splats.train.iterations * splats.extend_iterations_frac)
 
 
 def test_history_is_kept_and_inspect_shows_it(scenes) -> None:
@@ -109,3 +110,17 @@ def test_bad_requests_are_refused() -> None:
         "go up",
         "left a bit",
     )
+
+
+def test_the_extension_settings_do_not_stop_a_continuation() -> None:
+    from tasks.splats import _train_digest
+
+    cfg = _config()
+
+    def with_splats(**update: object):
+        steps = cfg.steps.model_copy(update={"splats": cfg.steps.splats.model_copy(update=update)})
+        return cfg.model_copy(update={"steps": steps})
+
+    base = _train_digest(cfg)
+    assert _train_digest(with_splats(extend_iterations_frac=0.5, extend_new_view_share=0.9)) == base
+    assert _train_digest(with_splats(init_opacity=0.2)) != base  # the optimisation itself changed

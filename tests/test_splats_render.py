@@ -143,6 +143,19 @@ def test_forward_matches_brute_force_reference(dtype: torch.dtype) -> None:
     assert info["visible"].sum() > 200
 
 
+def test_rendering_without_autograd_gives_the_same_image() -> None:
+    # Outside autograd the compositing keeps nothing for a backward pass; the image must not change.
+    scene = random_scene(300, seed=3)
+    scene["means"].requires_grad_(True)
+    with_grad = run_torch(scene)
+    with torch.no_grad():
+        without = run_torch(scene)
+    assert with_grad[0].requires_grad and not without[0].requires_grad
+    for a, b in zip(with_grad[:4], without[:4], strict=True):
+        assert torch.equal(a.detach(), b)
+    assert with_grad[4]["n_pairs"] == without[4]["n_pairs"] > 0
+
+
 @pytest.mark.parametrize("tile_size", [4, 8, 16, 32])
 def test_tile_size_does_not_change_the_image(tile_size: int) -> None:
     scene = random_scene(200, seed=2)

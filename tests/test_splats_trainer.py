@@ -13,10 +13,12 @@ from wonderverse.splats.params import DensifyParams, LossParams, MCMCParams, Tra
 from wonderverse.splats.renderer import make_renderer
 from wonderverse.splats.trainer import (
     Views,
+    continuation_params,
     evaluate,
     normalize_views,
     split_views,
     train,
+    view_order,
 )
 from wonderverse.video.procedural import ProceduralVideo, demo_path
 
@@ -78,6 +80,30 @@ def test_split_views() -> None:
     assert split_views(16, 8) == ([*range(7), *range(8, 15)], [7, 15])
     assert split_views(5, 0) == ([0, 1, 2, 3, 4], [])
     assert split_views(1, 8) == ([0], [])
+
+
+def test_view_order_gives_the_focus_views_their_share() -> None:
+    ids, focus = list(range(40)), {30, 31, 32, 33, 34, 35, 36, 37, 38, 39}
+    gen = torch.Generator().manual_seed(0)
+    order = view_order(ids, focus, 0.5, gen)
+    counts = np.bincount(order, minlength=40)
+    assert (counts[:30] == 1).all() and (counts[30:] == 3).all()  # 30 others once, 10 focus views 3 times
+    assert sum(i in focus for i in order) / len(order) == 0.5
+    assert sorted(view_order(ids, focus, 0.0, gen)) == ids  # no share: one plain pass
+    assert sorted(view_order(ids, set(), 0.5, gen)) == ids  # no focus views: one plain pass
+    assert sorted(view_order(ids, set(ids), 0.5, gen)) == ids  # all focus: nothing to favour them over
+    assert view_order(ids, focus, 0.5, torch.Generator().manual_seed(1)) != order  # shuffled by the generator
+
+
+def test_continuation_compresses_the_schedule() -> None:
+    p = TrainParams(iterations=7000, densify=DensifyParams(start_iter=500, every_iters=100, stop_iter=15000))
+    c = continuation_params(p, 0.2)
+    assert c.iterations == 1400 and c.sh_degree_interval_iters == 1
+    assert (c.densify.start_iter, c.densify.every_iters, c.densify.stop_iter) == (100, 20, 3000)
+    assert c.densify.reset_opacity_every_iters == 0 and p.densify.reset_opacity_every_iters == 3000
+    assert (c.mcmc.start_iter, c.mcmc.every_iters) == (100, 20) and c.loss == p.loss
+    tiny = continuation_params(TrainParams(iterations=3, densify=DensifyParams(every_iters=1)), 0.01)
+    assert tiny.iterations == 1 and tiny.densify.every_iters == 1  # never zero
 
 
 def test_training_fits_the_frames_and_treats_sky_as_background(scene: dict) -> None:

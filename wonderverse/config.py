@@ -170,7 +170,13 @@ class SplatsStepParams(Model):
     init_voxel_frac: float = Field(0.01, gt=0, description="seeding voxel size, fraction of the scene scale")
     init_opacity: float = Field(0.1, gt=0, lt=1)
     extend_iterations_frac: float = Field(
-        0.3, gt=0, le=1, description="after `extend`: iterations (share of train.iterations) continuing the old splats"
+        0.2, gt=0, le=1, description="after `extend`: iterations (share of train.iterations) continuing the old splats"
+    )
+    extend_new_view_share: float = Field(
+        0.5,
+        ge=0,
+        lt=1,
+        description="after `extend`: share of those iterations on the new frames (the rest keep the old)",
     )
 
 

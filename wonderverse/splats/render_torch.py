@@ -367,7 +367,7 @@ class _Composite(torch.autograd.Function):
     """
 
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, features, pairs: _Pairs, n_pix):  # type: ignore[override]
+    def forward(ctx, means2d, conics, opacities, features, pairs: _Pairs, n_pix, for_backward: bool):  # type: ignore[override]
         dtype = features.dtype
         dev = features.device
         n_feat = features.shape[1]
@@ -412,16 +412,18 @@ class _Composite(torch.autograd.Function):
             run_sum = torch.cumsum(drawn, 0)
             log_tf = run_sum.index_select(0, crow[1:] - 1) - run_sum.index_select(0, starts)
             tf_runs[r0:r1] = (log_tf + drawn.index_select(0, starts)).exp_().to(dtype)
-            mask = keep & (raw <= ALPHA_MAX)  # the drawn pairs whose alpha has a gradient
             n_keep = int(keep.sum())
             n_drawn += n_keep
+            chunks.append((r0, r1))
+            if not for_backward:
+                continue
+            mask = keep & (raw <= ALPHA_MAX)  # the drawn pairs whose alpha has a gradient
             saved = (g, sg, dx, dy, e, raw, alpha, trans, mask, w)
             if n_keep < COMPACT_BELOW * len(g):  # most pairs lie behind opaque surfaces: drop them
                 idx = torch.nonzero(keep)[:, 0]
                 saved = tuple(v.index_select(0, idx) for v in saved)
                 crow = torch.zeros_like(crow)
                 torch.cumsum(torch.bincount(saved[1].long(), minlength=r1 - r0), 0, out=crow[1:])
-            chunks.append((r0, r1))
             chunk_tensors += (crow, *saved)
         acc = torch.zeros(n_pix, n_feat, dtype=dtype, device=dev)
         t_final = torch.ones(n_pix, dtype=dtype, device=dev)
@@ -478,7 +480,7 @@ class _Composite(torch.autograd.Function):
         a, b, c = conics.unbind(1)
         g_means2d = torch.stack([a * sx + b * sy, b * sx + c * sy], 1)
         g_conics = torch.stack([0.5 * sxx, sxy, 0.5 * syy], 1)
-        return g_means2d, g_conics, grad_op, grad_features.t(), None, None
+        return g_means2d, g_conics, grad_op, grad_features.t(), None, None, None
 
 
 def composite(
@@ -500,7 +502,9 @@ def composite(
     0 and T = 1.
     """
     pairs = _Pairs.from_pixels(gid, px, py, width, height, features.dtype)
-    acc, t_final, drawn = _Composite.apply(means2d, conics, opacities, features, pairs, width * height)
+    acc, t_final, drawn = _Composite.apply(
+        means2d, conics, opacities, features, pairs, width * height, torch.is_grad_enabled()
+    )
     return acc, t_final, int(drawn)
 
 
@@ -565,7 +569,10 @@ def render(
     )
     # The (1,N,2) node gsplat's strategies read view-space gradients from (one camera, like gsplat's meta).
     means2d_node = proj.means2d[None]
-    acc, trans, n_drawn_t = _Composite.apply(means2d_node[0], proj.conics, opacities, features, pairs, width * height)
+    # Without autograd (renders for outputs and evaluation) nothing is kept for a backward pass.
+    acc, trans, n_drawn_t = _Composite.apply(
+        means2d_node[0], proj.conics, opacities, features, pairs, width * height, torch.is_grad_enabled()
+    )
     n_drawn = int(n_drawn_t)
     rgb = acc[:, :3]
     if background is not None:

@@ -24,7 +24,7 @@ from __future__ import annotations
 import copy
 import logging
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass
 from typing import Any
 
@@ -124,6 +124,39 @@ def auto_scene_scale(w2c: np.ndarray, means: np.ndarray) -> float:
     return scale if np.isfinite(scale) and scale > 1e-9 else 1.0
 
 
+def continuation_params(params: TrainParams, frac: float) -> TrainParams:
+    """`params` for continuing a trained model (after an extension) for `frac` of its iterations: the
+    densification schedule compressed alike (at the full schedule's steps a short run would never
+    densify), no opacity reset (it would wipe the trained Gaussians' opacities) and the full SH degree
+    from the first steps (the trained Gaussians have their higher bands already)."""
+
+    def squeeze(n: int) -> int:
+        return max(1, round(n * frac))
+
+    d, m = params.densify, params.mcmc
+    return params.model_copy(
+        update={
+            "iterations": squeeze(params.iterations),
+            "sh_degree_interval_iters": 1,
+            "densify": d.model_copy(
+                update={
+                    "start_iter": squeeze(d.start_iter),
+                    "every_iters": squeeze(d.every_iters),
+                    "stop_iter": squeeze(d.stop_iter),
+                    "reset_opacity_every_iters": 0,
+                }
+            ),
+            "mcmc": m.model_copy(
+                update={
+                    "start_iter": squeeze(m.start_iter),
+                    "every_iters": squeeze(m.every_iters),
+                    "stop_iter": squeeze(m.stop_iter),
+                }
+            ),
+        }
+    )
+
+
 def _lr_means(params: TrainParams, scene_scale: float, step: int) -> float:
     t = min(step / max(params.iterations, 1), 1.0)
     return params.lr_means * scene_scale * params.lr_means_final_ratio**t
@@ -176,6 +209,17 @@ def _render_view(model: GaussianModel, data: _Data, i: int, renderer: Renderer, 
         background=bg,
         sh_degree=sh,
     )
+
+
+def view_order(train_ids: list[int], focus: Collection[int], share: float, gen: torch.Generator) -> list[int]:
+    """One shuffled pass over `train_ids` (popped from the end). With `focus` views and 0 < share < 1, the
+    focus views are repeated so that about `share` of the pass is theirs (each other view still appears once)."""
+    ids = list(train_ids)
+    mine = [i for i in ids if i in focus]
+    if mine and len(mine) < len(ids) and 0 < share < 1:
+        repeats = max(1, round(share / (1 - share) * (len(ids) - len(mine)) / len(mine)))
+        ids += mine * (repeats - 1)
+    return [ids[j] for j in torch.randperm(len(ids), generator=gen).tolist()]
 
 
 def _found_inf(loss: torch.Tensor, params: list[torch.Tensor]) -> torch.Tensor:
@@ -254,6 +298,8 @@ def train(
     checkpoint_cb: Callable[[int, dict[str, Any]], None] | None = None,
     resume_state: dict[str, Any] | None = None,
     fixed_gaussians: int = 0,
+    focus_views: Collection[int] = (),
+    focus_share: float = 0.0,
 ) -> tuple[GaussianModel, dict[str, list[float]], dict[str, Any]]:
     """Optimise `model` on `views` (see the module docstring). Returns (model, curves, metrics).
 
@@ -261,7 +307,8 @@ def train(
     with non-finite gradients). metrics: test/train PSNR and SSIM, view split, final Gaussian count, time.
     checkpoint_cb(step, state) is called every `checkpoint_every_iters` iterations and at the end; passing
     such a state as `resume_state` continues training from it (same views and params). The first
-    `fixed_gaussians` Gaussians (an extended scene's existing ones) are optimised but never densified.
+    `fixed_gaussians` Gaussians (an extended scene's existing ones) are optimised but never densified;
+    about `focus_share` of the steps train on `focus_views` (an extension's new frames), see `view_order`.
     """
     device = renderer.device
     model = model.to(device)
@@ -343,7 +390,7 @@ def train(
     for step in range(start, params.iterations):
         t0 = time.perf_counter()
         if not order:
-            order = [train_ids[j] for j in torch.randperm(len(train_ids), generator=gen).tolist()]
+            order = view_order(train_ids, focus_views, focus_share, gen)
         i = order.pop()
         lr_m = _lr_means(params, scene_scale, step)
         for g in optimizer.param_groups:
