@@ -8,8 +8,8 @@
   fresh(prefect) - fresh(local) - per-flow overhead. Prefect's first start in a process (database
   migration) is excluded by a warm-up run.
 - Extension: `extend` adding one segment to a complete 3-segment scene, against generating the resulting
-  4-segment scene from scratch (what a user without `extend` would have to run). The 3-segment scene's own
-  time is reported too.
+  4-segment scene from scratch (what a user without `extend` would have to run), with the seconds of each
+  step in both. The 3-segment scene's own time is reported too.
 
 Last-line keys: `dask_speedup` (serial seconds / 2-worker seconds of the check step), `prefect_task_overhead_s`,
 `prefect_flow_overhead_s`, `cached_rerun_s` (all steps cached, local engine), `extend_cost_ratio` (extend
@@ -26,6 +26,7 @@ from pathlib import Path
 from benchmarks.common import parse_args, report
 from flows.extend import extend, extended_config
 from flows.pipeline import execute, run_pipeline
+from tasks import StepResult
 from wonderverse.config import RunConfig, build_config
 
 
@@ -89,13 +90,20 @@ def extend_rows(tmp: Path, cfg: RunConfig) -> tuple[list[dict], float, float]:
     d = tmp / "extend"
     before = _timed(lambda: execute(d, cfg))
     cached = _timed(lambda: execute(d, cfg))
-    added = _timed(lambda: extend(d, words, engine="local"))
-    whole = _timed(lambda: execute(tmp / "whole", extended_config(cfg, words)))
+    steps: dict[str, list[StepResult]] = {}
+    added = _timed(lambda: steps.update(extend=extend(d, words, engine="local")))
+    whole = _timed(lambda: steps.update(whole=execute(tmp / "whole", extended_config(cfg, words))))
     rows = [
         {"what": "3-segment scene from scratch (all steps)", "seconds": before},
         {"what": "same, all steps cached (local engine)", "seconds": cached},
         {"what": "extend: one more segment, everything updated", "seconds": added},
         {"what": "the extended 4-segment scene from scratch", "seconds": whole},
+    ]
+    # where the time goes: each step of the extension beside the same step from scratch
+    scratch = {r.step: r.seconds for r in steps["whole"]}
+    rows += [
+        {"what": f"  step {r.step}: extend / from scratch", "seconds": f"{r.seconds:.1f} / {scratch[r.step]:.1f}"}
+        for r in steps["extend"]
     ]
     return rows, added / whole, cached
 
