@@ -93,10 +93,10 @@ def _extendable(store: SceneStore, cfg: RunConfig, names: list[str]) -> dict[str
 
 
 def _extended_model(
-    store: SceneStore, nviews: Any, norm: Any, names: list[str], previous: dict[str, Any], cfg: RunConfig
+    store: SceneStore, nviews: Any, norm: Any, new: list[int], previous: dict[str, Any], cfg: RunConfig
 ) -> tuple[Any, int]:
     """The previous Gaussians (moved into this run's training frame) followed by new ones seeded from the
-    prior depth of the new frames only, away from the old ones; returns (model, number of old Gaussians)."""
+    prior depth of the `new` views only, away from the old ones; returns (model, number of old Gaussians)."""
     from scipy.spatial import cKDTree
 
     from wonderverse.splats.data import backproject_depth
@@ -107,8 +107,6 @@ def _extended_model(
     p = cfg.steps.splats
     old = {k: store.array(f"splats/{k}") for k in GaussianModel.PARAM_NAMES}
     old = to_training_frame(to_world(old, SceneNormalization.from_dict(previous["normalization"])), norm)
-    seen = set(previous["frames"])
-    new = [i for i, n in enumerate(names) if n not in seen]
     sub = Views(nviews.frames[new], nviews.w2c[new], nviews.K, nviews.prior_depth[new], nviews.prior_normals[new])
     pts, cols = backproject_depth(sub, p.init_depth_stride_px, p.init_depth_frame_stride)
     voxel = p.init_voxel_frac * auto_scene_scale(nviews.w2c, old["means"])
@@ -168,10 +166,10 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     if previous is None:
         model = _initial_model(nviews, norm.apply_points(points), colors, cfg)
     else:
-        model, fixed = _extended_model(store, nviews, norm, names, previous, cfg)
-        train_params = continuation_params(p.train, p.extend_iterations_frac)
         seen = set(previous["frames"])
         new_views = [i for i, n in enumerate(names) if n not in seen]
+        model, fixed = _extended_model(store, nviews, norm, new_views, previous, cfg)
+        train_params = continuation_params(p.train, p.extend_iterations_frac)
         log.info(
             "extending the splats: %d existing Gaussians kept, %d new, %d iterations (%.0f %% on %d new views)",
             fixed,
