@@ -15,6 +15,7 @@ their sizes; it is committed last, so a killed run rewrites them all on the next
 from __future__ import annotations
 
 import logging
+import os
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +29,8 @@ log = logging.getLogger("wonderverse.outputs")
 
 
 def _params(cfg: RunConfig) -> dict[str, Any]:
-    return {"outputs": cfg.steps.outputs.model_dump(), "renderer": cfg.steps.splats.renderer}
+    outputs = cfg.steps.outputs.model_dump(exclude={"render_workers"})  # how fast, not what
+    return {"outputs": outputs, "renderer": cfg.steps.splats.renderer}
 
 
 def posed_frames(store: SceneStore) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -88,10 +90,11 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     height, width = frames.shape[1:3]
     w, h, Kr = _render_size(width, height, K, p.render_max_side_px)
     renderer = make_renderer(cfg.steps.splats.renderer)
+    workers = p.render_workers or os.cpu_count() or 1
     files: list[Path] = []
 
     def render(poses: np.ndarray) -> list[Any]:
-        return list(render_views(arrays, norm, poses, Kr, w, h, renderer, background=background))
+        return list(render_views(arrays, norm, poses, Kr, w, h, renderer, background=background, workers=workers))
 
     cloud = gaussian_points(arrays, norm, p.mesh.points_min_opacity)
     files.append(write_points_ply(out / "points.ply", cloud))

@@ -185,6 +185,9 @@ class OutputsParams(Model):
 
     mesh: MeshParams = MeshParams()
     render_max_side_px: int = Field(480, ge=16, le=8192, description="renders for TSDF and videos: longer side")
+    render_workers: int = Field(
+        0, ge=0, le=256, description="CPU renderer: views rendered at once (0 = one per core); no effect on results"
+    )
     video_frames: int = Field(120, ge=2, le=10_000, description="frames of the fly-through and novel-view videos")
     video_fps: float = Field(24.0, gt=0, le=240)
     novel_offset_frac: float = Field(

@@ -3,18 +3,29 @@
 Input is what the `splats` step stores: the Gaussian arrays in the training frame and the
 `SceneNormalization` that maps the world into it. Cameras are given in the world frame (W2C, OpenCV
 axes); depths come back in world units, so callers never see the training frame.
+
+On the CPU, `workers` > 1 renders that many views at once, one torch thread each: the torch rasteriser
+is thousands of small ops per view, which one view's intra-op threads share poorly (2 cores, 24 views at
+240x160: 7.5 s one at a time, 5.7 s two at once; identical images).
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator
+from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 import torch
 
 from wonderverse.splats.model import GaussianModel, SceneNormalization
 from wonderverse.splats.renderer import Renderer
+
+T = TypeVar("T")
+R = TypeVar("R")
 
 
 @dataclass
@@ -40,18 +51,22 @@ def render_views(
     renderer: Renderer,
     background: np.ndarray | None = None,
     min_alpha: float = 0.5,
+    workers: int = 1,
 ) -> Iterator[RenderedView]:
     """Render `arrays` (GaussianModel.to_numpy layout, training frame) from world W2C poses (N,4,4) with
-    intrinsics K (3,3) or (N,3,3) at width×height; yields one RenderedView per camera, lazily."""
+    intrinsics K (3,3) or (N,3,3) at width×height; yields one RenderedView per camera, in order, lazily
+    (`workers` > 1 on the CPU: up to twice that many views ahead, see the module docstring)."""
     model = GaussianModel.from_numpy(arrays).to(renderer.device)
     w2c_n = norm.apply_w2c(np.asarray(w2c, np.float64).reshape(-1, 4, 4))
     Ks = np.broadcast_to(np.asarray(K, np.float64), (len(w2c_n), 3, 3)).copy()
     bg = None if background is None else torch.as_tensor(np.asarray(background, np.float32), device=renderer.device)
     dev = renderer.device
-    with torch.no_grad():
-        scales, opac = model.scales, model.opacities
-        colors = model.sh_coeffs
-        for pose, k in zip(w2c_n, Ks, strict=True):
+    scales, opac = model.scales.detach(), model.opacities.detach()
+    colors = model.sh_coeffs.detach()
+
+    def one(camera: tuple[np.ndarray, np.ndarray]) -> RenderedView:
+        pose, k = camera
+        with torch.no_grad():
             rgb, depth, alpha, normals, _ = renderer(
                 model.means,
                 model.quats,
@@ -65,11 +80,41 @@ def render_views(
                 background=bg,
                 sh_degree=model.sh_degree,
             )
-            a = alpha[..., 0].cpu().numpy().astype(np.float32)
-            with np.errstate(invalid="ignore", divide="ignore"):
-                z = depth[..., 0].cpu().numpy().astype(np.float32) / np.maximum(a, 1e-6) / norm.scale
-            z = np.where(a >= min_alpha, z, np.inf).astype(np.float32)
-            n = normals.cpu().numpy().astype(np.float32)
-            length = np.linalg.norm(n, axis=-1, keepdims=True)
-            n = np.where(length > 1e-6, n / np.maximum(length, 1e-6), 0.0).astype(np.float32)
-            yield RenderedView(rgb.clamp(0, 1).cpu().numpy().astype(np.float32), z, a, n)
+        a = alpha[..., 0].cpu().numpy().astype(np.float32)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            z = depth[..., 0].cpu().numpy().astype(np.float32) / np.maximum(a, 1e-6) / norm.scale
+        z = np.where(a >= min_alpha, z, np.inf).astype(np.float32)
+        n = normals.cpu().numpy().astype(np.float32)
+        length = np.linalg.norm(n, axis=-1, keepdims=True)
+        n = np.where(length > 1e-6, n / np.maximum(length, 1e-6), 0.0).astype(np.float32)
+        return RenderedView(rgb.clamp(0, 1).cpu().numpy().astype(np.float32), z, a, n)
+
+    cameras = zip(w2c_n, Ks, strict=True)
+    if workers <= 1 or torch.device(dev).type != "cpu":
+        yield from map(one, cameras)
+        return
+    with _torch_threads(1):
+        yield from ordered_map(one, cameras, workers)
+
+
+@contextmanager
+def _torch_threads(n: int) -> Iterator[None]:
+    """torch's intra-op thread count set to `n` meanwhile (it is process-wide)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
+def ordered_map(fn: Callable[[T], R], items: Iterable[T], workers: int) -> Iterator[R]:
+    """fn over items in `workers` threads, yielded in order, with at most 2 x workers results pending."""
+    with ThreadPoolExecutor(workers) as pool:
+        pending: deque = deque()
+        for item in items:
+            pending.append(pool.submit(fn, item))
+            if len(pending) >= 2 * workers:
+                yield pending.popleft().result()
+        while pending:
+            yield pending.popleft().result()
