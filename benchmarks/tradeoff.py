@@ -233,10 +233,19 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, ax = plt.subplots(figsize=(6, 4), dpi=120)
-    for p in summary(rows)["presets"]:
+    presets = summary(rows)["presets"]
+    first = presets[0]["machine"] if presets else ""
+    for p in presets:
         ax.scatter(p["seconds"], p["fscore_1pct"], s=40)
-        label = f"{p['name']} ({p['machine'].split(', Python')[0]})\nPSNR {p['psnr']:.1f} dB"
-        ax.annotate(label, (p["seconds"], p["fscore_1pct"]), fontsize=7, xytext=(4, 4), textcoords="offset points")
+        label = f"{p['name']}, {p['machine'].split(', Python')[0]}\nPSNR {p['psnr']:.1f} dB"
+        below = p["machine"] != first  # one machine's labels above their points, the others' below
+        ax.annotate(
+            label,
+            (p["seconds"], p["fscore_1pct"]),
+            fontsize=7,
+            xytext=(4, -20 if below else 4),
+            textcoords="offset points",
+        )
     ax.margins(0.4)
     ax.set_xlabel("seconds, prompt to outputs (mean of scenes)")
     ax.set_ylabel("mesh F-score @ 1 % of extent")
