@@ -117,7 +117,8 @@ def _extended_model(
     n_old = len(old["means"])
     if not len(pts):
         return GaussianModel.from_numpy(old), n_old
-    seeds = init_from_points(pts, rgb, p.train.sh_degree, init_opacity=p.init_opacity).to_numpy()
+    # sized by their nearest Gaussians old or new: a seed beside the old ones must not span the gap to the next seed
+    seeds = init_from_points(pts, rgb, p.train.sh_degree, p.init_opacity, neighbours=old["means"]).to_numpy()
     both = {k: np.concatenate([np.asarray(old[k], np.float32), seeds[k]]) for k in GaussianModel.PARAM_NAMES}
     return GaussianModel.from_numpy(both), n_old
 

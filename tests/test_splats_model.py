@@ -114,6 +114,18 @@ def test_init_from_points_grid() -> None:
     assert torch.all(m.shN == 0)
 
 
+def test_init_scales_count_the_neighbours_they_join() -> None:
+    # two seeds 1 apart, each 0.01 from an existing Gaussian: sized by the existing ones, not by each other
+    seeds = np.array([[0.0, 0, 0], [1.0, 0, 0]])
+    old = seeds + np.array([0.0, 0.01, 0.0])
+    alone = init_from_points(seeds, np.zeros((2, 3)), sh_degree=0, knn_k=1)
+    joined = init_from_points(seeds, np.zeros((2, 3)), sh_degree=0, knn_k=1, neighbours=old)
+    np.testing.assert_allclose(alone.scales.detach().numpy(), 1.0, rtol=1e-6)
+    np.testing.assert_allclose(joined.scales.detach().numpy(), 0.01, rtol=1e-4)
+    one = init_from_points(seeds[:1], np.zeros((1, 3)), sh_degree=0, neighbours=old[:1], knn_k=3)
+    np.testing.assert_allclose(one.scales.detach().numpy(), 0.01, rtol=1e-4)  # a lone seed with a neighbour
+
+
 def test_voxel_downsample_averages_per_voxel() -> None:
     pts = np.array([[0.1, 0.1, 0.1], [0.3, 0.3, 0.3], [1.2, 0.1, 0.1], [1.4, 0.1, 0.1], [-0.5, 0, 0]])
     cols = np.array([[0, 0, 0], [1, 1, 1], [0, 0, 0], [0, 0, 1], [1, 0, 0]], float)

@@ -196,3 +196,25 @@ def test_empty_model_trains_the_background_only(scene: dict) -> None:
     assert model.num_gaussians == 0 and metrics["skipped_steps"] == 0
     assert np.isfinite(curves["total"]).all() and curves["rgb"][-1] < curves["rgb"][0]
     assert min(metrics["background_rgb"]) > 0.05  # the background moved towards the frames' colours
+
+
+@pytest.mark.parametrize("where", ["none", "loss", "grad"])
+def test_found_inf_flags_the_loss_or_any_gradient_and_leaves_gradients_alone(where: str) -> None:
+    from wonderverse.splats.trainer import _found_inf
+
+    params = [
+        torch.nn.Parameter(torch.zeros(4, 3)),
+        torch.nn.Parameter(torch.zeros(2)),
+        torch.nn.Parameter(torch.zeros(0)),
+    ]
+    params[0].grad = torch.arange(12.0).reshape(4, 3)
+    params[1].grad = torch.tensor([1.5, -2.0])
+    if where == "grad":
+        params[1].grad[1] = float("inf")
+    loss = torch.tensor(float("nan") if where == "loss" else 0.25)
+    before = [p.grad.clone() for p in params[:2]]
+    found = _found_inf(loss, params)
+    assert found.shape == () and float(found) == (0.0 if where == "none" else 1.0)
+    for b, p in zip(before, params[:2], strict=True):
+        assert torch.equal(b, p.grad)
+    assert where == "loss" or float(loss) == 0.25  # the loss itself is not touched

@@ -388,20 +388,21 @@ def voxel_downsample(
     return sums / cnt, out_cols
 
 
-def knn_mean_distance(points: np.ndarray, k: int = 3) -> np.ndarray:
-    """Mean Euclidean distance (P,) from each point to its `k` nearest other points (scipy cKDTree).
+def knn_mean_distance(points: np.ndarray, k: int = 3, others: np.ndarray | None = None) -> np.ndarray:
+    """Mean Euclidean distance (P,) from each point to its `k` nearest other points (scipy cKDTree), the
+    neighbours taken among `points` and `others` (Q,3) together.
 
     Fewer than k+1 points use all the others; a single point gets NaN (callers substitute a default).
     """
     from scipy.spatial import cKDTree
 
-    points = np.asarray(points, dtype=np.float64)
-    p = len(points)
-    if p <= 1:
-        return np.full(p, np.nan)
-    kk = min(k, p - 1)
-    dist, _ = cKDTree(points).query(points, k=kk + 1)
-    return dist[:, 1:].mean(axis=1)
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    every = points if others is None else np.concatenate([points, np.asarray(others, np.float64).reshape(-1, 3)])
+    if len(every) <= 1:
+        return np.full(len(points), np.nan)
+    kk = min(k, len(every) - 1)
+    dist, _ = cKDTree(every).query(points, k=kk + 1)
+    return dist[:, 1:].reshape(len(points), -1).mean(axis=1)
 
 
 def init_from_points(
@@ -413,11 +414,13 @@ def init_from_points(
     scale_multiplier: float = 1.0,
     min_scale: float = 1e-7,
     default_scale: float = 0.01,
+    neighbours: np.ndarray | None = None,
 ) -> GaussianModel:
     """Isotropic Gaussians at `points` (P,3) coloured `colors` (P,3; uint8 0..255 or float 0..1).
 
-    Scale = scale_multiplier * mean distance to the `knn_k` nearest neighbours (clamped below at
-    `min_scale`, so duplicate points stay finite; `default_scale` when there is a single point);
+    Scale = scale_multiplier * mean distance to the `knn_k` nearest neighbours among the points and
+    `neighbours` (Q,3; e.g. the Gaussians a new batch joins), clamped below at `min_scale` (duplicate
+    points stay finite), `default_scale` when there is a single point;
     rotation identity; opacity `init_opacity`; DC SH from the colour, higher bands zero.
     """
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -429,7 +432,7 @@ def init_from_points(
     if not 0.0 < init_opacity < 1.0:
         raise ValueError(f"init_opacity must be in (0,1), got {init_opacity}")
     n = len(points)
-    dist = knn_mean_distance(points, knn_k)
+    dist = knn_mean_distance(points, knn_k, neighbours)
     dist = np.where(np.isfinite(dist), dist, default_scale)
     scales = np.maximum(dist * scale_multiplier, min_scale)
     k = num_sh_bases(sh_degree) - 1

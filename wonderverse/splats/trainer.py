@@ -223,12 +223,16 @@ def view_order(train_ids: list[int], focus: Collection[int], share: float, gen: 
 
 
 def _found_inf(loss: torch.Tensor, params: list[torch.Tensor]) -> torch.Tensor:
-    """0-d float32 device tensor: 1 when the loss or any gradient is NaN/inf, else 0 (no host sync)."""
+    """0-d float32 device tensor: 1 when the loss or any gradient is NaN/inf, else 0 (no host sync).
+
+    One fused check over every tensor: AMP's non-finite check with a scale of 1, which multiplies the
+    tensors by 1 in place (a no-op on the gradients; the loss goes in as a copy: it may live in a CUDA
+    graph's memory)."""
     grads = [p.grad for p in params if p.grad is not None and p.grad.numel()]
-    total = loss.detach().float()
-    if grads:
-        total = total + torch.stack(torch._foreach_norm(grads)).float().sum()
-    return (~torch.isfinite(total)).float()
+    tensors = [loss.detach().float().reshape(1).clone(), *grads]
+    found = torch.zeros((), dtype=torch.float32, device=loss.device)
+    torch._amp_foreach_non_finite_check_and_unscale_(tensors, found, torch.ones((), device=loss.device))
+    return found
 
 
 def _make_adam(params: dict[str, torch.Tensor], lrs: dict[str, float], eps: float = 1e-15) -> torch.optim.Adam:
