@@ -90,7 +90,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     height, width = frames.shape[1:3]
     w, h, Kr = _render_size(width, height, K, p.render_max_side_px)
     renderer = make_renderer(cfg.steps.splats.renderer)
-    workers = p.render_workers or os.cpu_count() or 1
+    workers = p.render_workers or len(os.sched_getaffinity(0))  # the cores this process may use
     files: list[Path] = []
 
     def render(poses: np.ndarray) -> list[Any]:
