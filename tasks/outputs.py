@@ -90,7 +90,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     height, width = frames.shape[1:3]
     w, h, Kr = _render_size(width, height, K, p.render_max_side_px)
     renderer = make_renderer(cfg.steps.splats.renderer)
-    workers = p.render_workers or len(os.sched_getaffinity(0))  # the cores this process may use
+    workers = p.render_workers or _usable_cores()
     files: list[Path] = []
 
     def render(poses: np.ndarray) -> list[Any]:
@@ -136,6 +136,11 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     ):
         pass
     return f"{len(files)} files: mesh {stats['triangles']} triangles, {stats['points']} points, 2 videos"
+
+
+def _usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the OS has one), not the host's count."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
 
 
 def _size(path: Path) -> int:
