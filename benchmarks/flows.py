@@ -3,24 +3,34 @@
 - Dask: one 6-segment procedural scene is generated once and copied; the `check` step (per-segment SfM)
   then runs on each copy serially (one worker, in-process) and on a 2-worker LocalCluster (cluster start-up
   included).
-- Prefect (ephemeral API, no server): a fresh `plan`-only run and a fully cached run, each with the Prefect
-  engine and with plain calls; per-flow overhead = cached(prefect) - cached(local); per-task overhead =
-  fresh(prefect) - fresh(local) - per-flow overhead. Prefect's first start in a process (database
-  migration) is excluded by a warm-up run.
+- Prefect: a fresh `plan`-only run and a fully cached run, each with the Prefect engine and with plain
+  calls; per-flow overhead = cached(prefect) - cached(local); per-task overhead = fresh(prefect) -
+  fresh(local) - per-flow overhead. Measured twice: on Prefect's ephemeral API (no server, what local runs
+  use) and against a `prefect server start` on 127.0.0.1 started by the benchmark (its own home, so never
+  the user's database). Prefect's first start in a process and the server's first flow (database
+  migration, registration) are excluded by warm-up runs.
 - Extension: `extend` adding one segment to a complete 3-segment scene, against generating the resulting
   4-segment scene from scratch (what a user without `extend` would have to run), with the seconds of each
   step in both. The 3-segment scene's own time is reported too.
 
 Last-line keys: `dask_speedup` (serial seconds / 2-worker seconds of the check step), `prefect_task_overhead_s`,
-`prefect_flow_overhead_s`, `cached_rerun_s` (all steps cached, local engine), `extend_cost_ratio` (extend
-seconds / seconds of the extended scene from scratch).
+`prefect_flow_overhead_s` (ephemeral API), `prefect_task_overhead_server_s`, `prefect_flow_overhead_server_s`
+(with a server), `cached_rerun_s` (all steps cached, local engine), `extend_cost_ratio` (extend seconds /
+seconds of the extended scene from scratch).
 """
 
 from __future__ import annotations
 
+import os
 import shutil
+import signal
+import socket
+import subprocess
+import sys
 import tempfile
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 
 from benchmarks.common import parse_args, report
@@ -69,19 +79,62 @@ def dask_rows(tmp: Path, cfg: RunConfig) -> tuple[list[dict], float]:
     return rows, seconds[1] / seconds[2]
 
 
-def prefect_rows(tmp: Path, cfg: RunConfig, reps: int) -> tuple[list[dict], float, float]:
-    run_pipeline(tmp / "warm", cfg, until="plan", engine="prefect")  # Prefect's first start: not overhead
-    t: dict[tuple[str, str], float] = {}
-    for engine in ("local", "prefect"):
-        fresh, cached = [], []
-        for r in range(reps):
-            d = tmp / f"prefect_{engine}_{r}"
-            fresh.append(_timed(lambda d=d, e=engine: run_pipeline(d, cfg, until="plan", engine=e)))
-            cached.append(_timed(lambda d=d, e=engine: run_pipeline(d, cfg, until="plan", engine=e)))
-        t[(engine, "fresh")], t[(engine, "cached")] = min(fresh), min(cached)
+@contextmanager
+def prefect_server(tmp: Path, start_s: float = 300) -> Iterator[str]:
+    """`prefect server start` on a free 127.0.0.1 port with its own home under `tmp`; yields its API URL."""
+    import httpx
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    api = f"http://127.0.0.1:{port}/api"
+    env = {k: v for k, v in os.environ.items() if not k.startswith("PREFECT_")}
+    env |= {
+        "PREFECT_HOME": str(tmp / "server-home"),
+        "PREFECT_API_URL": api,
+        "PREFECT_SERVER_ANALYTICS_ENABLED": "false",
+    }
+    with open(tmp / "server.log", "w") as log:
+        cmd = [sys.executable, "-m", "prefect", "server", "start", "--host", "127.0.0.1", "--port", str(port)]
+        proc = subprocess.Popen(cmd, env=env, stdout=log, stderr=subprocess.STDOUT, start_new_session=True)
+        try:
+            deadline = time.monotonic() + start_s
+            while True:
+                try:
+                    if httpx.get(f"{api}/health", timeout=2).status_code == 200:
+                        break
+                except httpx.HTTPError:
+                    pass
+                if proc.poll() is not None or time.monotonic() > deadline:
+                    raise RuntimeError(f"the Prefect server did not start (see {tmp / 'server.log'})")
+                time.sleep(1)
+            yield api
+        finally:
+            os.killpg(proc.pid, signal.SIGTERM)
+            proc.wait(30)
+
+
+def prefect_rows(tmp: Path, cfg: RunConfig, reps: int, api: str | None = None) -> tuple[list[dict], float, float]:
+    """Per-task and per-flow seconds Prefect adds over plain calls, on the ephemeral API or at the server `api`."""
+    from prefect.settings import PREFECT_API_URL, temporary_settings
+
+    where = "ephemeral API" if api is None else "server"
+    with temporary_settings(updates={PREFECT_API_URL: api}) if api else nullcontext():
+        run_pipeline(tmp / f"warm_{where}", cfg, until="plan", engine="prefect")  # first start: not overhead
+        t: dict[tuple[str, str], float] = {}
+        for engine in ("local", "prefect"):
+            fresh, cached = [], []
+            for r in range(reps):
+                d = tmp / f"prefect_{where}_{engine}_{r}"
+                fresh.append(_timed(lambda d=d, e=engine: run_pipeline(d, cfg, until="plan", engine=e)))
+                cached.append(_timed(lambda d=d, e=engine: run_pipeline(d, cfg, until="plan", engine=e)))
+            t[(engine, "fresh")], t[(engine, "cached")] = min(fresh), min(cached)
     flow = t[("prefect", "cached")] - t[("local", "cached")]
     task = t[("prefect", "fresh")] - t[("local", "fresh")] - flow
-    rows = [{"what": f"plan only, {kind}, {engine}", "seconds": s} for (engine, kind), s in t.items()]
+    rows = [
+        {"what": f"plan only, {kind}, {engine}" + (f" ({where})" if engine == "prefect" else ""), "seconds": s}
+        for (engine, kind), s in t.items()
+    ]
     return rows, task, flow
 
 
@@ -115,16 +168,21 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp_s:
         tmp = Path(tmp_s)
         rows, speedup = dask_rows(tmp, _config(*size, 5, ["right"], iterations))
-        prows, task, flow = prefect_rows(tmp, _config(*size, 1, ["left", "right"], iterations), 2 if args.quick else 5)
+        pcfg, reps = _config(*size, 1, ["left", "right"], iterations), 2 if args.quick else 5
+        prows, task, flow = prefect_rows(tmp, pcfg, reps)
+        with prefect_server(tmp) as api:
+            srows, task_server, flow_server = prefect_rows(tmp, pcfg, reps, api)
         erows, ratio, cached = extend_rows(tmp, _config(*size, 1, ["left", "right"], iterations))
     headline = {
         "dask_speedup": round(speedup, 2),
         "prefect_task_overhead_s": round(task, 3),
         "prefect_flow_overhead_s": round(flow, 3),
+        "prefect_task_overhead_server_s": round(task_server, 3),
+        "prefect_flow_overhead_server_s": round(flow_server, 3),
         "cached_rerun_s": round(cached, 3),
         "extend_cost_ratio": round(ratio, 3),
     }
-    report("flows: Dask, Prefect, cached re-runs, extension", rows + prows + erows, headline)
+    report("flows: Dask, Prefect, cached re-runs, extension", rows + prows + srows + erows, headline)
 
 
 if __name__ == "__main__":
