@@ -17,7 +17,7 @@ import numpy as np
 from tasks.base import Step
 from tasks.generate_segments import render_attempt, write_attempt
 from tasks.parallel import map_segments
-from tasks.segments import attempt_ids, segment_ids
+from tasks.segments import attempt_ids, intrinsics, segment_ids
 from wonderverse.config import RunConfig
 from wonderverse.errors import WonderError
 from wonderverse.store import SceneStore, cache_key, write_array
@@ -43,7 +43,8 @@ def _judge(store: SceneStore, cfg: RunConfig, seg: str, k: int, key: str) -> dic
     if store.is_complete(f"{ap}/check", key):
         return store.attrs(f"{ap}/check")
     p = cfg.steps.check
-    sfm = reconstruct(store.array(f"{ap}/frames"), p.sfm, K_prior=store.array(f"segments/{seg}/K"))
+    K, known = intrinsics(store, seg)
+    sfm = reconstruct(store.array(f"{ap}/frames"), p.sfm, K_prior=K, K_known=known)
     result = check_trajectory(sfm.poses, sfm.registered, p.rules, sfm.problems, points=sfm.points)
     with store.staged(
         f"{ap}/sfm",

@@ -126,6 +126,7 @@ def _generate_one(store: SceneStore, cfg: RunConfig, model: Any, seg: str, info:
         "reference_segment": info["parent"],
         "reference_frame": info["ref_idx"],
         "repeats_reference": info["ref_idx"] is not None,  # a generated extension's frame 0 is its reference
+        "k_is_guess": video.K is None or video.k_is_guess,  # the check's SfM holds a known K
     }
     with store.staged(f"segments/{seg}", info["key"], **seg_attrs) as g:
         write_array(g, "path", info["path"], chunks=info["path"].shape)

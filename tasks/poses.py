@@ -12,16 +12,19 @@ segments (an extension), their frames are registered into that reconstruction wi
 intrinsics held fixed (`solve: incremental`, see `wonderverse.sfm_extend`): the old frames keep their exact
 poses, so there is nothing to map back. Anything else, or an extension that fails its gates
 (`incremental_problems`), re-solves every frame (`solve: full`) and maps the result into the previous
-world frame."""
+world frame. A full solve is checked against each segment's own SfM from the check step
+(`segment_disagreement`) and re-solved with the next seeds while a segment disagrees (`solves`, `seed_offset`).
+The global solve does not hold a known K the way the check does (see `wonderverse.sfm`'s notes)."""
 
 from __future__ import annotations
 
+import logging
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from tasks.base import Step
-from tasks.segments import accepted_attempt, stitched
+from tasks.segments import accepted_attempt, attempt_path, stitched
 from wonderverse.camera import Sim3
 from wonderverse.config import PosesParams, RunConfig
 from wonderverse.errors import WonderError
@@ -29,6 +32,8 @@ from wonderverse.store import SceneStore, cache_key, write_array
 
 if TYPE_CHECKING:
     from wonderverse.sfm import SfmResult, SfmWorkspace
+
+log = logging.getLogger("wonderverse.poses")
 
 
 def _params(cfg: RunConfig) -> dict[str, Any]:
@@ -169,6 +174,52 @@ def _incremental_poses(
     return poses, registered, sim.apply(res.points) if len(res.points) else res.points
 
 
+def segment_disagreement(store: SceneStore, poses: np.ndarray, keys: list[tuple[str, int]]) -> dict[str, float]:
+    """Per segment: how far the global solve's poses of its frames (`poses`, one per `keys` entry) are from
+    the segment's own SfM in the check (an independent solve of fewer frames), as the ATE after a Sim(3)
+    alignment, a share of that path's length. Segments with fewer than 3 frames posed by both are left out."""
+    from wonderverse.metrics import ate
+
+    rows: dict[str, list[tuple[int, int]]] = {}
+    for k, (seg, i) in enumerate(keys):
+        rows.setdefault(seg, []).append((k, i))
+    out = {}
+    for seg, pairs in rows.items():
+        own_path = f"{attempt_path(store, seg)}/sfm/poses"
+        if not store.exists(own_path):
+            continue
+        ks, own = [k for k, _ in pairs], store.array(own_path)[[i for _, i in pairs]]
+        both = np.isfinite(poses[ks]).all(axis=(1, 2)) & np.isfinite(own).all(axis=(1, 2))
+        if both.sum() >= 3:
+            frac = ate(poses[ks], own)["rmse_frac"]
+            if np.isfinite(frac):
+                out[seg] = float(frac)
+    return out
+
+
+def _full_solve(
+    store: SceneStore, p: PosesParams, frames: np.ndarray, names: list[str], keys: list[tuple[str, int]], K: np.ndarray
+) -> tuple[SfmResult, dict[str, Any]]:
+    """Every selected frame solved at once, re-solved with the next seeds (up to `p.disagreement_retries`)
+    while some segment disagrees with its own SfM by more than `p.max_segment_disagreement_frac`: global
+    SfM over a stitched video can pass every gate with a segment bent out of shape (measured: 10 % of the
+    path off, on a turn the segment's own solve got right). Returns the least disagreeing solve and attrs."""
+    from wonderverse.sfm import reconstruct
+
+    tried = []
+    for retry in range(p.disagreement_retries + 1):
+        sfm = p.sfm.model_copy(update={"random_seed": p.sfm.random_seed + retry})
+        res = reconstruct(frames, sfm, K_prior=K, names=names, keep_workspace=True)
+        worst = segment_disagreement(store, res.poses, keys) if res.registered.any() else {}
+        tried.append((bool(res.registered.any()), -max(worst.values(), default=0.0), retry, res, worst))
+        if max(worst.values(), default=0.0) <= p.max_segment_disagreement_frac:  # also: nothing to compare
+            break
+    _, _, retry, res, worst = max(tried, key=lambda t: t[:2])
+    if len(tried) > 1:
+        log.warning("global SfM: %d solve(s), kept seed +%d (segment disagreement %s)", len(tried), retry, worst)
+    return res, {"segment_disagreement": worst, "solves": len(tried), "seed_offset": retry}
+
+
 def _sfm_poses(
     store: SceneStore, p: PosesParams, frames: np.ndarray, index: list[tuple[str, int]], segs: list[str], K: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, SfmResult, dict[str, Any]]:
@@ -176,7 +227,6 @@ def _sfm_poses(
     run only adds segments to it (old frames keep their exact poses), else solved from scratch and mapped
     into the previous world frame. Returns poses (N,4,4) W2C world, registered (N,), points (world), the
     SfM result (colours, K, and the COLMAP workspace to store) and the attrs."""
-    from wonderverse.sfm import reconstruct
     from wonderverse.sfm_extend import extend_reconstruction
 
     sel = _selection(index, p.frame_stride)
@@ -196,7 +246,8 @@ def _sfm_poses(
         else:  # fall back to the full solve, and say why
             attrs |= {"incremental_problems": res.problems, "incremental_timings": res.timings}
     if "solve" not in attrs:
-        res = reconstruct(frames[sel], p.sfm, K_prior=K, names=names, keep_workspace=True)
+        res, more = _full_solve(store, p, frames[sel], names, [index[k] for k in sel], K)
+        attrs |= more
         if not res.registered.any() or res.workspace is None:
             raise WonderError(f"global SfM registered no frame: {'; '.join(res.problems)}")
         poses = np.full((len(frames), 4, 4), np.nan)

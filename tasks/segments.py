@@ -37,6 +37,12 @@ def frames(store: SceneStore, seg: str, attempt: int | None = None) -> np.ndarra
     return store.array(f"{attempt_path(store, seg, attempt)}/frames")
 
 
+def intrinsics(store: SceneStore, seg: str) -> tuple[np.ndarray, bool]:
+    """A segment's K (3,3) and whether it is known (the renderer's, or a clip's given field of view) rather
+    than guessed; stores written before the flag existed count as guessed."""
+    return store.array(f"segments/{seg}/K"), store.attrs(f"segments/{seg}").get("k_is_guess", True) is False
+
+
 def stitched_frame_index(reversed_: bool, n_frames: int, which: str) -> int:
     """Generation-order index of the `which` ('first'|'last') frame a segment shows in the stitched video."""
     first, last = (n_frames - 1, 0) if reversed_ else (0, n_frames - 1)

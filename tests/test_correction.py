@@ -68,6 +68,49 @@ def test_global_poses_match_ground_truth(corrected):
     assert len(store.array("sfm/points3d")) > 100
 
 
+def test_global_poses_agree_with_each_segments_own_sfm(corrected):
+    store = SceneStore.open(corrected[0])
+    a = store.attrs("sfm")
+    assert set(a["segment_disagreement"]) == {"s000", "s001", "s002"}
+    assert max(a["segment_disagreement"].values()) <= 0.05, a["segment_disagreement"]
+    assert a["solves"] == 1 and a["seed_offset"] == 0
+
+
+def test_a_segment_bent_away_from_its_own_sfm_is_re_solved_and_the_least_bent_kept(corrected, tmp_path: Path):
+    """The gate compares with the check's SfM: bend one segment's stored check poses (half its path moved
+    sideways by the whole path's length) and every global solve disagrees there, so each retry runs."""
+    import shutil
+
+    from wonderverse.camera import camera_centers
+
+    scene = tmp_path / "scene"
+    shutil.copytree(corrected[0], scene)
+    store = SceneStore.open(scene, mode="r+")
+    arr = store.group(f"segments/s001/attempts/{store.attrs('segments/s001/accepted')['attempt']}/sfm")["poses"]
+    own = arr[:]
+    c = camera_centers(own)
+    reach = np.linalg.norm(np.diff(c, axis=0), axis=1).sum()
+    bent = own.copy()
+    half = slice(len(own) // 2, None)
+    c[half] += reach * np.array([1.0, 0.0, 0.0])
+    bent[half, :3, 3] = -np.einsum("nij,nj->ni", own[half, :3, :3], c[half])  # t = -R C
+    arr[:] = bent
+    opts = {"fault_probability": 0.5, "fault_types": ["teleport"]}
+    cfg = tiny_config(seed=corrected[1], video={**VIDEO, "options": opts})
+    cfg = cfg.model_copy(
+        update={
+            "steps": cfg.steps.model_copy(
+                update={"poses": cfg.steps.poses.model_copy(update={"disagreement_retries": 1})}
+            )
+        }
+    )
+    assert [r.status for r in execute(scene, cfg, until="poses")] == ["cached", "cached", "cached", "ran"]
+    a = SceneStore.open(scene).attrs("sfm")
+    assert a["solves"] == 2 and a["seed_offset"] in (0, 1)
+    assert a["segment_disagreement"]["s001"] > 0.05
+    assert max(a["segment_disagreement"][s] for s in ("s000", "s002")) <= 0.05  # the unbent ones still agree
+
+
 def test_priors_are_aligned_to_sfm_scale(corrected):
     store = SceneStore.open(corrected[0])
     poses, idx = store.array("sfm/poses"), store.array("sfm/frame_index")

@@ -77,6 +77,14 @@ def test_clips_are_segments_and_a_failing_clip_is_dropped_not_regenerated(scene:
     assert summary["s002"]["dropped"] and summary["s002"]["reasons"]
 
 
+def test_a_clip_with_its_field_of_view_given_keeps_its_k_in_the_check(scene: Path) -> None:
+    """`fov_deg` was given, so K is known, not a guess: the check's SfM holds it exactly."""
+    store = SceneStore.open(scene)
+    K = store.array("segments/s000/K")
+    assert store.attrs("segments/s000")["k_is_guess"] is False
+    np.testing.assert_array_equal(store.array("segments/s000/attempts/0/sfm/K"), K)
+
+
 def test_global_poses_follow_the_true_camera_path(scene: Path, clips) -> None:
     _, truth = clips
     store = SceneStore.open(scene)

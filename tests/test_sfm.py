@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from itertools import pairwise
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -191,6 +192,7 @@ def test_gates_name_each_failure() -> None:
 def test_params_are_strict_and_frozen() -> None:
     p = SfmParams()
     assert p.mapper == "auto" and p.auto_order == ("global", "incremental")
+    assert p.auto_order_known_k == ("incremental", "global") and p.hold_known_intrinsics
     with pytest.raises(ValidationError):
         SfmParams(loop_detection=True)
     with pytest.raises(ValidationError):
@@ -198,20 +200,35 @@ def test_params_are_strict_and_frozen() -> None:
     with pytest.raises(ValidationError):
         SfmParams(auto_order=("global", "global"))
     with pytest.raises(ValidationError):
+        SfmParams(auto_order_known_k=("incremental", "incremental"))
+    with pytest.raises(ValidationError):
         p.num_threads = 8  # type: ignore[misc]
 
 
-def test_low_parallax_turn_is_solved_by_holding_the_camera_at_its_prior() -> None:
-    """A 30° turn with 2 m of travel at 240x160 (the flows benchmark's first segment): both mappers fail
-    while refining the focal; the last-resort mapper holds the camera at the prior and recovers the truth."""
-    from wonderverse.camera import geodesic_angle, move_path
-    from wonderverse.sfm import PRIOR_FOCAL
+def _low_parallax_turn() -> tuple[Any, np.ndarray]:
+    """A 30° turn with 2 m of travel at 240x160 (the flows benchmark's first segment): (video, W2C path)."""
+    from wonderverse.camera import move_path
     from wonderverse.video import initial_pose
     from wonderverse.video.procedural import ProceduralVideo
 
     model = ProceduralVideo("a small house decorated for Christmas", 0, 240, 160, 60.0, {"fault_probability": 0})
     path = move_path(initial_pose(model), np.radians(-30), 0.0, 2.0, -1.2, 17)
-    video = model.generate("t", path, 0, None)
+    return model.generate("t", path, 0, None), path
+
+
+def _assert_rotation_steps_match(poses: np.ndarray, truth: np.ndarray, atol_rad: float) -> None:
+    from wonderverse.camera import geodesic_angle
+
+    steps = [geodesic_angle(a[:3, :3], b[:3, :3]) for a, b in pairwise(poses)]
+    np.testing.assert_allclose(steps, [geodesic_angle(a[:3, :3], b[:3, :3]) for a, b in pairwise(truth)], atol=atol_rad)
+
+
+def test_low_parallax_turn_is_solved_by_holding_the_camera_at_its_prior() -> None:
+    """With K only a guess, both mappers fail on the turn while refining the focal; the last-resort mapper
+    holds the camera at the prior and recovers the truth."""
+    from wonderverse.sfm import PRIOR_FOCAL
+
+    video, path = _low_parallax_turn()
     params = SfmParams(max_image_size_px=480, num_threads=1)
 
     without = reconstruct(video.frames, params.model_copy(update={"prior_focal_fallback": False}), K_prior=video.K)
@@ -220,8 +237,24 @@ def test_low_parallax_turn_is_solved_by_holding_the_camera_at_its_prior() -> Non
     assert res.gates_passed and res.mapper == PRIOR_FOCAL, res.problems
     assert res.registered.all()
     np.testing.assert_allclose(res.K, video.K, rtol=1e-9)
-    steps = [geodesic_angle(a[:3, :3], b[:3, :3]) for a, b in pairwise(res.poses)]
-    truth = [geodesic_angle(a[:3, :3], b[:3, :3]) for a, b in pairwise(path)]
-    np.testing.assert_allclose(steps, truth, atol=0.005)
+    _assert_rotation_steps_match(res.poses, path, 0.005)
     # no prior, no fallback: the mappers tried are the configured ones only
     assert reconstruct(video.frames, params).mapper != PRIOR_FOCAL
+
+
+def test_a_known_k_is_held_from_the_first_mapper() -> None:
+    """The renderer's K is known (not a guess): no mapper refines it, incremental goes first and solves the
+    turn at once; with the hold switched off the same call fails the gates, as with a guessed K."""
+    video, path = _low_parallax_turn()
+    assert not video.k_is_guess  # the procedural renderer knows its camera
+    params = SfmParams(max_image_size_px=480, num_threads=1, prior_focal_fallback=False)
+
+    res = reconstruct(video.frames, params, K_prior=video.K, K_known=True)
+    assert res.gates_passed and res.mapper == "incremental", res.problems
+    assert res.registered.all() and "map_global" not in res.timings
+    np.testing.assert_allclose(res.K, video.K, rtol=1e-12)
+    _assert_rotation_steps_match(res.poses, path, 0.005)
+
+    free = params.model_copy(update={"hold_known_intrinsics": False})
+    off = reconstruct(video.frames, free, K_prior=video.K, K_known=True)
+    assert not off.gates_passed and "map_global" in off.timings  # the usual order, the focal refined

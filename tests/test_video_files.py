@@ -282,6 +282,8 @@ def test_files_video_segments_and_no_regeneration(tmp_path: Path) -> None:
     assert isinstance(seg, Video) and seg.gt is None
     assert seg.frames.shape == (3, 48, 64, 3)
     np.testing.assert_allclose(seg.K[0, 0], 32.0 / np.tan(np.radians(35.0)))
+    assert not seg.k_is_guess  # the field of view was given
+    assert FilesVideo([a]).segment(0).k_is_guess
     with pytest.raises(IndexError):
         model.segment(2)
     with pytest.raises(WonderError, match="cannot be regenerated"):

@@ -143,6 +143,10 @@ class PosesParams(Model):
     )
     frame_stride: int = Field(1, ge=1, le=100, description="use every Nth stitched frame for SfM")
     sfm: SfmParams = SfmParams(max_image_size_px=480, num_threads=2)
+    max_segment_disagreement_frac: float = Field(
+        0.05, gt=0, description="a segment's poses this far (ATE, share of its path) from its own SfM: re-solve"
+    )
+    disagreement_retries: int = Field(2, ge=0, le=10, description="re-solves (next seeds) while a segment disagrees")
 
 
 class PriorsStepParams(Model):

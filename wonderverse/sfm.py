@@ -16,7 +16,16 @@ instead of 0.47). So `auto` tries global first and falls back to incremental (re
 the global model fails the gates; that fallback gave clip 0c9b371c its model (ATE 0.6 %) when global's
 weakest frame saw fewer than `min_points_per_image` points.
 Without a focal prior, global's view-graph calibration also writes its focal estimate into the database,
-which the incremental fallback then starts from. Reproducibility: with `num_threads=1` and a fixed
+which the incremental fallback then starts from.
+A known K (`K_known`: the procedural renderer's, or a clip whose field of view the user gave) is held fixed
+by every mapper, and `auto` then tries incremental first (`auto_order_known_k`): incremental's errors above
+were focal errors, which a held K removes. Measured on the flows benchmark's 17-frame 240x160 segments
+(true focal 208 px): unheld, global refined it to 298 px on one segment (check poses 6.4 % of the path off);
+held, incremental's worst rotation step was 0.03-0.62 deg off on every fault-free segment, in 4-6 s, while
+held global was 4.8 deg off on the low-parallax turn (unheld, that turn needed the third mapper, 11 s).
+Over a 65-frame stitched video the opposite held: unheld global was right in 3 of 4 seeded runs (ATE 0.09 %
+of the path), held global wrong in 2 of 2 (10.5 %, 10.9 %) and held incremental wrong (21 %), so the global
+`poses` step does not pass `K_known`. Reproducibility: with `num_threads=1` and a fixed
 `random_seed` two runs give bit-identical poses; with 2 threads they differ slightly (measured).
 
 Frame pairs are those of COLMAP's sequential matcher (`sequential_pairs`), matched as an imported list so
@@ -81,9 +90,18 @@ class SfmParams(BaseModel):
         ("global", "incremental"),
         description="global first: more accurate on real clips (see module notes)",
     )
+    auto_order_known_k: tuple[Literal["incremental", "global"], Literal["incremental", "global"]] = Field(
+        ("incremental", "global"),
+        description="`auto_order` when a known K is held: incremental first (see module notes)",
+    )
     prior_focal_fallback: bool = Field(
         True,
         description="with a K prior, when no mapper passes the gates, map once more holding the camera at the prior",
+    )
+    hold_known_intrinsics: bool = Field(
+        True,
+        description="with a known K (the renderer's, or a clip's given field of view; not a guess), every mapper "
+        "keeps it fixed instead of refining it",
     )
     num_threads: int = Field(
         1, ge=1, le=256, description="every COLMAP stage; 1 is bit-reproducible with random_seed, >1 is not"
@@ -105,8 +123,10 @@ class SfmParams(BaseModel):
         lo, hi = self.focal_range_frac
         if not 0 < lo < hi:
             raise ValueError(f"focal_range_frac must be 0 < low < high, got {self.focal_range_frac}")
-        if self.auto_order[0] == self.auto_order[1]:
-            raise ValueError(f"auto_order must name two different mappers, got {self.auto_order}")
+        for name in ("auto_order", "auto_order_known_k"):
+            order = getattr(self, name)
+            if order[0] == order[1]:
+                raise ValueError(f"{name} must name two different mappers, got {order}")
         return self
 
 
@@ -272,7 +292,8 @@ def _incremental_options(params: SfmParams, hold_camera: bool = False) -> pycolm
     return opts
 
 
-def _global_options(params: SfmParams) -> pycolmap.GlobalPipelineOptions:
+def _global_options(params: SfmParams, hold_camera: bool = False) -> pycolmap.GlobalPipelineOptions:
+    """COLMAP's global pipeline; `hold_camera` keeps the intrinsics at their initial (prior) values."""
     import pycolmap
 
     opts = pycolmap.GlobalPipelineOptions()
@@ -288,6 +309,9 @@ def _global_options(params: SfmParams) -> pycolmap.GlobalPipelineOptions:
     m.bundle_adjustment.ceres.use_gpu = False
     m.bundle_adjustment.ceres.solver_options.num_threads = params.num_threads
     m.retriangulation.random_seed = params.random_seed
+    if hold_camera:
+        ba = m.bundle_adjustment
+        ba.refine_focal_length = ba.refine_principal_point = ba.refine_extra_params = False
     return opts
 
 
@@ -390,17 +414,20 @@ def _feature_problems(db_path: Path, names: list[str], min_inliers: int) -> tupl
     return problems, len(verified)
 
 
-def _run_mapper(kind: str, db_path: Path, image_dir: Path, out_dir: Path, params: SfmParams) -> Any | None:
+def _run_mapper(
+    kind: str, db_path: Path, image_dir: Path, out_dir: Path, params: SfmParams, hold_camera: bool = False
+) -> Any | None:
     import pycolmap
 
     pycolmap.set_random_seed(params.random_seed)
     out = out_dir / kind
     out.mkdir(parents=True, exist_ok=True)
+    hold_camera = hold_camera or kind == PRIOR_FOCAL
     if kind in ("incremental", PRIOR_FOCAL):
-        options = _incremental_options(params, hold_camera=kind == PRIOR_FOCAL)
+        options = _incremental_options(params, hold_camera)
         models = pycolmap.incremental_mapping(db_path, image_dir, out, options=options)
     else:
-        models = pycolmap.global_mapping(db_path, image_dir, out, options=_global_options(params))
+        models = pycolmap.global_mapping(db_path, image_dir, out, options=_global_options(params, hold_camera))
     return _largest_model(models)
 
 
@@ -477,6 +504,7 @@ def _reconstruct_dir(
     work: Path,
     timings: dict[str, float],
     keep_workspace: bool = False,
+    K_known: bool = False,
 ) -> SfmResult:
     """SIFT + sequential matching + mapping over `names` in `image_dir` (all of size `size_wh`, in sequence
     order); with `keep_workspace` the result carries the database and the kept model."""
@@ -503,6 +531,8 @@ def _reconstruct_dir(
     if n_verified == 0:
         return empty_result(len(names), ["COLMAP registered no frames", *feature_problems], timings)
 
+    hold = K_prior is not None and K_known and params.hold_known_intrinsics  # module notes
+
     def run(kind: str) -> tuple[SfmResult, Any] | None:
         t0 = time.perf_counter()
         if kind == "global" and K_prior is None:
@@ -510,13 +540,14 @@ def _reconstruct_dir(
             calibration = pycolmap.ViewGraphCalibrationOptions()
             calibration.random_seed = params.random_seed
             pycolmap.calibrate_view_graph(db_path, calibration)
-        rec = _run_mapper(kind, db_path, image_dir, work, params)
+        rec = _run_mapper(kind, db_path, image_dir, work, params, hold)
         timings[f"map_{kind}"] = time.perf_counter() - t0
         return None if rec is None else (_result_from_model(rec, names, size_wh, kind, params), rec)
 
-    kinds = list(params.auto_order) if params.mapper == "auto" else [params.mapper]
-    if K_prior is not None and params.prior_focal_fallback:
-        kinds.append(PRIOR_FOCAL)
+    auto = params.auto_order_known_k if hold else params.auto_order
+    kinds = list(auto) if params.mapper == "auto" else [params.mapper]
+    if K_prior is not None and params.prior_focal_fallback and not (hold and "incremental" in kinds):
+        kinds.append(PRIOR_FOCAL)  # with the camera held, "incremental" already is this
     tried: list[tuple[str, tuple[SfmResult, Any] | None]] = []
     for kind in kinds:
         out = run(kind)
@@ -570,12 +601,15 @@ def reconstruct(
     workdir: Path | None = None,
     names: Sequence[str] | None = None,
     keep_workspace: bool = False,
+    K_known: bool = False,
 ) -> SfmResult:
     """Reconstruct one segment: (T,H,W,3) uint8 frames (or a list of (H,W,3) uint8), in sequence order ->
     SfmResult.
 
     K_prior (3,3, pixels of these frames) seeds the shared camera's focal length; without it the
     incremental mapper starts from COLMAP's 1.2·max(W,H) and the global one calibrates the view graph.
+    K_known: K_prior is the camera's calibration, not a guess; with `params.hold_known_intrinsics` (default)
+    no mapper refines it, and `auto` follows `auto_order_known_k`.
     workdir keeps the images, database and models there (for debugging); otherwise a temp dir is used.
     names: one unique `.png` file name per frame, used for the images in COLMAP (default: the frame's
     position); give stable ids when the workspace is to be extended later. keep_workspace: return the
@@ -598,7 +632,7 @@ def reconstruct(
         t = time.perf_counter()
         write_png_frames(image_dir, names, frame_list)
         timings["write"] = time.perf_counter() - t
-        res = _reconstruct_dir(image_dir, names, sizes[0], params, K, work, timings, keep_workspace)
+        res = _reconstruct_dir(image_dir, names, sizes[0], params, K, work, timings, keep_workspace, K_known)
     res.timings["total"] = time.perf_counter() - t_start
     return res
 

@@ -26,11 +26,13 @@ class GroundTruth:
 
 @dataclass
 class Video:
-    """frames: (T,H,W,3) uint8 RGB. K: (3,3) float64 pixel intrinsics when the backend knows them."""
+    """frames: (T,H,W,3) uint8 RGB. K: (3,3) float64 pixel intrinsics, exact when `k_is_guess` is False
+    (the renderer used them, or the user gave the clip's field of view), else from an assumed field of view."""
 
     frames: np.ndarray
     K: np.ndarray | None = None
     gt: GroundTruth | None = None
+    k_is_guess: bool = True
 
 
 class VideoModel(Protocol):

@@ -515,7 +515,7 @@ class FilesVideo:
         if not 0 <= i < len(self._clips):
             raise IndexError(f"segment {i} of {len(self._clips)} clips")
         c = self._clips[i]
-        return Video(frames=c.frames, K=c.K.copy(), gt=None)
+        return Video(frames=c.frames, K=c.K.copy(), gt=None, k_is_guess=c.k_is_guess)
 
     def generate(self, prompt: str, path: np.ndarray, seed: int, reference: np.ndarray | None) -> Video:
         """Always raises: a user's clip is what it is and cannot be generated again (use `segment`)."""

@@ -644,7 +644,7 @@ class ProceduralVideo:
             moved = ~(poses == native).all(axis=(1, 2))
             poses, record = np.where(moved[:, None, None], _rescaled(poses, s), path), _rescaled_record(record, s)
             depth *= np.float32(s)
-        return Video(frames=frames, K=self.K.copy(), gt=GroundTruth(poses, depth, normals, record))
+        return Video(frames=frames, K=self.K.copy(), gt=GroundTruth(poses, depth, normals, record), k_is_guess=False)
 
 
 def demo_path(start: np.ndarray, n_frames: int, yaw_deg: float = 30.0, forward_m: float = 2.0) -> np.ndarray:
