@@ -5,8 +5,8 @@
 the frames in between by interpolation; `source: conditioning` uses the path the video backend was
 conditioned on (exact for the procedural world, guidance for real video models).
 
-The `sfm` group keeps the COLMAP workspace (`colmap_database`, `colmap_model/<file>`, image names
-`<segment>_<frame:04d>.png`) and, in its attrs, what it was made from (`segment_sources`, `workspace_key`)
+The `sfm` group keeps the COLMAP workspace (`colmap_database`, `colmap_model/<file>`, image names from
+`image_names`) and, in its attrs, what it was made from (`segment_sources`, `workspace_key`)
 and the Sim(3) from the COLMAP model to the world frame (`model_to_world`). When a re-run only adds
 segments (an extension), their frames are registered into that reconstruction with the old poses and
 intrinsics held fixed (`solve: incremental`, see `wonderverse.sfm_extend`): the old frames keep their exact
@@ -101,7 +101,24 @@ def _selection(index: list[tuple[str, int]], stride: int) -> np.ndarray:
 
 def _workspace_key(p: PosesParams) -> str:
     """What must not change for a reconstruction to be extended rather than re-solved."""
-    return cache_key("sfm_workspace", 1, {"sfm": p.sfm, "frame_stride": p.frame_stride})
+    # 2: image names sort in stitched order (`image_names`)
+    return cache_key("sfm_workspace", 2, {"sfm": p.sfm, "frame_stride": p.frame_stride})
+
+
+def image_names(store: SceneStore, keys: list[tuple[str, int]]) -> list[str]:
+    """COLMAP image names for stitched frames (segment, generation-order index): unique, stable when the scene
+    is extended at either end, and sorting in stitched order. COLMAP numbers images by sorted name, and the
+    global mapper depends on that order: on the flows benchmark's 3-segment scene, names sorting by segment
+    id (a left extension's reversed frames out of place) made it fail its gates in 3 of 4 runs and the
+    incremental fallback end 10.8 % of the path off; names in stitched order gave 0.1 % in 4 of 4.
+    `<lane><frame>_<segment>_<index>.png`: lane = 5000 + the segment's place in the playback order relative
+    to the first segment that is not a left extension (lefts are prepended, the rest appended), frame = the
+    index, or 9999 - index for a segment played reversed."""
+    order = store.attrs("segments").get("order") or sorted({seg for seg, _ in keys})
+    roles = {seg: store.attrs(f"segments/{seg}") for seg in order}
+    anchor = next((k for k, seg in enumerate(order) if roles[seg].get("role") != "left"), 0)
+    lane = {seg: 5000 + k - anchor for k, seg in enumerate(order)}
+    return [f"{lane[seg]:04d}{9999 - i if roles[seg].get('reversed') else i:04d}_{seg}_{i:04d}.png" for seg, i in keys]
 
 
 def _sources(store: SceneStore, segs: list[str]) -> dict[str, dict[str, Any]]:
@@ -177,7 +194,8 @@ def _incremental_poses(
 def segment_disagreement(store: SceneStore, poses: np.ndarray, keys: list[tuple[str, int]]) -> dict[str, float]:
     """Per segment: how far the global solve's poses of its frames (`poses`, one per `keys` entry) are from
     the segment's own SfM in the check (an independent solve of fewer frames), as the ATE after a Sim(3)
-    alignment, a share of that path's length. Segments with fewer than 3 frames posed by both are left out."""
+    alignment, a share of that path's length. Segments with fewer than 3 frames posed by both, or whose check
+    did not pass, are left out."""
     from wonderverse.metrics import ate
 
     rows: dict[str, list[tuple[int, int]]] = {}
@@ -185,9 +203,10 @@ def segment_disagreement(store: SceneStore, poses: np.ndarray, keys: list[tuple[
         rows.setdefault(seg, []).append((k, i))
     out = {}
     for seg, pairs in rows.items():
-        own_path = f"{attempt_path(store, seg)}/sfm/poses"
-        if not store.exists(own_path):
-            continue
+        ap = attempt_path(store, seg)
+        own_path = f"{ap}/sfm/poses"
+        if not store.exists(own_path) or store.attrs(f"{ap}/check").get("accepted") is not True:
+            continue  # a segment kept although its check failed has no trustworthy path of its own
         ks, own = [k for k, _ in pairs], store.array(own_path)[[i for _, i in pairs]]
         both = np.isfinite(poses[ks]).all(axis=(1, 2)) & np.isfinite(own).all(axis=(1, 2))
         if both.sum() >= 3:
@@ -230,7 +249,7 @@ def _sfm_poses(
     from wonderverse.sfm_extend import extend_reconstruction
 
     sel = _selection(index, p.frame_stride)
-    names = [f"{index[k][0]}_{index[k][1]:04d}.png" for k in sel]
+    names = image_names(store, [index[k] for k in sel])
     name_seg = {name: index[k][0] for name, k in zip(names, sel, strict=True)}
     sources = _sources(store, segs)
     attrs: dict[str, Any] = {}
@@ -307,4 +326,5 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
 
 
 # 2: the group keeps the COLMAP workspace (extensions register only their new frames); frames selected per segment
-STEP = Step("poses", 2, ("check",), _params, run, "one camera path for the stitched video", group="sfm")
+# 3: image names in stitched order; full solves checked against each segment's own SfM
+STEP = Step("poses", 3, ("check",), _params, run, "one camera path for the stitched video", group="sfm")

@@ -181,7 +181,8 @@ def test_poses_step_registers_an_extension_into_the_stored_reconstruction(world:
     store.mark_complete("segments", "k1", order=["s000", "s001"])
     poses.run(store, cfg, "key1")
     first = store.attrs("sfm")
-    assert first["solve"] == "full" and first["sfm_names"][0] == "s000_0000.png"
+    assert first["solve"] == "full" and first["sfm_names"][0] == "50000000_s000_0000.png"
+    assert first["sfm_names"] == sorted(first["sfm_names"])  # COLMAP numbers images in this order
     assert store.exists("sfm/colmap_database") and "images.bin" in store.children("sfm/colmap_model")
     before = {k: store.array(f"sfm/{k}") for k in ("poses", "registered", "frame_index", "K")}
 
@@ -198,6 +199,8 @@ def test_poses_step_registers_an_extension_into_the_stored_reconstruction(world:
     rows = [old_rows[tuple(fi)] for fi in before["frame_index"]]
     np.testing.assert_array_equal(after["poses"][rows], before["poses"])  # old frames: exactly as before
     assert after["registered"].all() and np.isfinite(after["poses"]).all()
+    assert set(first["sfm_names"]) < set(a["sfm_names"]) and a["sfm_names"] == sorted(a["sfm_names"])
+    assert a["sfm_names"][0] == f"4999{9999 - (T - 1)}_s003_{T - 1:04d}.png"  # prepended, reversed, yet in order
 
     # new frames that do not register: the step says why and re-solves every frame
     _put_segment(store, world, "s004", "right", np.full((T, H, W, 3), 128, np.uint8))
@@ -210,8 +213,8 @@ def test_poses_step_registers_an_extension_into_the_stored_reconstruction(world:
     # a further extension qualifies; anything else (another accepted attempt of s001, other SfM settings)
     # means a full solve
     p = cfg.steps.poses
-    names = [*a3["sfm_names"], "s005_0001.png"]
-    name_seg = {n: n[:4] for n in names}
+    names = [*a3["sfm_names"], "50020001_s005_0001.png"]
+    name_seg = {n: n.split("_")[1] for n in names}
     sources = poses._sources(store, a3["segments"]) | {"s005": {"key": "x", "attempt": 0}}
     assert poses._extensible(store, p, names, name_seg, sources) is not None
     changed = sources | {"s001": {**sources["s001"], "attempt": 1}}
