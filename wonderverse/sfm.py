@@ -23,9 +23,10 @@ were focal errors, which a held K removes. Measured on the flows benchmark's 17-
 (true focal 208 px): unheld, global refined it to 298 px on one segment (check poses 6.4 % of the path off);
 held, incremental's worst rotation step was 0.03-0.62 deg off on every fault-free segment, in 4-6 s, while
 held global was 4.8 deg off on the low-parallax turn (unheld, that turn needed the third mapper, 11 s).
-Over a 65-frame stitched video the opposite held: unheld global was right in 3 of 4 seeded runs (ATE 0.09 %
-of the path), held global wrong in 2 of 2 (10.5 %, 10.9 %) and held incremental wrong (21 %), so the global
-`poses` step does not pass `K_known`. Reproducibility: with `num_threads=1` and a fixed
+Over a stitched video of several segments the opposite held (names in stitched order, 2 seeds each, the
+flows benchmark's 3- and 4-segment scenes): refined, global was right in 4 of 4 (ATE 0.09-0.11 % of the
+path); held, with incremental first, wrong in 3 of 4 (10-23 %). So the global `poses` step does not pass
+`K_known`. Reproducibility: with `num_threads=1` and a fixed
 `random_seed` two runs give bit-identical poses; with 2 threads they differ slightly (measured).
 
 Frame pairs are those of COLMAP's sequential matcher (`sequential_pairs`), matched as an imported list so
@@ -612,8 +613,10 @@ def reconstruct(
     no mapper refines it, and `auto` follows `auto_order_known_k`.
     workdir keeps the images, database and models there (for debugging); otherwise a temp dir is used.
     names: one unique `.png` file name per frame, used for the images in COLMAP (default: the frame's
-    position); give stable ids when the workspace is to be extended later. keep_workspace: return the
-    database and kept model in `result.workspace` (for `sfm_extend.extend_reconstruction`).
+    position); give stable ids when the workspace is to be extended later, sorting in sequence order:
+    COLMAP numbers images by sorted name and the global mapper depends on that (`tasks.poses.image_names`).
+    keep_workspace: return the database and kept model in `result.workspace` (for
+    `sfm_extend.extend_reconstruction`).
     """
     params = params or SfmParams()
     frame_list = _validate_frames(frames)
