@@ -229,8 +229,9 @@ def _full_solve(
     for retry in range(p.disagreement_retries + 1):
         sfm = p.sfm.model_copy(update={"random_seed": p.sfm.random_seed + retry})
         res = reconstruct(frames, sfm, K_prior=K, names=names, keep_workspace=True)
-        worst = segment_disagreement(store, res.poses, keys) if res.registered.any() else {}
-        tried.append((bool(res.registered.any()), -max(worst.values(), default=0.0), retry, res, worst))
+        posed = bool(res.registered.any())
+        worst = segment_disagreement(store, res.poses, keys) if posed else {}
+        tried.append((posed, -max(worst.values(), default=0.0), retry, res, worst))
         if max(worst.values(), default=0.0) <= p.max_segment_disagreement_frac:  # also: nothing to compare
             break
     _, _, retry, res, worst = max(tried, key=lambda t: t[:2])
