@@ -6,7 +6,9 @@ import os
 import signal
 import subprocess
 import sys
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 import numpy as np
@@ -64,6 +66,27 @@ def test_rewrite_replaces_group_and_key(tmp_path: Path):
         write_array(g, "new", np.ones(3))
     assert store.is_complete("g", k2) and not store.is_complete("g", k1)
     assert store.children("g") == ["new"]
+
+
+def test_sibling_groups_staged_at_once_all_land(tmp_path: Path):
+    # Per-segment groups are written concurrently (threads here, Dask workers in a run) under a
+    # parent none of them has created yet; zarr's open-or-create checks, then creates, so the
+    # losers of that race must not fail. Without the guard this failed in ~40 % of rounds.
+    store = SceneStore.open_or_create(tmp_path / "scene")
+    writers, rounds = 8, 20
+
+    def stage(group: str, start: threading.Barrier) -> None:
+        start.wait()
+        with store.staged(group, "k") as g:
+            g.attrs["group"] = group
+
+    with ThreadPoolExecutor(writers) as pool:
+        for r in range(rounds):
+            start = threading.Barrier(writers)
+            list(pool.map(stage, [f"p{r}/seg_{j}" for j in range(writers)], [start] * writers))
+    for r in range(rounds):
+        assert store.children(f"p{r}") == [f"seg_{j}" for j in range(writers)]
+        assert all(store.is_complete(f"p{r}/seg_{j}", "k") for j in range(writers))
 
 
 def test_refuses_foreign_folder_newer_format_and_unwritable(tmp_path: Path):

@@ -19,13 +19,14 @@ import socket
 import time
 import uuid
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import zarr
 from pydantic import BaseModel
+from zarr.errors import ContainsGroupError
 
 from wonderverse import STORE_FORMAT, __version__
 from wonderverse.errors import StoreError
@@ -180,7 +181,9 @@ class SceneStore:
     def _ensure_parents(self, group_path: str) -> None:
         parts = group_path.strip("/").split("/")[:-1]
         for i in range(1, len(parts) + 1):
-            zarr.open_group(self.root.store, path="/".join(parts[:i]), mode="a", zarr_format=3)
+            # a sibling writer (another Dask worker) may create it between zarr's check and create
+            with suppress(ContainsGroupError):
+                zarr.open_group(self.root.store, path="/".join(parts[:i]), mode="a", zarr_format=3)
 
     @contextmanager
     def staged(self, group_path: str, key: str, **attrs: Any) -> Iterator[zarr.Group]:
