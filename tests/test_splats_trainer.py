@@ -218,3 +218,47 @@ def test_found_inf_flags_the_loss_or_any_gradient_and_leaves_gradients_alone(whe
     for b, p in zip(before, params[:2], strict=True):
         assert torch.equal(b, p.grad)
     assert where == "loss" or float(loss) == 0.25  # the loss itself is not touched
+
+
+def test_adam_step_matches_torch_adam_step_and_skips_non_finite_steps() -> None:
+    from wonderverse.splats.trainer import _make_adam, adam_step
+
+    gen = torch.Generator().manual_seed(0)
+    start = {
+        "a": torch.randn(5, 3, generator=gen),
+        "b": torch.randn(4, generator=gen),
+        "c": torch.randn(2, generator=gen),
+    }
+    lrs = {"a": 1e-2, "b": 3e-3, "c": 0.5}
+    ours = {k: torch.nn.Parameter(v.clone()) for k, v in start.items()}
+    ref = {k: torch.nn.Parameter(v.clone()) for k, v in start.items()}
+    opt_ours = [_make_adam({k: ours[k] for k in "ab"}, lrs), _make_adam({"c": ours["c"]}, lrs, eps=1e-8)]
+    opt_ref = [_make_adam({k: ref[k] for k in "ab"}, lrs), _make_adam({"c": ref["c"]}, lrs, eps=1e-8)]
+    for step in range(6):
+        grads = {k: torch.randn(v.shape, generator=gen) for k, v in start.items()}
+        if step == 3:
+            grads["b"][1] = float("nan")  # this step must change nothing
+        found = torch.tensor(1.0 if step == 3 else 0.0)
+        before = {k: p.detach().clone() for k, p in ours.items()}
+        for params in (ours, ref):
+            for k, p in params.items():
+                p.grad = None if (step == 0 and k == "c") else grads[k].clone()  # a group with no gradient
+        adam_step(opt_ours, found)
+        for o in opt_ref:
+            o.found_inf, o.grad_scale = found, None
+            o.step()
+        for k in start:
+            torch.testing.assert_close(ours[k].detach(), ref[k].detach(), rtol=0, atol=0)
+            if step == 3:
+                assert torch.equal(ours[k].detach(), before[k])
+            elif not (step == 0 and k == "c"):
+                assert not torch.equal(ours[k].detach(), before[k])
+    for o, r in zip(opt_ours, opt_ref, strict=True):
+        for p, q in zip(
+            [p for g in o.param_groups for p in g["params"]],
+            [q for g in r.param_groups for q in g["params"]],
+            strict=True,
+        ):
+            for key in ("step", "exp_avg", "exp_avg_sq"):
+                assert torch.equal(o.state[p][key], r.state[q][key]), key
+        assert [float(o.state[p]["step"]) for g in o.param_groups for p in g["params"]] in ([5.0, 5.0], [4.0])

@@ -1,21 +1,24 @@
-"""The renderer interface of `render_torch.render` over gsplat 1.5.3's CUDA `rasterization` (CUDA only).
+"""The renderer interface of `render_torch.render` over gsplat 1.5.3's CUDA kernels (CUDA only).
 
-One call renders RGB, expected depth, alpha and camera-space normals of one camera:
-`gsplat.rasterization(..., render_mode="RGB+ED", packed=False, rasterize_mode="classic")` with the
-per-Gaussian camera-space normals appended to the colours as three extra channels (gsplat blends any
-number of channels with the same weights, padding to a supported count). Consequences:
-  * SH colours are evaluated here with gsplat's own fused `spherical_harmonics` kernel (+ 0.5, clamp at
-    0, exactly what `rasterization` does inside; `model.sh_colors` is the same formula in plain torch),
-    because extra channels need post-activation colours.
-  * gsplat's "ED" channel is Σ w z / max(alpha, 1e-10); it is multiplied back by alpha so that `depth` is
-    Σ w z exactly as the torch backend returns it (normalise with depth / alpha).
-  * The background is given for the RGB channels only (zeros behind the normals; gsplat appends a zero
-    behind the depth channel itself).
+One call renders RGB, depth Σ w z, alpha and camera-space normals of one camera, calling gsplat's
+kernels the way its `rasterization(..., packed=False, rasterize_mode="classic")` does (projection with
+opacity-aware radii, tile intersection, rasterisation), without that function's wrapping:
+  * The rasterised channels are [rgb, per-Gaussian camera-space normals, camera z, 0]: 8 is a channel
+    count gsplat's kernels support, so nothing is padded, and the depth channel is Σ w z itself (its
+    "ED" mode divides by alpha, which we would multiply back).
+  * SH colours are evaluated with gsplat's fused `spherical_harmonics` kernel (+ 0.5, clamp at 0, as
+    `rasterization` does; `model.sh_colors` is the same formula in plain torch).
+  * The background is given for the RGB channels (zeros behind the others).
+  * The image is split into its parts by one autograd function, whose backward is one concatenation;
+    slicing it would add a full-image zero-fill and copy per part to every backward pass.
+Measured on an H100 (docs/benchmarks.md, session 8): the wrapping and slicing cost more host time per
+step than gsplat's kernels take on the GPU.
 gsplat is imported inside the function: importing this module needs neither gsplat nor CUDA.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Any
 
 import torch
@@ -33,6 +36,20 @@ def _camera_normals(means: Tensor, quats: Tensor, scales: Tensor, viewmat: Tenso
 
 
 _normals = Compiled(_camera_normals, dynamic=True)  # ~100 tiny kernels eagerly (forward + backward)
+
+
+class _Parts(torch.autograd.Function):
+    """(1,H,W,8) image [rgb, normals, depth, 0] and (1,H,W,1) alpha -> rgb, depth, alpha, normals (H,W,·)."""
+
+    @staticmethod
+    def forward(ctx: Any, image: Tensor, alpha: Tensor) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+        im = image[0]
+        return im[..., 0:3], im[..., 6:7], alpha[0], im[..., 3:6]
+
+    @staticmethod
+    def backward(ctx: Any, g_rgb: Tensor, g_depth: Tensor, g_alpha: Tensor, g_normals: Tensor) -> tuple[Tensor, Tensor]:
+        g_image = torch.cat([g_rgb, g_normals, g_depth, torch.zeros_like(g_depth)], dim=-1)
+        return g_image[None], g_alpha[None]
 
 
 def render(
@@ -56,10 +73,16 @@ def render(
 
     Inputs must be float32 CUDA tensors (viewmat/K/background may be CPU or float64; they are moved).
     info holds radii (N,2) int32, means2d (1,N,2) (gsplat's graph node: `retain_grad()` before backward),
-    depths (N,), visible (N,), conics (N,3), width, height, n_cameras = 1 and `meta`, gsplat's own dict.
+    depths (N,), visible (N,), conics (N,3), width, height and n_cameras = 1.
     """
     try:
-        from gsplat import rasterization, spherical_harmonics
+        from gsplat import (
+            fully_fused_projection,
+            isect_offset_encode,
+            isect_tiles,
+            rasterize_to_pixels,
+            spherical_harmonics,
+        )
     except ImportError as e:  # pragma: no cover - depends on the machine
         raise WonderError(f"the gsplat backend needs gsplat=={GSPLAT_VERSION} (pip install '.[gpu]'): {e}") from None
     if not means.is_cuda:
@@ -67,6 +90,22 @@ def render(
     device, dtype = means.device, means.dtype
     viewmat = torch.as_tensor(viewmat).to(device=device, dtype=dtype)
     K = torch.as_tensor(K).to(device=device, dtype=dtype)
+    radii, means2d, depths, conics, _ = fully_fused_projection(
+        means,
+        None,
+        quats,
+        scales,
+        viewmat[None],
+        K[None],
+        width,
+        height,
+        eps2d=eps2d,
+        near_plane=near,
+        far_plane=far,
+        packed=False,
+        calc_compensations=False,
+        opacities=opacities,
+    )
     if sh_degree is not None:
         campos = -viewmat[:3, :3].T @ viewmat[:3, 3]
         rgb_g = torch.clamp_min(spherical_harmonics(sh_degree, means - campos, colors) + 0.5, 0.0)
@@ -74,45 +113,27 @@ def render(
         rgb_g = colors
     # view_as: plain tensors, not Parameters, so the compiled graph treats N as dynamic (no recompiles)
     normals_g = _normals(means.view_as(means), quats.view_as(quats), scales, viewmat)
-    feats = torch.cat([rgb_g, normals_g], dim=-1)  # (N, 6)
+    feats = torch.cat([rgb_g, normals_g, depths[0, :, None], depths.new_zeros(len(means), 1)], dim=-1)
     backgrounds = None
     if background is not None:
         bg = torch.as_tensor(background).to(device=device, dtype=dtype).reshape(3)
-        backgrounds = torch.cat([bg, torch.zeros(3, device=device, dtype=dtype)])[None]  # (1, 6)
-    render_colors, render_alphas, meta = rasterization(
-        means=means,
-        quats=quats,
-        scales=scales,
-        opacities=opacities,
-        colors=feats,
-        viewmats=viewmat[None],
-        Ks=K[None],
-        width=width,
-        height=height,
-        near_plane=near,
-        far_plane=far,
-        eps2d=eps2d,
-        sh_degree=None,
-        packed=False,
-        tile_size=tile_size,
-        backgrounds=backgrounds,
-        render_mode="RGB+ED",
-        rasterize_mode="classic",
+        backgrounds = torch.cat([bg, bg.new_zeros(5)])[None]  # (1, 8)
+    tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
+    _, isect_ids, flatten_ids = isect_tiles(means2d, radii, depths, tile_size, tiles_x, tiles_y, n_images=1)
+    offsets = isect_offset_encode(isect_ids, 1, tiles_x, tiles_y).reshape(1, tiles_y, tiles_x)
+    image, alpha = rasterize_to_pixels(
+        means2d, conics, feats[None], opacities[None], width, height, tile_size, offsets, flatten_ids, backgrounds
     )
-    out = render_colors[0]  # (H, W, 7): rgb, normals, expected depth
-    alpha = render_alphas[0]  # (H, W, 1)
-    radii = meta["radii"][0]
-    if radii.dim() == 1:  # gsplat < 1.5 returned one radius per Gaussian
-        radii = radii[:, None].expand(-1, 2)
+    rgb, depth, alpha, normals = _Parts.apply(image, alpha)
+    radii = radii[0]
     info = {
         "radii": radii.to(torch.int32),
-        "means2d": meta["means2d"],
-        "depths": meta["depths"][0],
-        "conics": meta["conics"][0],
+        "means2d": means2d,
+        "depths": depths[0],
+        "conics": conics[0],
         "visible": (radii > 0).all(dim=-1),
         "width": width,
         "height": height,
         "n_cameras": 1,
-        "meta": meta,
     }
-    return out[..., 0:3], out[..., 6:7] * alpha, alpha, out[..., 3:6], info
+    return rgb, depth, alpha, normals, info
