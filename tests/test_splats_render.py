@@ -341,3 +341,33 @@ def test_make_renderer_backends_on_the_cpu() -> None:
             make_renderer("gsplat")
     with pytest.raises(WonderError):
         make_renderer("vulkan")  # type: ignore[arg-type]
+
+
+def test_gsplat_backends_hand_written_normals_match_autograd_of_the_torch_normals() -> None:
+    # The gsplat backend's normals (a custom autograd function, here on the CPU) against
+    # `gaussian_normals` differentiated by autograd, including zero and near-zero quaternions.
+    from wonderverse.splats.render_gsplat import _CameraNormals
+    from wonderverse.splats.render_torch import gaussian_normals
+
+    g = torch.Generator().manual_seed(0)
+    n = 400
+    quats = torch.randn(n, 4, generator=g, dtype=torch.float64)
+    quats[0] = 0.0
+    quats[1] = torch.tensor([1e-7, 0.0, 0.0, 0.0])
+    scales = torch.rand(n, 3, generator=g, dtype=torch.float64)
+    means = torch.randn(n, 3, generator=g, dtype=torch.float64) * 2 + torch.tensor([0.0, 0.0, 4.0])
+    viewmat = torch.tensor(look_at([0.1, -0.1, -0.2], [0.0, 0.0, 4.0]))
+    weights = torch.randn(n, 3, generator=g, dtype=torch.float64)
+    q_ours, q_ref = quats.clone().requires_grad_(), quats.clone().requires_grad_()
+    ours = _CameraNormals.apply(q_ours, scales, means, viewmat)
+    means_c = means @ viewmat[:3, :3].T + viewmat[:3, 3]
+    ref = gaussian_normals(q_ref, scales, viewmat, means_c)
+    (ours * weights).sum().backward()
+    (ref * weights).sum().backward()
+    torch.testing.assert_close(ours, ref, rtol=0, atol=1e-12)
+    torch.testing.assert_close(q_ours.grad, q_ref.grad, rtol=0, atol=1e-12)
+    assert torch.equal(q_ours.grad[0], torch.zeros(4))  # the zero quaternion: identity, no gradient
+    assert ((ours * means_c).sum(-1) <= 0).all()  # every normal faces its camera
+    assert torch.autograd.gradcheck(
+        lambda q: _CameraNormals.apply(q, scales[2:30], means[2:30], viewmat), (quats[2:30].clone().requires_grad_(),)
+    )

@@ -25,17 +25,45 @@ import torch
 from torch import Tensor
 
 from wonderverse.errors import WonderError
-from wonderverse.splats.compiled import Compiled
-from wonderverse.splats.render_torch import EPS2D, gaussian_normals
+from wonderverse.splats.render_torch import EPS2D
 
 GSPLAT_VERSION = "1.5.3"
 
 
-def _camera_normals(means: Tensor, quats: Tensor, scales: Tensor, viewmat: Tensor) -> Tensor:
-    return gaussian_normals(quats, scales, viewmat, means @ viewmat[:3, :3].T + viewmat[:3, 3])
+class _CameraNormals(torch.autograd.Function):
+    """`render_torch.gaussian_normals` with a hand-written backward: each Gaussian's shortest axis rotated
+    into the camera and flipped to face it, for ~40 kernel launches instead of ~100 eagerly (or a
+    compiled graph, whose per-call host cost was ~0.8 ms of a ~5 ms step).
 
+    The axis e_k of R(q) is a = e + 2w (u x e) + 2 u x (u x e) for the unit quaternion (w, u), so a zero
+    quaternion (u = 0) gives a = e, the identity's axis, with a zero gradient. Only `quats` get a
+    gradient: the axis choice and the facing sign are not differentiable."""
 
-_normals = Compiled(_camera_normals, dynamic=True)  # ~100 tiny kernels eagerly (forward + backward)
+    @staticmethod
+    def forward(ctx: Any, quats: Tensor, scales: Tensor, means: Tensor, viewmat: Tensor) -> Tensor:
+        rot = viewmat[:3, :3]
+        norm = quats.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        q = quats / norm
+        w, u = q[:, :1], q[:, 1:]
+        e = torch.zeros_like(u).scatter_(1, scales.argmin(-1, keepdim=True), 1.0)
+        ue = torch.linalg.cross(u, e)
+        n = (e + 2 * (w * ue + torch.linalg.cross(u, ue))) @ rot.T
+        means_c = means @ rot.T + viewmat[:3, 3]
+        sign = torch.where((n * means_c).sum(-1, keepdim=True) > 0, -1.0, 1.0).to(n.dtype)
+        ctx.save_for_backward(q, e, ue, norm, sign, rot)
+        return n * sign
+
+    @staticmethod
+    def backward(ctx: Any, grad: Tensor) -> tuple[Tensor, None, None, None]:
+        q, e, ue, norm, sign, rot = ctx.saved_tensors
+        g = (grad * sign) @ rot  # d/da
+        w, u = q[:, :1], q[:, 1:]
+        ge, gu_ = (g * e).sum(-1, keepdim=True), (g * u).sum(-1, keepdim=True)
+        g_w = 2 * (g * ue).sum(-1, keepdim=True)
+        # d/du of g.(u x e) = e x g; of g.(u (u.e) - e |u|^2) = (u.e) g + (g.u) e - 2 (g.e) u
+        g_u = 2 * (w * torch.linalg.cross(e, g) + (u * e).sum(-1, keepdim=True) * g + gu_ * e - 2 * ge * u)
+        g_q = torch.cat([g_w, g_u], dim=-1)
+        return (g_q - q * (q * g_q).sum(-1, keepdim=True)) / norm, None, None, None
 
 
 class _Parts(torch.autograd.Function):
@@ -111,8 +139,7 @@ def render(
         rgb_g = torch.clamp_min(spherical_harmonics(sh_degree, means - campos, colors) + 0.5, 0.0)
     else:
         rgb_g = colors
-    # view_as: plain tensors, not Parameters, so the compiled graph treats N as dynamic (no recompiles)
-    normals_g = _normals(means.view_as(means), quats.view_as(quats), scales, viewmat)
+    normals_g = _CameraNormals.apply(quats, scales.detach(), means.detach(), viewmat)
     feats = torch.cat([rgb_g, normals_g, depths[0, :, None], depths.new_zeros(len(means), 1)], dim=-1)
     backgrounds = None
     if background is not None:
