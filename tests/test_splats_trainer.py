@@ -262,3 +262,34 @@ def test_adam_step_matches_torch_adam_step_and_skips_non_finite_steps() -> None:
             for key in ("step", "exp_avg", "exp_avg_sq"):
                 assert torch.equal(o.state[p][key], r.state[q][key]), key
         assert [float(o.state[p]["step"]) for g in o.param_groups for p in g["params"]] in ([5.0, 5.0], [4.0])
+
+
+@pytest.mark.parametrize("units", ["median", "scene"])
+def test_loss_and_grads_by_torch_func_match_autograd_of_the_step_loss(units: str) -> None:
+    from wonderverse.splats.trainer import loss_and_grads, step_loss
+
+    g = torch.Generator().manual_seed(0)
+    h, w = 24, 32
+    rgb, gt = torch.rand(h, w, 3, generator=g), torch.rand(h, w, 3, generator=g)
+    alpha = torch.rand(h, w, 1, generator=g)
+    depth = (torch.rand(h, w, 1, generator=g) + 1) * alpha
+    normals = torch.nn.functional.normalize(torch.randn(h, w, 3, generator=g), dim=-1)
+    prior_depth = torch.rand(h, w, generator=g) * 3 + 1
+    prior_depth[:4] = float("inf")  # invalid prior: sky
+    prior_normals = torch.nn.functional.normalize(torch.randn(h, w, 3, generator=g), dim=-1)
+    prior_normals[:, :3] = 0.0  # no prior there
+    sky = ~torch.isfinite(prior_depth)
+    params = LossParams(lambda_depth=0.3, lambda_normal=0.2, depth_units=units)
+    rest = (params, prior_depth, prior_normals, ~sky, sky, 0.1)
+
+    leaves = [t.clone().requires_grad_() for t in (rgb, depth, alpha, normals)]
+    ref, ref_terms = step_loss(leaves[0], gt, *leaves[1:], *rest)
+    ref.backward()
+    loss, terms, grads = loss_and_grads(rgb, gt, depth, alpha, normals, *rest)
+    torch.testing.assert_close(loss, ref.detach())
+    assert terms.keys() == ref_terms.keys() and "sky_alpha" in terms
+    for k in terms:
+        torch.testing.assert_close(terms[k], ref_terms[k], equal_nan=True)
+    for mine, leaf in zip(grads, leaves, strict=True):
+        assert mine.shape == leaf.shape and leaf.grad.abs().sum() > 0
+        torch.testing.assert_close(mine, leaf.grad)

@@ -244,6 +244,34 @@ def step_loss(
     return loss, terms
 
 
+def loss_and_grads(
+    rgb: torch.Tensor,
+    gt_rgb: torch.Tensor,
+    depth: torch.Tensor,
+    alpha: torch.Tensor,
+    normals: torch.Tensor,
+    params: LossParams,
+    prior_depth: torch.Tensor | None,
+    prior_normals: torch.Tensor | None,
+    valid: torch.Tensor,
+    sky: torch.Tensor,
+    sky_alpha_weight: float,
+) -> tuple[torch.Tensor, dict[str, torch.Tensor], tuple[torch.Tensor, ...]]:
+    """(`step_loss`, its terms, its gradients with respect to rgb, depth, alpha and normals), by torch.func
+    instead of autograd: compiled on a GPU it is one CUDA graph replayed once a step, where the loss
+    under autograd was two (forward, backward), each with its own host cost. The training step then
+    back-propagates these gradients through the render."""
+
+    def loss_of(rgb: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor, normals: torch.Tensor):
+        loss, terms = step_loss(
+            rgb, gt_rgb, depth, alpha, normals, params, prior_depth, prior_normals, valid, sky, sky_alpha_weight
+        )
+        return loss, (loss.detach(), terms)
+
+    grads, (loss, terms) = torch.func.grad(loss_of, argnums=(0, 1, 2, 3), has_aux=True)(rgb, depth, alpha, normals)
+    return loss, terms, grads
+
+
 def _found_inf(loss: torch.Tensor, params: list[torch.Tensor]) -> torch.Tensor:
     """0-d float32 device tensor: 1 when the loss or any gradient is NaN/inf, else 0 (no host sync).
 
@@ -454,7 +482,9 @@ def train(
 
     has_sky = bool(data.sky.any())
     # CUDA graphs: the loss sees image-sized tensors only, whose shapes never change during a run
-    loss_fn = Compiled(step_loss, enabled=params.compile_loss and torch.device(device).type == "cuda", cuda_graphs=True)
+    loss_fn = Compiled(
+        loss_and_grads, enabled=params.compile_loss and torch.device(device).type == "cuda", cuda_graphs=True
+    )
     pending: list[_Pending] = []
     t_start = time.perf_counter()
     for step in range(start, params.iterations):
@@ -470,12 +500,12 @@ def train(
         rgb, depth, alpha, normals, info = _render_view(model, data, i, renderer, params, background, sh)
         if strategy is not None and model.num_gaussians:
             strategy.step_pre_backward(pdict, optimizers, strategy_state, step, info)
-        loss, terms = loss_fn(
-            rgb,
+        loss, terms, grads = loss_fn(
+            rgb.detach(),
             data.frames[i],
-            depth,
-            alpha,
-            normals,
+            depth.detach(),
+            alpha.detach(),
+            normals.detach(),
             params.loss,
             prior_depth=None if data.depth is None else data.depth[i],
             prior_normals=None if data.normals is None else data.normals[i],
@@ -483,10 +513,16 @@ def train(
             sky=data.sky[i],
             sky_alpha_weight=params.sky_alpha_weight if has_sky else 0.0,
         )
+        # back-propagate the loss's gradients through the render (and the strategy's own terms)
+        used = [k for k, r in enumerate((rgb, depth, alpha, normals)) if r.requires_grad]
+        tensors, grad_tensors = [(rgb, depth, alpha, normals)[k] for k in used], [grads[k] for k in used]
         reg = None if strategy is None else strategy.regularization(pdict)
         if reg is not None:
-            loss = loss + reg
-        loss.backward()
+            tensors.append(reg)
+            grad_tensors.append(torch.ones_like(reg))
+            loss = loss + reg.detach()
+        if tensors:
+            torch.autograd.backward(tensors, grad_tensors)
         trained = [*pdict.values(), background]
         found_inf = _found_inf(loss, trained)
         adam_step((optimizer, bg_opt), found_inf)  # a non-finite step leaves parameters and moments as they were
