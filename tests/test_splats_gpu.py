@@ -132,3 +132,31 @@ def test_training_with_gsplat_fits_and_densifies() -> None:
     assert np.mean(curves["rgb"][-20:]) < 0.5 * np.mean(curves["rgb"][:20])
     assert max(curves["n_gaussians"]) > 500
     assert metrics["test_psnr"] > 20.0
+
+
+@requires_gsplat
+def test_triton_normals_match_the_torch_function_with_ties_and_zero_quaternions() -> None:
+    from wonderverse.splats import normals_triton
+    from wonderverse.splats.render_gsplat import _CameraNormals
+
+    assert normals_triton.available()
+    g = torch.Generator().manual_seed(5)
+    n = 5000
+    quats = torch.randn(n, 4, generator=g)
+    quats[:10] = 0.0
+    scales = torch.rand(n, 3, generator=g)
+    scales[10:20] = 0.5  # three-way ties: the first axis, as torch.argmin
+    scales[20:30, 1:] = 0.1  # ties between the second and third axes
+    means = torch.randn(n, 3, generator=g) * 2 + torch.tensor([0.0, 0.0, 4.0])
+    viewmat = torch.tensor(look_at([0.1, -0.1, -0.2], [0.0, 0.0, 4.0]), dtype=torch.float32)
+    weights = torch.randn(n, 3, generator=g).cuda()
+    outs, grads = [], []
+    for fn in (normals_triton.camera_normals, _CameraNormals.apply):
+        q = quats.cuda().requires_grad_()
+        out = fn(q, scales.cuda(), means.cuda(), viewmat.cuda())
+        (out * weights).sum().backward()
+        outs.append(out.detach().cpu())
+        grads.append(q.grad.cpu())
+    torch.testing.assert_close(outs[0], outs[1], rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(grads[0], grads[1], rtol=1e-4, atol=1e-5)
+    assert torch.equal(grads[0][:10], torch.zeros(10, 4))

@@ -25,15 +25,16 @@ import torch
 from torch import Tensor
 
 from wonderverse.errors import WonderError
+from wonderverse.splats import normals_triton
 from wonderverse.splats.render_torch import EPS2D
 
 GSPLAT_VERSION = "1.5.3"
 
 
 class _CameraNormals(torch.autograd.Function):
-    """`render_torch.gaussian_normals` with a hand-written backward: each Gaussian's shortest axis rotated
-    into the camera and flipped to face it, for ~40 kernel launches instead of ~100 eagerly (or a
-    compiled graph, whose per-call host cost was ~0.8 ms of a ~5 ms step).
+    """`render_torch.gaussian_normals` with a hand-written backward, where Triton is missing (else
+    `normals_triton`, one kernel each way): each Gaussian's shortest axis rotated into the camera and
+    flipped to face it, in ~40 kernel launches instead of ~100 eagerly.
 
     The axis e_k of R(q) is a = e + 2w (u x e) + 2 u x (u x e) for the unit quaternion (w, u), so a zero
     quaternion (u = 0) gives a = e, the identity's axis, with a zero gradient. Only `quats` get a
@@ -139,7 +140,8 @@ def render(
         rgb_g = torch.clamp_min(spherical_harmonics(sh_degree, means - campos, colors) + 0.5, 0.0)
     else:
         rgb_g = colors
-    normals_g = _CameraNormals.apply(quats, scales.detach(), means.detach(), viewmat)
+    normals_fn = normals_triton.camera_normals if normals_triton.available() else _CameraNormals.apply
+    normals_g = normals_fn(quats, scales.detach(), means.detach(), viewmat)
     feats = torch.cat([rgb_g, normals_g, depths[0, :, None], depths.new_zeros(len(means), 1)], dim=-1)
     backgrounds = None
     if background is not None:
