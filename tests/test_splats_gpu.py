@@ -136,10 +136,10 @@ def test_training_with_gsplat_fits_and_densifies() -> None:
 
 @requires_gsplat
 def test_triton_normals_match_the_torch_function_with_ties_and_zero_quaternions() -> None:
-    from wonderverse.splats import normals_triton
+    from wonderverse.splats import triton_kernels
     from wonderverse.splats.render_gsplat import _CameraNormals
 
-    assert normals_triton.available()
+    assert triton_kernels.available()
     g = torch.Generator().manual_seed(5)
     n = 5000
     quats = torch.randn(n, 4, generator=g)
@@ -151,7 +151,7 @@ def test_triton_normals_match_the_torch_function_with_ties_and_zero_quaternions(
     viewmat = torch.tensor(look_at([0.1, -0.1, -0.2], [0.0, 0.0, 4.0]), dtype=torch.float32)
     weights = torch.randn(n, 3, generator=g).cuda()
     outs, grads = [], []
-    for fn in (normals_triton.camera_normals, _CameraNormals.apply):
+    for fn in (triton_kernels.camera_normals, _CameraNormals.apply):
         q = quats.cuda().requires_grad_()
         out = fn(q, scales.cuda(), means.cuda(), viewmat.cuda())
         (out * weights).sum().backward()
@@ -160,3 +160,24 @@ def test_triton_normals_match_the_torch_function_with_ties_and_zero_quaternions(
     torch.testing.assert_close(outs[0], outs[1], rtol=1e-5, atol=1e-6)
     torch.testing.assert_close(grads[0], grads[1], rtol=1e-4, atol=1e-5)
     assert torch.equal(grads[0][:10], torch.zeros(10, 4))
+
+
+@requires_gsplat
+def test_triton_grad_statistics_match_the_torch_function() -> None:
+    from wonderverse.splats import triton_kernels
+    from wonderverse.splats.strategy import _accumulate_grad2d
+
+    g = torch.Generator().manual_seed(6)
+    n = 3000
+    grad = torch.randn(n, 2, generator=g) * 1e-3
+    grad[:5, 0] = float("nan")
+    grad[5:10, 1] = float("inf")
+    radii = torch.randint(0, 4, (n, 2), generator=g, dtype=torch.int32)  # zeros: not visible
+    grad2d, count = torch.rand(n, generator=g), torch.randint(0, 9, (n,), generator=g).float()
+    ref = _accumulate_grad2d(grad, radii, grad2d.clone(), count.clone(), 48.0, 32.0)
+    cuda = [t.cuda() for t in (grad, radii, grad2d, count)]
+    out = triton_kernels.accumulate_grad2d(*cuda, 48.0, 32.0)
+    assert out[0] is cuda[2] and out[1] is cuda[3]  # in place
+    torch.testing.assert_close(out[0].cpu(), ref[0])
+    torch.testing.assert_close(out[1].cpu(), ref[1])
+    assert torch.equal(out[1][:10].cpu(), count[:10])  # non-finite gradients are not counted

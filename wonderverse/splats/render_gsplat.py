@@ -25,7 +25,7 @@ import torch
 from torch import Tensor
 
 from wonderverse.errors import WonderError
-from wonderverse.splats import normals_triton
+from wonderverse.splats import triton_kernels
 from wonderverse.splats.render_torch import EPS2D
 
 GSPLAT_VERSION = "1.5.3"
@@ -33,7 +33,7 @@ GSPLAT_VERSION = "1.5.3"
 
 class _CameraNormals(torch.autograd.Function):
     """`render_torch.gaussian_normals` with a hand-written backward, where Triton is missing (else
-    `normals_triton`, one kernel each way): each Gaussian's shortest axis rotated into the camera and
+    `triton_kernels`, one kernel each way): each Gaussian's shortest axis rotated into the camera and
     flipped to face it, in ~40 kernel launches instead of ~100 eagerly.
 
     The axis e_k of R(q) is a = e + 2w (u x e) + 2 u x (u x e) for the unit quaternion (w, u), so a zero
@@ -140,13 +140,13 @@ def render(
         rgb_g = torch.clamp_min(spherical_harmonics(sh_degree, means - campos, colors) + 0.5, 0.0)
     else:
         rgb_g = colors
-    normals_fn = normals_triton.camera_normals if normals_triton.available() else _CameraNormals.apply
+    normals_fn = triton_kernels.camera_normals if triton_kernels.available() else _CameraNormals.apply
     normals_g = normals_fn(quats, scales.detach(), means.detach(), viewmat)
     feats = torch.cat([rgb_g, normals_g, depths[0, :, None], depths.new_zeros(len(means), 1)], dim=-1)
     backgrounds = None
     if background is not None:
-        bg = torch.as_tensor(background).to(device=device, dtype=dtype).reshape(3)
-        backgrounds = torch.cat([bg, bg.new_zeros(5)])[None]  # (1, 8)
+        bg = torch.as_tensor(background).to(device=device, dtype=dtype).reshape(1, 3)
+        backgrounds = torch.nn.functional.pad(bg, (0, 5))  # (1, 8): zeros behind normals, depth, padding
     tiles_x, tiles_y = math.ceil(width / tile_size), math.ceil(height / tile_size)
     _, isect_ids, flatten_ids = isect_tiles(means2d, radii, depths, tile_size, tiles_x, tiles_y, n_images=1)
     offsets = isect_offset_encode(isect_ids, 1, tiles_x, tiles_y).reshape(1, tiles_y, tiles_x)

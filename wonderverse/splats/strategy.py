@@ -29,7 +29,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from wonderverse.splats.compiled import Compiled
+from wonderverse.splats import triton_kernels
 from wonderverse.splats.model import quat_to_rotmat
 
 Params = dict[str, nn.Parameter]
@@ -112,11 +112,6 @@ def _accumulate_grad2d(
     return grad2d + torch.where(counted, norms, 0.0), count + counted
 
 
-# A dozen element-wise kernels eagerly, one fused kernel compiled (N is dynamic: it changes at each
-# refinement). Compiled on CUDA only, where launches are what a step waits for.
-_accumulate_grad2d_cuda = Compiled(_accumulate_grad2d, dynamic=True)
-
-
 def accumulate_view_space_grads(info: dict[str, Any], state: dict[str, Any]) -> None:
     """Add this step's view-space gradient norms of the visible Gaussians to `state` grad2d / count."""
     g = info["means2d"].grad
@@ -124,7 +119,8 @@ def accumulate_view_space_grads(info: dict[str, Any], state: dict[str, Any]) -> 
         raise RuntimeError("means2d has no gradient: call step_pre_backward before loss.backward()")
     # Pixels -> normalised device coordinates (as 3DGS): the thresholds are resolution-independent.
     n_cam = info.get("n_cameras", 1)
-    fn = _accumulate_grad2d_cuda if g.is_cuda else _accumulate_grad2d
+    # on CUDA one Triton kernel, in place, instead of a dozen launches (the step waits on launches there)
+    fn = triton_kernels.accumulate_grad2d if g.is_cuda and triton_kernels.available() else _accumulate_grad2d
     state["grad2d"], state["count"] = fn(
         g.detach().reshape(-1, 2),
         info["radii"].reshape(-1, 2),

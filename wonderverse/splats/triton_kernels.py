@@ -1,15 +1,17 @@
-"""The gsplat backend's per-Gaussian camera-space normals as two Triton kernels (forward, backward).
+"""Small Triton kernels for the CUDA training step, where each replaces ~10-20 small PyTorch
+operations: on the GPU machine each such operation cost ~30 µs of host time (docs/benchmarks.md,
+session 8), and the step is host-bound.
 
-The same function as `render_torch.gaussian_normals`: each Gaussian's shortest axis, the column k =
-argmin(scale) of R(q / |q|) (first index on ties, as torch.argmin), rotated by the viewmat and flipped to
-face the camera (n . mean_c <= 0); only the quaternions get a gradient. In torch this is ~20 small
-operations each way, and on the GPU machine each cost ~30 µs of host time, ~1.3 ms of a ~6 ms training
-step (docs/benchmarks.md, session 8); here it is one launch each way. The backward recomputes what it
-needs from the inputs instead of saving it.
+* `camera_normals(quats, scales, means, viewmat)`: the gsplat backend's per-Gaussian camera-space
+  normals, the same function as `render_torch.gaussian_normals`: each Gaussian's shortest axis, column
+  k = argmin(scale) of R(q / |q|) (first index on ties, as torch.argmin), rotated by the viewmat and
+  flipped to face the camera (n . mean_c <= 0); only the quaternions get a gradient. One launch each
+  way; the backward recomputes what it needs from the inputs instead of saving it.
+* `accumulate_grad2d(grad, radii, grad2d, count, ndc_x, ndc_y)`: the densification statistics of one
+  step, in place (`strategy._accumulate_grad2d` is the same in torch).
 
-`camera_normals(quats, scales, means, viewmat)` needs CUDA float32 tensors and Triton (shipped with
-PyTorch's CUDA wheels); `available()` says whether Triton imports. Tested against the torch renderer by
-tests/test_splats_gpu.py.
+Both need CUDA float32 tensors and Triton (shipped with PyTorch's CUDA wheels); `available()` says
+whether Triton imports. Tested against their torch versions by tests/test_splats_gpu.py.
 """
 
 from __future__ import annotations
@@ -104,6 +106,19 @@ if triton is not None:
         tl.store(out_ptr + 4 * i + 2, (gy - y * d) / norm, mask=ok)
         tl.store(out_ptr + 4 * i + 3, (gz - z * d) / norm, mask=ok)
 
+    @triton.jit
+    def _accumulate(g_ptr, r_ptr, sum_ptr, count_ptr, n, ndc_x, ndc_y, BLOCK: tl.constexpr):
+        i = tl.program_id(0) * BLOCK + tl.arange(0, BLOCK)
+        ok = i < n
+        gx = tl.load(g_ptr + 2 * i, mask=ok, other=0.0) * ndc_x
+        gy = tl.load(g_ptr + 2 * i + 1, mask=ok, other=0.0) * ndc_y
+        norm = tl.sqrt(gx * gx + gy * gy)
+        seen = (tl.load(r_ptr + 2 * i, mask=ok, other=0) > 0) & (tl.load(r_ptr + 2 * i + 1, mask=ok, other=0) > 0)
+        counted = seen & (norm < 3.0e38)  # visible, with a finite gradient (NaN compares false)
+        total = tl.load(sum_ptr + i, mask=ok, other=0.0)
+        tl.store(sum_ptr + i, total + tl.where(counted, norm, 0.0), mask=ok)
+        tl.store(count_ptr + i, tl.load(count_ptr + i, mask=ok, other=0.0) + tl.where(counted, 1.0, 0.0), mask=ok)
+
 
 class _CameraNormals(torch.autograd.Function):
     @staticmethod
@@ -129,3 +144,15 @@ class _CameraNormals(torch.autograd.Function):
 def camera_normals(quats: Tensor, scales: Tensor, means: Tensor, viewmat: Tensor) -> Tensor:
     """Camera-space unit normals (N,3) of the Gaussians for the 4x4 world-to-camera `viewmat`."""
     return _CameraNormals.apply(quats, scales, means, viewmat)
+
+
+def accumulate_grad2d(
+    grad: Tensor, radii: Tensor, grad2d: Tensor, count: Tensor, ndc_x: float, ndc_y: float
+) -> tuple[Tensor, Tensor]:
+    """Add |(grad_x ndc_x, grad_y ndc_y)| of the visible Gaussians (radii > 0) with a finite gradient to
+    `grad2d` and 1 to their `count`, in place; returns (grad2d, count). grad (N,2) float32, radii (N,2)
+    int32, grad2d and count (N,) float32, all contiguous on one CUDA device."""
+    n = len(grad2d)
+    if n:
+        _accumulate[(triton.cdiv(n, _BLOCK),)](grad, radii, grad2d, count, n, ndc_x, ndc_y, BLOCK=_BLOCK)
+    return grad2d, count
