@@ -95,6 +95,6 @@ class TrainParams(BaseModel):
     seed: int = Field(0, ge=0)
     compile_loss: bool = Field(
         True,
-        description="on CUDA, fuse the loss into a few kernels with torch.compile and replay them as a CUDA "
-        "graph (eager when it cannot)",
+        description="on CUDA, fuse the loss and its gradients (`trainer.loss_and_grads`) into a few kernels "
+        "with torch.compile and replay them as one CUDA graph (eager when it cannot)",
     )

@@ -236,7 +236,7 @@ def step_loss(
     sky_alpha_weight: float,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
     """`total_loss` plus `sky_alpha_weight` x the mean alpha over the `sky` pixels (0 on a view without
-    sky): one function, so that on a GPU it is one compiled graph whose inputs keep their shapes."""
+    sky), the loss of a training step; `loss_and_grads` differentiates it."""
     loss, terms = total_loss(rgb, gt_rgb, depth, alpha, normals, params, prior_depth, prior_normals, valid, valid)
     if sky_alpha_weight > 0:
         terms["sky_alpha"] = masked_mean(alpha[..., 0], sky)
