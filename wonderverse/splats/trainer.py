@@ -514,8 +514,9 @@ def train(
             sky_alpha_weight=params.sky_alpha_weight if has_sky else 0.0,
         )
         # back-propagate the loss's gradients through the render (and the strategy's own terms)
-        used = [k for k, r in enumerate((rgb, depth, alpha, normals)) if r.requires_grad]
-        tensors, grad_tensors = [(rgb, depth, alpha, normals)[k] for k in used], [grads[k] for k in used]
+        renders = (rgb, depth, alpha, normals)
+        tensors = [r for r in renders if r.requires_grad]
+        grad_tensors = [g for r, g in zip(renders, grads, strict=True) if r.requires_grad]
         reg = None if strategy is None else strategy.regularization(pdict)
         if reg is not None:
             tensors.append(reg)

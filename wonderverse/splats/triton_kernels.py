@@ -151,8 +151,9 @@ def accumulate_grad2d(
 ) -> tuple[Tensor, Tensor]:
     """Add |(grad_x ndc_x, grad_y ndc_y)| of the visible Gaussians (radii > 0) with a finite gradient to
     `grad2d` and 1 to their `count`, in place; returns (grad2d, count). grad (N,2) float32, radii (N,2)
-    int32, grad2d and count (N,) float32, all contiguous on one CUDA device."""
+    int32, grad2d and count (N,) float32 and contiguous (they are updated), all on one CUDA device."""
     n = len(grad2d)
     if n:
+        grad, radii = grad.contiguous(), radii.contiguous()
         _accumulate[(triton.cdiv(n, _BLOCK),)](grad, radii, grad2d, count, n, ndc_x, ndc_y, BLOCK=_BLOCK)
     return grad2d, count
