@@ -265,8 +265,9 @@ def test_adam_step_matches_torch_adam_step_and_skips_non_finite_steps() -> None:
 
 
 @pytest.mark.parametrize("units", ["median", "scene"])
-def test_loss_and_grads_by_torch_func_match_autograd_of_the_step_loss(units: str) -> None:
-    from wonderverse.splats.trainer import loss_and_grads, step_loss
+def test_loss_and_grads_by_torch_func_match_autograd_of_the_loss_and_sky_term(units: str) -> None:
+    from wonderverse.splats.losses import masked_mean, total_loss
+    from wonderverse.splats.trainer import loss_and_grads
 
     g = torch.Generator().manual_seed(0)
     h, w = 24, 32
@@ -283,7 +284,9 @@ def test_loss_and_grads_by_torch_func_match_autograd_of_the_step_loss(units: str
     rest = (params, prior_depth, prior_normals, ~sky, sky, 0.1)
 
     leaves = [t.clone().requires_grad_() for t in (rgb, depth, alpha, normals)]
-    ref, ref_terms = step_loss(leaves[0], gt, *leaves[1:], *rest)
+    ref, ref_terms = total_loss(leaves[0], gt, *leaves[1:], params, prior_depth, prior_normals, ~sky, ~sky)
+    ref_terms["sky_alpha"] = masked_mean(leaves[2][..., 0], sky)
+    ref = ref + 0.1 * ref_terms["sky_alpha"]
     ref.backward()
     loss, terms, grads = loss_and_grads(rgb, gt, depth, alpha, normals, *rest)
     torch.testing.assert_close(loss, ref.detach())

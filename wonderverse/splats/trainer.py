@@ -222,28 +222,6 @@ def view_order(train_ids: list[int], focus: Collection[int], share: float, gen: 
     return [ids[j] for j in torch.randperm(len(ids), generator=gen).tolist()]
 
 
-def step_loss(
-    rgb: torch.Tensor,
-    gt_rgb: torch.Tensor,
-    depth: torch.Tensor,
-    alpha: torch.Tensor,
-    normals: torch.Tensor,
-    params: LossParams,
-    prior_depth: torch.Tensor | None,
-    prior_normals: torch.Tensor | None,
-    valid: torch.Tensor,
-    sky: torch.Tensor,
-    sky_alpha_weight: float,
-) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
-    """`total_loss` plus `sky_alpha_weight` x the mean alpha over the `sky` pixels (0 on a view without
-    sky), the loss of a training step; `loss_and_grads` differentiates it."""
-    loss, terms = total_loss(rgb, gt_rgb, depth, alpha, normals, params, prior_depth, prior_normals, valid, valid)
-    if sky_alpha_weight > 0:
-        terms["sky_alpha"] = masked_mean(alpha[..., 0], sky)
-        loss = loss + sky_alpha_weight * terms["sky_alpha"]
-    return loss, terms
-
-
 def loss_and_grads(
     rgb: torch.Tensor,
     gt_rgb: torch.Tensor,
@@ -257,15 +235,18 @@ def loss_and_grads(
     sky: torch.Tensor,
     sky_alpha_weight: float,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor], tuple[torch.Tensor, ...]]:
-    """(`step_loss`, its terms, its gradients with respect to rgb, depth, alpha and normals), by torch.func
-    instead of autograd: compiled on a GPU it is one CUDA graph replayed once a step, where the loss
-    under autograd was two (forward, backward), each with its own host cost. The training step then
-    back-propagates these gradients through the render."""
+    """(loss, its terms, its gradients with respect to rgb, depth, alpha and normals) of a training step:
+    `total_loss` plus `sky_alpha_weight` x the mean alpha over the `sky` pixels (0 on a view without sky).
+
+    Differentiated by torch.func instead of autograd: compiled on a GPU it is one CUDA graph replayed once
+    a step, where the loss under autograd was two (forward, backward), each with its own host cost. The
+    training step then back-propagates these gradients through the render."""
 
     def loss_of(rgb: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor, normals: torch.Tensor):
-        loss, terms = step_loss(
-            rgb, gt_rgb, depth, alpha, normals, params, prior_depth, prior_normals, valid, sky, sky_alpha_weight
-        )
+        loss, terms = total_loss(rgb, gt_rgb, depth, alpha, normals, params, prior_depth, prior_normals, valid, valid)
+        if sky_alpha_weight > 0:
+            terms["sky_alpha"] = masked_mean(alpha[..., 0], sky)
+            loss = loss + sky_alpha_weight * terms["sky_alpha"]
         return loss, (loss.detach(), terms)
 
     grads, (loss, terms) = torch.func.grad(loss_of, argnums=(0, 1, 2, 3), has_aux=True)(rgb, depth, alpha, normals)
