@@ -66,7 +66,7 @@ def test_sigkill_during_training_resumes_from_its_checkpoint(tmp_path: Path, tra
     scene = tmp_path / "scene"
     shutil.copytree(trained, scene)
     SceneStore.open(scene, mode="r+").remove("splats")
-    cfg = splat_config(iterations=400)
+    cfg = splat_config(iterations=200)
     cfg_file = tmp_path / "scene.yaml"
     cfg_file.write_text(yaml.safe_dump(cfg.model_dump(mode="json")))
     child = subprocess.Popen(
@@ -93,9 +93,9 @@ def test_sigkill_during_training_resumes_from_its_checkpoint(tmp_path: Path, tra
     child.send_signal(signal.SIGKILL)
     child.wait()
     step = SceneStore.open(scene).attrs("splats_checkpoint")["step"]
-    assert 20 <= step < 400 and not SceneStore.open(scene).exists("splats")
+    assert 20 <= step < 200 and not SceneStore.open(scene).exists("splats")
     with caplog.at_level("WARNING", logger="wonderverse.splats"):
         results = execute(scene, cfg, until="splats")
     assert [r.status for r in results][-1] == "ran" and [r.status for r in results][:-1] == ["cached"] * 5
     assert any(f"checkpoint at step {step}" in r.message for r in caplog.records)
-    assert len(SceneStore.open(scene).attrs("splats")["curves"]["total"]) == 400  # history carried over
+    assert len(SceneStore.open(scene).attrs("splats")["curves"]["total"]) == 200  # history carried over
