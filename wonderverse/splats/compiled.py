@@ -13,19 +13,17 @@ log = logging.getLogger(__name__)
 
 
 class Compiled:
-    """`fn` compiled by torch.compile (`dynamic` shapes or not) when `enabled`; the first call that fails
+    """`fn` compiled by torch.compile (static shapes) when `enabled`; the first call that fails
     to compile (no compiler toolchain, an unsupported op) logs once and runs `fn` eagerly from then on.
 
     `cuda_graphs`: replay the compiled kernels as CUDA graphs (mode "reduce-overhead"), which removes their
     launch cost; only for fixed input shapes (one graph is recorded per shape), and each call's outputs are
     overwritten by the next call, so use them (or copy them) before calling again."""
 
-    def __init__(
-        self, fn: Callable[..., Any], enabled: bool = True, dynamic: bool = False, cuda_graphs: bool = False
-    ) -> None:
+    def __init__(self, fn: Callable[..., Any], enabled: bool = True, cuda_graphs: bool = False) -> None:
         self.eager = fn
         mode = "reduce-overhead" if cuda_graphs else None
-        self.fn = torch.compile(fn, dynamic=dynamic, mode=mode) if enabled else fn
+        self.fn = torch.compile(fn, dynamic=False, mode=mode) if enabled else fn
 
     def __call__(self, *args: Any, **kwargs: Any) -> Any:
         try:
