@@ -119,24 +119,31 @@ def prefect_server(tmp: Path) -> Iterator[tuple[subprocess.Popen, int, str]]:
         log.close()
 
 
-def flow_runs(api: str, **filters: Any) -> list[dict[str, Any]]:
-    r = httpx.post(f"{api}/flow_runs/filter", json={"limit": 200, **filters}, timeout=10)
+def api_call(method: str, url: str, json: Any = None, tries: int = 10) -> Any:
+    """One REST call to the Prefect server, its JSON answer. A 503 (the server's SQLite database busy, seen
+    on 2 loaded cores) is retried after a pause, as Prefect's own client does; any other error fails."""
+    for attempt in range(tries):
+        r = httpx.request(method, url, json=json, timeout=10)
+        if r.status_code != 503 or attempt == tries - 1:
+            break
+        time.sleep(2)
     r.raise_for_status()
     return r.json()
 
 
+def flow_runs(api: str, **filters: Any) -> list[dict[str, Any]]:
+    return api_call("POST", f"{api}/flow_runs/filter", {"limit": 200, **filters})
+
+
 def run_state(api: str, run_id: str) -> str:
-    r = httpx.get(f"{api}/flow_runs/{run_id}", timeout=10)
-    r.raise_for_status()
-    return r.json()["state"]["type"]
+    return api_call("GET", f"{api}/flow_runs/{run_id}")["state"]["type"]
 
 
 def task_runs(api: str, flow_run_id: str) -> dict[str, str]:
     """{task name: state name} of a flow run's task runs."""
-    r = httpx.post(f"{api}/task_runs/filter", json={"flow_runs": {"id": {"any_": [flow_run_id]}}}, timeout=10)
-    r.raise_for_status()
+    runs = api_call("POST", f"{api}/task_runs/filter", {"flow_runs": {"id": {"any_": [flow_run_id]}}})
     # task run names are '<task name>-<3 hex>' unless named explicitly
-    return {t["name"].rsplit("-", 1)[0]: t["state"]["name"] for t in r.json()}
+    return {t["name"].rsplit("-", 1)[0]: t["state"]["name"] for t in runs}
 
 
 def _at(ts: str) -> datetime:
@@ -181,9 +188,7 @@ def test_serve_registers_a_cron_deployment_whose_runs_complete(tmp_path: Path):
             assert len(starts) >= 2 and (starts[1] - starts[0]).total_seconds() == 60
 
             # a run triggered through the API (what `prefect deployment run batch/tiny` does)
-            r = httpx.post(f"{api}/deployments/{dep['id']}/create_flow_run", json={}, timeout=10)
-            r.raise_for_status()
-            manual = r.json()["id"]
+            manual = api_call("POST", f"{api}/deployments/{dep['id']}/create_flow_run", {})["id"]
 
             def finished() -> list[dict[str, Any]] | None:
                 runs = flow_runs(api, **by_dep)
@@ -210,8 +215,8 @@ def test_serve_registers_a_cron_deployment_whose_runs_complete(tmp_path: Path):
         later = max(runs, key=lambda r: _at(r["end_time"]))
 
         def later_logs() -> list[str]:
-            r = httpx.post(f"{api}/logs/filter", json={"logs": {"flow_run_id": {"any_": [later["id"]]}}}, timeout=10)
-            return [x["message"] for x in r.json()]
+            logs = api_call("POST", f"{api}/logs/filter", {"logs": {"flow_run_id": {"any_": [later["id"]]}}})
+            return [x["message"] for x in logs]
 
         logs = wait_for("the batch run's logs", lambda: [m for m in later_logs() if "reading_room" in m], 20)
         assert "reading_room: completed (plan cached, generate_segments cached)" in logs
