@@ -93,7 +93,7 @@ def _run_with_progress(scene_dir: Path, engine: str, run: Callable[[], list[Any]
         raise WonderError(f"--engine must be prefect or local (got {engine!r})")
     if engine == "prefect":
         _quiet_prefect()
-    token = progress.current.set(progress.RichReporter(console, n_steps or len(STEPS)))
+    token = progress.current.set(progress.make_reporter(console, n_steps or len(STEPS)))
     try:
         results = run()
     finally:

@@ -12,8 +12,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal
 
-from flows import progress
-from tasks import STEPS, Step, StepResult, step_keys, steps_until
+from tasks import STEPS, Step, StepResult, progress, step_keys, steps_until
 from wonderverse.config import RunConfig
 from wonderverse.errors import WonderError
 from wonderverse.store import SceneStore, scene_lock
