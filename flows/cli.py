@@ -17,6 +17,7 @@ from typing import Annotated, Any
 import typer
 from rich.console import Console
 
+from flows.engine import check_engine
 from flows.serve import batch_command, serve_command
 from wonderverse.errors import WonderError
 
@@ -35,81 +36,121 @@ console = Console(stderr=True, width=None if sys.stderr.isatty() else 140)
 out = Console(width=None if sys.stdout.isatty() else 140)
 
 
-def _quiet_prefect() -> None:
-    # Local runs: keep Prefect's own chatter and telemetry out of the user's terminal and network.
-    # Warnings only in the terminal; INFO logs still reach the API (the UI, when PREFECT_API_URL is set).
-    os.environ.setdefault("PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL", "WARNING")
-    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
-    os.environ.setdefault("PREFECT_CLI_PROMPT", "false")
-    # A fresh Prefect home migrates its database on the first start: on 2 cores that outlasts the 20 s default.
-    os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "180")
-
-
 def _default_out(prompt: str) -> Path:
     slug = "".join(c if c.isalnum() else "-" for c in prompt.lower()).strip("-")
     return Path("scenes") / ("-".join(filter(None, slug.split("-")))[:48] or "scene")
 
 
+Engine = Annotated[
+    str, typer.Option(help="auto (default: prefect when a Prefect server is configured, else local), prefect, local")
+]
+Preset = Annotated[
+    str | None, typer.Option(help="preview | standard | high (default: the scene's, else what fits this machine)")
+]
+ReplaceSegments = Annotated[
+    bool,
+    typer.Option(
+        "--replace-segments", help="allow this run to regenerate the scene's existing segments (other prompt or video)"
+    ),
+]
+
+
+def _choose_preset(preset: str | None, config: Path | None, stored: Any) -> tuple[str, str]:
+    """(preset, why): the one named, else the config file's, else the scene's own, else this machine's default."""
+    from wonderverse.config import default_preset, read_yaml
+
+    if preset is not None:
+        return preset, "--preset"
+    named = read_yaml(config).get("preset") if config else None
+    if named:
+        return named, f"from {config}"
+    if stored is not None:
+        return stored.preset, "the scene's"
+    return default_preset()
+
+
 @app.command()
 def generate(
     prompt: Annotated[str | None, typer.Argument(help="what the scene shows (or scene.prompt in --config)")] = None,
-    preset: Annotated[str | None, typer.Option(help="preview | standard | high")] = None,
+    preset: Preset = None,
     config: Annotated[Path | None, typer.Option(help="scene spec YAML (see configs/scenes/)")] = None,
     out_dir: Annotated[Path | None, typer.Option("--out", help="scene folder (default scenes/<prompt>)")] = None,
     until: Annotated[str | None, typer.Option(help="run only the steps this step needs")] = None,
-    engine: Annotated[str, typer.Option(help="prefect (default) or local (plain in-process calls)")] = "prefect",
+    engine: Engine = "auto",
     seed: Annotated[int | None, typer.Option(help="scene seed (overrides the config)")] = None,
     dask: Annotated[
         str | None, typer.Option(help="existing Dask scheduler for per-segment work (tcp://host:8786)")
     ] = None,
+    replace_segments: ReplaceSegments = False,
 ) -> None:
-    """Plan, render and store a scene; cached steps are skipped."""
-    from flows.pipeline import run_pipeline, steps_until
-    from wonderverse.config import build_config
+    """Plan, render and reconstruct a scene; cached steps are skipped, the scene's extensions are kept."""
+    from flows.extend import with_extensions
+    from flows.pipeline import run_pipeline, steps_until, stored_config
+    from wonderverse.config import build_config, read_yaml
 
-    if engine not in ("prefect", "local"):
-        raise WonderError(f"--engine must be prefect or local (got {engine!r})")
-    overrides: dict = {"scene": {"seed": seed}} if seed is not None else {}
-    if dask is not None:  # where work runs is not part of any cache key
-        overrides["steps"] = {"check": {"dask_address": dask}, "priors": {"dask_address": dask}}
-    cfg = build_config(prompt=prompt, preset=preset, config_file=config, overrides=overrides or None)
+    check_engine(engine)
     try:
         steps = steps_until(until)
     except KeyError:
         from tasks import STEP_NAMES
 
         raise WonderError(f"unknown step {until!r}; steps are: {', '.join(STEP_NAMES)}") from None
-    scene_dir = out_dir or _default_out(cfg.scene.prompt)
-    _run_with_progress(scene_dir, engine, lambda: run_pipeline(scene_dir, cfg, until, engine=engine), len(steps))
+    file_prompt = (read_yaml(config).get("scene") or {}).get("prompt") if config else None
+    scene_dir = out_dir or _default_out(str(prompt if prompt is not None else file_prompt or ""))
+    stored = stored_config(scene_dir)
+    name, why = _choose_preset(preset, config, stored)
+    overrides: dict = {"scene": {"seed": seed}} if seed is not None else {}
+    if dask is not None:  # where work runs is not part of any cache key
+        overrides["steps"] = {"check": {"dask_address": dask}, "priors": {"dask_address": dask}}
+    cfg = build_config(prompt=prompt, preset=name, config_file=config, overrides=overrides or None)
+    if stored is not None and not replace_segments and not cfg.scene.extensions.added:
+        cfg = with_extensions(cfg, stored.scene.extensions.added)  # extensions are part of the scene
+    _run_with_progress(
+        scene_dir,
+        engine,
+        f"preset {name} ({why})",
+        lambda eng: run_pipeline(scene_dir, cfg, until, engine=eng, replace_segments=replace_segments),
+        len(steps),
+    )
 
 
-def _run_with_progress(scene_dir: Path, engine: str, run: Callable[[], list[Any]], n_steps: int | None = None) -> None:
-    """`run()` with the progress display (`n_steps` steps, all by default) and the closing table, then the
-    report and the list of files."""
+def _run_with_progress(
+    scene_dir: Path, engine: str, preset_note: str, run: Callable[[str], list[Any]], n_steps: int | None = None
+) -> None:
+    """The first line (preset, engine, scene), `run(engine)` with the progress display (`n_steps` steps, all
+    by default) and the closing table, then the derived files and the list of what the run wrote."""
     from flows import progress
+    from flows.engine import quiet_prefect, resolve_engine
     from tasks import STEPS
 
-    if engine not in ("prefect", "local"):
-        raise WonderError(f"--engine must be prefect or local (got {engine!r})")
-    if engine == "prefect":
-        _quiet_prefect()
+    eng = resolve_engine(engine)
+    console.print(f"wonderverse: {preset_note}, engine {eng}, scene {scene_dir}", highlight=False)
+    if eng == "prefect":
+        quiet_prefect()
     token = progress.current.set(progress.make_reporter(console, n_steps or len(STEPS)))
     try:
-        results = run()
+        results = run(eng)
     finally:
         progress.current.reset(token)
     console.print(progress.results_table(results))
-    _finish(scene_dir)
+    _finish(scene_dir, results)
 
 
-def _finish(scene_dir: Path) -> None:
-    """Write the report and say where everything is."""
+def _finish(scene_dir: Path, results: list[Any]) -> None:
+    """Bring the files derived from the store up to date (the report; preview.mp4, contact_sheet.png and
+    plots/ when `preview` made them) and say where everything is: the outputs only when this run's
+    outputs step ran or found them current."""
+    from flows.preview import PREVIEW_FILE, write_preview
     from flows.report import write_report
 
-    report = write_report(scene_dir)
+    changed = any(r.status == "ran" for r in results)
+    report = write_report(scene_dir, only_if_stale=not changed)
+    if changed and (Path(scene_dir) / PREVIEW_FILE).exists():
+        write_preview(scene_dir)
     out.print(f"scene: {scene_dir}", highlight=False)
-    for f in _output_files(scene_dir):
-        out.print(f"  {f}", highlight=False)
+    if any(r.step == "outputs" for r in results):
+        for f in _output_files(scene_dir):
+            out.print(f"  {f}", highlight=False)
     out.print(f"report: {report}", highlight=False)
 
 
@@ -125,20 +166,20 @@ def _output_files(scene_dir: Path) -> list[Path]:
 def reconstruct(
     clips: Annotated[list[str], typer.Argument(help="video files, image folders or globs; one segment each, in order")],
     out_dir: Annotated[Path | None, typer.Option("--out", help="scene folder (default scenes/<first clip>)")] = None,
-    preset: Annotated[str | None, typer.Option(help="preview | standard | high")] = None,
+    preset: Preset = None,
     on_failure: Annotated[
         str, typer.Option(help="a clip that fails its check: keep_best (keep it, warned), drop, or fail")
     ] = "keep_best",
     fov_deg: Annotated[float | None, typer.Option(help="horizontal field of view when known (else guessed)")] = None,
-    engine: Annotated[str, typer.Option(help="prefect (default) or local (plain in-process calls)")] = "prefect",
+    engine: Engine = "auto",
+    replace_segments: ReplaceSegments = False,
 ) -> None:
     """Reconstruct your own clips (any video generator or a phone): check, poses, priors, splats, outputs."""
-    from flows.pipeline import run_pipeline
+    from flows.pipeline import run_pipeline, stored_config
     from wonderverse.config import build_config
     from wonderverse.video.files import group_sources
 
-    if engine not in ("prefect", "local"):
-        raise WonderError(f"--engine must be prefect or local (got {engine!r})")
+    check_engine(engine)
     paths = []
     for source in group_sources(clips):  # a shell turns frames/*.png into many arguments: one clip again
         if isinstance(source, list | tuple):
@@ -155,23 +196,35 @@ def reconstruct(
         "scene": {"video": {"backend": "files", "clips": paths, "options": options}},
         "steps": {"check": {"on_failure": on_failure}},
     }
-    cfg = build_config(
-        prompt=f"reconstruction of {', '.join(Path(p).name for p in paths)}", preset=preset, overrides=overrides
-    )
     scene_dir = out_dir or _default_out(Path(paths[0]).stem)
-    _run_with_progress(scene_dir, engine, lambda: run_pipeline(scene_dir, cfg, engine=engine, flow_name="reconstruct"))
+    name, why = _choose_preset(preset, None, stored_config(scene_dir))
+    cfg = build_config(
+        prompt=f"reconstruction of {', '.join(Path(p).name for p in paths)}", preset=name, overrides=overrides
+    )
+    _run_with_progress(
+        scene_dir,
+        engine,
+        f"preset {name} ({why})",
+        lambda eng: run_pipeline(
+            scene_dir, cfg, engine=eng, flow_name="reconstruct", replace_segments=replace_segments
+        ),
+    )
 
 
 @app.command()
 def extend(
     scene_dir: Annotated[Path, typer.Argument(help="scene folder made by `generate`")],
     words: Annotated[str, typer.Argument(help="where to extend, e.g. 'a frozen lake beyond the trees on the left'")],
-    engine: Annotated[str, typer.Option(help="prefect (default) or local (plain in-process calls)")] = "prefect",
+    engine: Engine = "auto",
 ) -> None:
     """Extend a scene in words: plan, generate, check one more segment; update poses, priors, splats, outputs."""
     from flows.extend import extend as extend_scene
+    from flows.pipeline import stored_config
 
-    _run_with_progress(scene_dir, engine, lambda: extend_scene(scene_dir, words, engine=engine))
+    check_engine(engine)
+    cfg = stored_config(scene_dir)
+    preset = f"preset {cfg.preset} (the scene's)" if cfg is not None else "no scene yet"
+    _run_with_progress(scene_dir, engine, preset, lambda eng: extend_scene(scene_dir, words, engine=eng))
 
 
 @app.command()
@@ -265,5 +318,10 @@ def main() -> None:
         raise
 
 
-if __name__ == "__main__":
-    main()
+if __name__ == "__main__":  # `python -m flows.cli ...`, as `wonderverse ...` (supervised: see flows.supervise)
+    from flows.supervise import CHILD_ENV, run_supervised
+
+    if os.environ.get(CHILD_ENV) == "1":
+        main()
+    else:
+        sys.exit(run_supervised(sys.argv[1:]))

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from flows.engine import Engine
 from tasks import StepResult
 from wonderverse.config import RunConfig
 from wonderverse.errors import WonderError
@@ -25,22 +26,22 @@ def extended_config(cfg: RunConfig, words: str) -> RunConfig:
         raise WonderError("the extension request is empty; say where to go, e.g. 'a frozen lake on the left'")
     if len(words) > MAX_WORDS_CHARS:
         raise WonderError(f"the extension request has {len(words)} characters; at most {MAX_WORDS_CHARS} are allowed")
+    return with_extensions(cfg, (*cfg.scene.extensions.added, words))
+
+
+def with_extensions(cfg: RunConfig, added: tuple[str, ...]) -> RunConfig:
+    """`cfg` whose scene has the extensions `added` (the user's words, oldest first)."""
     ext = cfg.scene.extensions
-    scene = cfg.scene.model_copy(update={"extensions": ext.model_copy(update={"added": (*ext.added, words)})})
+    scene = cfg.scene.model_copy(update={"extensions": ext.model_copy(update={"added": tuple(added)})})
     return RunConfig.model_validate({**cfg.model_dump(), "scene": scene.model_dump()})
 
 
-def stored_config(scene_dir: Path | str) -> RunConfig:
-    """The configuration the scene was last run with."""
-    attrs = SceneStore.open(scene_dir).root.attrs
-    if "config" not in attrs:
-        raise WonderError(f"{scene_dir} holds no run configuration; run `wonderverse generate` first")
-    return RunConfig.model_validate(attrs["config"])
-
-
-def extend(scene_dir: Path | str, words: str, engine: str = "local") -> list[StepResult]:
+def extend(scene_dir: Path | str, words: str, engine: Engine = "auto") -> list[StepResult]:
     """Add one segment planned from `words` to the scene in `scene_dir` and bring every step up to date."""
-    from flows.pipeline import run_pipeline
+    from flows.pipeline import run_pipeline, stored_config
 
-    cfg = extended_config(stored_config(scene_dir), words)
-    return run_pipeline(scene_dir, cfg, engine=engine, flow_name="extend")  # type: ignore[arg-type]
+    cfg = stored_config(scene_dir)
+    if cfg is None:
+        SceneStore.open(scene_dir)  # no scene at all: its own one-line error
+        raise WonderError(f"{scene_dir} holds no run configuration; run `wonderverse generate` first")
+    return run_pipeline(scene_dir, extended_config(cfg, words), engine=engine, flow_name="extend")

@@ -12,6 +12,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Literal
 
+from flows.engine import Engine, resolve_engine
 from tasks import STEPS, Step, StepResult, progress, step_keys, steps_until
 from wonderverse.config import RunConfig
 from wonderverse.errors import WonderError
@@ -19,7 +20,6 @@ from wonderverse.store import SceneStore, scene_lock
 
 Call = Callable[[Step, str, RunConfig, str], str]
 OnCached = Callable[[Step, str], None]
-Engine = Literal["prefect", "local"]
 
 
 class StepFailed(WonderError):
@@ -49,12 +49,16 @@ def execute(
     """Run the steps `until` needs (all by default); returns one StepResult per step. One run writes a
     scene at a time: a second one waits up to `wait_s` seconds for the first, then refuses (WonderError).
     `on_cached(step, key)` is called for each step skipped as complete (the flow records a "Cached" task run)."""
-    try:
-        steps = steps_until(until)
-    except KeyError:
-        raise WonderError(f"unknown step {until!r}; steps are: {', '.join(s.name for s in STEPS)}") from None
+    steps = _steps(until)
     with scene_lock(scene_dir, wait_s=wait_s):
         return _execute(scene_dir, cfg, steps, call, on_cached)
+
+
+def _steps(until: str | None) -> list[Step]:
+    try:
+        return steps_until(until)
+    except KeyError:
+        raise WonderError(f"unknown step {until!r}; steps are: {', '.join(s.name for s in STEPS)}") from None
 
 
 def _execute(
@@ -107,7 +111,13 @@ def _prefect_cached(step: Step, key: str) -> None:
     _flows["cached"].with_options(name=step.name)(step.name, key)
 
 
-def _generate_flow(scene_dir: str, config: RunConfig, until: str | None = None) -> list[StepResult]:
+def _generate_flow(
+    scene_dir: str, config: RunConfig, until: str | None = None, lock_held: bool = False
+) -> list[StepResult]:
+    """The flow body. `lock_held`: the caller (`run_pipeline`) already holds the scene's lock, taken before
+    Prefect started so that a busy scene is refused at once."""
+    if lock_held:
+        return _execute(scene_dir, config, _steps(until), _prefect_call, _prefect_cached)
     return execute(scene_dir, config, until, call=_prefect_call, on_cached=_prefect_cached)
 
 
@@ -131,10 +141,74 @@ def run_pipeline(
     scene_dir: Path | str,
     cfg: RunConfig,
     until: str | None = None,
-    engine: Engine = "prefect",
+    engine: Engine = "auto",
     flow_name: FlowName = "generate",
+    replace_segments: bool = False,
 ) -> list[StepResult]:
-    """Run a scene with the chosen engine: the Prefect flow `flow_name` (default) or plain in-process calls."""
-    if engine == "local":
-        return execute(scene_dir, cfg, until)
-    return generate_flow(flow_name)(str(scene_dir), cfg, until)
+    """Run a scene with the chosen engine (`flows.engine`): a Prefect flow named `flow_name`, or plain
+    in-process calls. Before any engine starts, the scene's lock is taken (a busy scene is refused at once) and
+    a run that would replace the scene's segments is refused unless `replace_segments` (WonderError)."""
+    steps = _steps(until)
+    with scene_lock(scene_dir):
+        if not replace_segments:
+            refuse_replacing_segments(scene_dir, cfg)
+        if resolve_engine(engine) == "local":
+            return _execute(scene_dir, cfg, steps, _direct, _nothing)
+        return generate_flow(flow_name)(str(scene_dir), cfg, until, lock_held=True)
+
+
+def stored_config(scene_dir: Path | str) -> RunConfig | None:
+    """The configuration the scene was last run with; None for a new scene (or one this version cannot read)."""
+    try:
+        data = SceneStore.open(scene_dir).root.attrs.get("config")
+        return RunConfig.model_validate(data) if data is not None else None
+    except (WonderError, ValueError):
+        return None
+
+
+def refuse_replacing_segments(scene_dir: Path | str, cfg: RunConfig) -> None:
+    """WonderError when running `cfg` would regenerate segments the scene already holds: what the segments
+    are made from (the `plan` and `generate_segments` steps' parameters: prompt, seed, video settings,
+    planner, extensions) differs from the scene's. Extensions added since (`extend`) are fine."""
+    from tasks.segments import segment_ids
+
+    old = stored_config(scene_dir)
+    if old is None:
+        return
+    store = SceneStore.open(scene_dir)
+    made = [s for s in segment_ids(store) if store.cache_key_of(f"segments/{s}") is not None]
+    if not made:
+        return
+    added_old, added_new = old.scene.extensions.added, cfg.scene.extensions.added
+    changed = [] if added_new[: len(added_old)] == added_old else ["scene.extensions.added"]
+    by_name = {s.name: s for s in STEPS}
+    for name in ("plan", "generate_segments"):
+        before = _flat(_jsonable(by_name[name].params(old)))
+        after = _flat(_jsonable(by_name[name].params(cfg)))
+        changed += [k for k in sorted(before.keys() | after.keys()) if before.get(k) != after.get(k)]
+    changed = [c for c in dict.fromkeys(changed) if not c.startswith("extensions.added")]
+    if not changed:
+        return
+    raise WonderError(
+        f"{scene_dir} holds {len(made)} segment(s) made with other settings ({', '.join(changed[:4])}"
+        f"{', …' if len(changed) > 4 else ''}); this run would replace them. Pass --replace-segments to do so, "
+        "or --out another folder"
+    )
+
+
+def _jsonable(params: Any) -> Any:
+    import json
+
+    from pydantic_core import to_jsonable_python
+
+    return json.loads(json.dumps(to_jsonable_python(params)))
+
+
+def _flat(d: Any, prefix: str = "") -> dict[str, Any]:
+    """{'video.width': 320, ...} from nested dicts (lists stay values)."""
+    if not isinstance(d, dict):
+        return {prefix: d}
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        out |= _flat(v, f"{prefix}.{k}" if prefix else str(k))
+    return out

@@ -11,6 +11,8 @@ from tasks.segments import attempt_ids, segment_ids, stitched
 from wonderverse.errors import WonderError
 from wonderverse.store import SceneStore
 
+PREVIEW_FILE = "preview.mp4"
+
 
 def _check_result(attrs: dict) -> object:
     from wonderverse.check import CheckResult
@@ -78,7 +80,7 @@ def write_preview(scene_dir: Path) -> list[Path]:
     if len(frames) == 0:
         raise WonderError(f"{scene_dir} has no rendered segments yet; run `wonderverse generate` first")
     fps = float((store.root.attrs.get("spec") or {}).get("video", {}).get("fps", 8))
-    mp4 = write_mp4(frames, Path(scene_dir) / "preview.mp4", fps)
+    mp4 = write_mp4(frames, Path(scene_dir) / PREVIEW_FILE, fps)
     pick = sorted(set(range(0, len(frames), max(1, len(frames) // 32))))
     png = Path(scene_dir) / "contact_sheet.png"
     png.write_bytes(contact_sheet(frames[pick], [f"{index[i][0]}:{index[i][1]}" for i in pick]))

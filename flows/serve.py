@@ -11,7 +11,6 @@ Prefect is imported inside functions only: the CLI imports this module at start-
 
 from __future__ import annotations
 
-import os
 import sys
 import time
 from pathlib import Path
@@ -19,6 +18,7 @@ from typing import Annotated, Any
 
 import typer
 
+from flows.engine import quiet_prefect
 from wonderverse.errors import WonderError
 
 SPEC_SUFFIXES = (".yaml", ".yml")
@@ -228,13 +228,6 @@ def serve(
     prefect_serve(deployment, limit=1)
 
 
-def _prefect_env() -> None:
-    os.environ.setdefault("PREFECT_SERVER_ANALYTICS_ENABLED", "false")
-    os.environ.setdefault("PREFECT_CLI_PROMPT", "false")
-    # A fresh Prefect home migrates its database on the first start: on 2 cores that outlasts the 20 s default.
-    os.environ.setdefault("PREFECT_SERVER_EPHEMERAL_STARTUP_TIMEOUT_SECONDS", "180")
-
-
 SpecsDir = Annotated[Path, typer.Argument(help="folder of scene spec YAML files (see configs/scenes/)")]
 OutRoot = Annotated[Path, typer.Option("--out", help="each scene goes to OUT/<spec file name>")]
 Until = Annotated[str | None, typer.Option(help="run only the steps this step needs")]
@@ -250,7 +243,7 @@ def serve_command(
     name: Annotated[str | None, typer.Option(help="deployment name (default: the folder's name)")] = None,
 ) -> None:
     """Serve a cron deployment that runs every scene spec in a folder (needs a Prefect server and PREFECT_API_URL)."""
-    _prefect_env()
+    quiet_prefect(console_level=None)
     serve(specs_dir, out_root, cron, until, dask, name)
 
 
@@ -264,9 +257,8 @@ def batch_command(
     from rich.console import Console
     from rich.table import Table
 
-    _prefect_env()
     # Quiet terminal, but INFO logs still reach the API: with PREFECT_API_URL set they show in the UI.
-    os.environ.setdefault("PREFECT_LOGGING_HANDLERS_CONSOLE_LEVEL", "WARNING")
+    quiet_prefect(console_level="WARNING")
     summary = run_batch(specs_dir, out_root, until, dask)
     t = Table(title="batch")
     for c in ("scene", "status", "seconds", "steps / error"):

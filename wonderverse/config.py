@@ -6,6 +6,7 @@ arguments. Angles are degrees here (user-facing); the library converts to radian
 
 from __future__ import annotations
 
+import functools
 from pathlib import Path
 from typing import Any, Literal
 
@@ -265,6 +266,17 @@ def preset_names() -> list[str]:
     return sorted(p.stem for p in PRESET_DIR.glob("*.yaml"))
 
 
+@functools.cache
+def default_preset() -> tuple[str, str]:
+    """(preset, why) for a run that names none: one that finishes on this machine. Without a CUDA GPU the
+    splats train on the CPU, where `standard` runs for hours; `preview` takes minutes."""
+    import torch
+
+    if torch.cuda.is_available():
+        return "standard", "a CUDA GPU is available"
+    return "preview", "no CUDA GPU; --preset standard or high for more accuracy"
+
+
 def load_preset(name: str) -> dict[str, Any]:
     path = PRESET_DIR / f"{name}.yaml"
     if not path.is_file():
@@ -295,9 +307,10 @@ def build_config(
     config_file: Path | None = None,
     overrides: dict[str, Any] | None = None,
 ) -> RunConfig:
-    """Compose defaults, a preset, a scene file and explicit overrides into a validated RunConfig."""
+    """Compose defaults, a preset, a scene file and explicit overrides into a validated RunConfig. The preset is
+    `preset`, else the file's, else this machine's default (`default_preset`)."""
     file_data = read_yaml(config_file) if config_file else {}
-    name = preset or file_data.get("preset") or "standard"
+    name = preset or file_data.get("preset") or default_preset()[0]
     if not isinstance(name, str):
         raise ConfigError(f"preset: must be a preset name (got {name!r})")
     merged = deep_merge(load_preset(name), file_data)

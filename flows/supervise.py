@@ -1,0 +1,89 @@
+"""The `wonderverse` command's entry point: Ctrl-C and SIGTERM stop a run at once and cleanly.
+
+The command runs in a child process of its own session, and this small parent only waits for it. A
+terminal's Ctrl-C (SIGINT), SIGTERM and SIGHUP therefore reach the parent alone: it kills the child's whole
+process group (the run, its Dask workers, Prefect's ephemeral server) with SIGKILL, says so in one line and
+exits 128 + the signal's number (130 for Ctrl-C, 143 for SIGTERM).
+
+Why a kill and not a graceful stop: the main thread may sit for a minute inside a C call (COLMAP's mapper,
+Open3D) where Python cannot interrupt it, Prefect and Dask react to SIGINT in their own ways (the first
+Ctrl-C killed Prefect's server while the run spun on), and pycolmap's glog handler prints a C stack on
+SIGTERM. A kill is safe here because the store only ever commits whole groups (staged, renamed, marked
+complete last): every step and segment complete before the signal is kept, and the same command resumes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import signal
+import subprocess
+import sys
+
+CHILD_ENV = "WONDERVERSE_CHILD"  # set in the child: it runs the command itself
+_STOPS = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM", signal.SIGHUP: "SIGHUP"}
+
+
+def _kill_group(child: subprocess.Popen) -> None:
+    """SIGKILL the child's process group, and any descendant that left it."""
+    try:
+        import psutil
+
+        descendants = psutil.Process(child.pid).children(recursive=True)
+    except Exception:  # already gone, or psutil missing: the group kill below still covers the usual case
+        descendants = []
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(child.pid, signal.SIGKILL)
+    for p in descendants:
+        with contextlib.suppress(Exception):
+            p.kill()
+
+
+def run_supervised(argv: list[str]) -> int:
+    """Run `python -m flows.cli ARGV` as a child in its own session; returns the exit code to use."""
+    child = subprocess.Popen(
+        [sys.executable, "-m", "flows.cli", *argv], env={**os.environ, CHILD_ENV: "1"}, start_new_session=True
+    )
+    stops: list[int] = []
+
+    def stop(signum: int, frame: object) -> None:
+        if not stops:
+            stops.append(signum)
+            _kill_group(child)
+
+    for s in _STOPS:
+        signal.signal(s, stop)
+    rc = child.wait()
+    if stops:
+        _kill_group(child)  # a grandchild that outlived its parent
+        signum = stops[0]
+        if sys.stderr.isatty():  # the live progress bar was cut mid-line and its cursor hidden
+            sys.stderr.write("\r\x1b[2K\x1b[?25h")
+        print(
+            f"stopped by {_STOPS[signal.Signals(signum)]}: every step and segment already complete is kept in the "
+            "scene; run the same command again to resume",
+            file=sys.stderr,
+        )
+        return 128 + signum
+    if rc < 0:  # killed from outside (the OOM killer, kill -9 of the child)
+        print(
+            f"error: the run was killed by signal {-rc}; what was complete is kept in the scene, run the same "
+            "command again to resume",
+            file=sys.stderr,
+        )
+        return 128 - rc
+    return rc
+
+
+def main() -> None:
+    """`wonderverse ...`: supervise the command, or (in the child) run it."""
+    if os.environ.get(CHILD_ENV) == "1":
+        from flows.cli import main as run_command
+
+        run_command()
+        return
+    sys.exit(run_supervised(sys.argv[1:]))
+
+
+if __name__ == "__main__":
+    main()
