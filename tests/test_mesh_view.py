@@ -153,6 +153,8 @@ def test_supersampling_blends_a_half_covered_pixel_and_empty_meshes_are_backgrou
     assert (empty == WHITE).all()
     with pytest.raises(ValueError, match="face indices"):
         render_mesh(V, F + 4, None, K, W2C, W, H)
+    with pytest.raises(ValueError, match="one colour per vertex"):
+        render_mesh(V, F, black[:3], K, W2C, W, H)
 
 
 def test_overview_camera_is_above_and_behind_the_cameras_and_sees_the_mesh():

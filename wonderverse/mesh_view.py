@@ -1,9 +1,10 @@
 """Pictures of a triangle mesh for people: ray-cast with Open3D's `RaycastingScene`, Lambert-shaded.
 
-`render_mesh` draws a mesh (vertex colours interpolated across each triangle) from one pinhole camera,
-lit by a head light: each face is shaded by the cosine between its normal and the viewing ray (either
-side, since fused meshes are not consistently oriented), so the shape reads even where the colours are
-flat. `overview_camera` places a camera above and behind a set of cameras, looking at a mesh's centre.
+`render_mesh` draws a mesh (vertex colours interpolated across each triangle) from one pinhole camera
+(`render_mesh_views` from several, building Open3D's ray-casting structure once), lit by a head light:
+each face is shaded by the cosine between its normal and the viewing ray (either side, since fused meshes
+are not consistently oriented), so the shape reads even where the colours are flat. `overview_camera`
+places a camera above and behind a set of cameras, looking at a mesh's centre.
 
 Conventions: OpenCV camera axes (x right, y down, z forward), W2C 4x4 poses, K in pixels with pixel
 centres at +0.5. Open3D is imported inside the functions (the CLI never loads it at start-up).
@@ -61,41 +62,63 @@ def render_mesh(
     A pixel shows the first surface its ray hits, coloured by the vertex colours interpolated at the hit
     and scaled by `ambient + (1 - ambient) * |cos|` (cos: face normal against the ray); pixels whose rays
     hit nothing are `background_rgb`. With `supersample` s > 1, s*s rays per pixel are averaged."""
+    return render_mesh_views(vertices, faces, colors, K, np.asarray(w2c)[None], width, height, params)[0]
+
+
+def render_mesh_views(
+    vertices: np.ndarray,
+    faces: np.ndarray,
+    colors: np.ndarray | None,
+    K: np.ndarray,
+    poses: np.ndarray,
+    width: int,
+    height: int,
+    params: MeshViewParams | None = None,
+) -> np.ndarray:
+    """`render_mesh` from several cameras sharing K and size: (N, height, width, 3) uint8 for W2C `poses`
+    (N,4,4). The ray-casting structure is built once (on a million triangles that is most of the time)."""
     import open3d as o3d
 
     p = params or MeshViewParams()
     V = np.ascontiguousarray(vertices, dtype=np.float32).reshape(-1, 3)
     F = np.ascontiguousarray(faces, dtype=np.int64).reshape(-1, 3)
+    poses = np.asarray(poses, np.float64).reshape(-1, 4, 4)
     s = p.supersample
     bg = np.asarray(p.background_rgb, np.float32) / 255.0
-    out = np.broadcast_to(bg, (height * s, width * s, 3)).copy()
-    if len(F) and len(V):
-        if F.min() < 0 or F.max() >= len(V):
-            raise ValueError(f"face indices must lie in [0, {len(V)}), got [{F.min()}, {F.max()}]")
+    C = None
+    if colors is not None:
+        C = np.asarray(colors, np.float32).reshape(-1, 3)
+        if len(C) != len(V):
+            raise ValueError(f"need one colour per vertex: {len(C)} colours for {len(V)} vertices")
+    if len(F) and (F.min() < 0 or F.max() >= len(V)):
+        raise ValueError(f"face indices must lie in [0, {len(V)}), got [{F.min()}, {F.max()}]")
+    scene = None
+    if len(F):
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(o3d.core.Tensor(V), o3d.core.Tensor(F.astype(np.uint32)))
-        rays = camera_rays(K, w2c, width, height, s).reshape(-1, 6)
-        ans = scene.cast_rays(o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays)))
-        t = ans["t_hit"].numpy()
-        hit = np.flatnonzero(np.isfinite(t))
-        if len(hit):
-            tri = ans["primitive_ids"].numpy()[hit].astype(np.int64)
-            normals = ans["primitive_normals"].numpy()[hit]
-            cos = np.abs(np.einsum("ij,ij->i", normals, rays[hit, 3:]))
-            shade = p.ambient + (1.0 - p.ambient) * np.clip(cos, 0.0, 1.0)
-            if colors is None:
-                base = np.broadcast_to(np.asarray(p.default_rgb, np.float32), (len(hit), 3))
-            else:
-                C = np.asarray(colors, np.float32).reshape(-1, 3)
-                if len(C) != len(V):
-                    raise ValueError(f"need one colour per vertex: {len(C)} colours for {len(V)} vertices")
-                uv = ans["primitive_uvs"].numpy()[hit]  # weights of the face's 2nd and 3rd vertex
-                w = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
-                base = np.einsum("ij,ijk->ik", w, C[F[tri]])
-            out.reshape(-1, 3)[hit] = np.clip(base, 0.0, 1.0) * shade[:, None]
-    if s > 1:
-        out = out.reshape(height, s, width, s, 3).mean(axis=(1, 3))
-    return np.round(out * 255.0).astype(np.uint8)
+    images = []
+    for w2c in poses:
+        out = np.broadcast_to(bg, (height * s, width * s, 3)).copy()
+        if scene is not None:
+            rays = camera_rays(K, w2c, width, height, s).reshape(-1, 6)
+            ans = scene.cast_rays(o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays)))
+            hit = np.flatnonzero(np.isfinite(ans["t_hit"].numpy()))
+            if len(hit):
+                normals = ans["primitive_normals"].numpy()[hit]
+                cos = np.abs(np.einsum("ij,ij->i", normals, rays[hit, 3:]))
+                shade = p.ambient + (1.0 - p.ambient) * np.clip(cos, 0.0, 1.0)
+                if C is None:
+                    base = np.broadcast_to(np.asarray(p.default_rgb, np.float32), (len(hit), 3))
+                else:
+                    tri = ans["primitive_ids"].numpy()[hit].astype(np.int64)
+                    uv = ans["primitive_uvs"].numpy()[hit]  # weights of the face's 2nd and 3rd vertex
+                    w = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
+                    base = np.einsum("ij,ijk->ik", w, C[F[tri]])
+                out.reshape(-1, 3)[hit] = np.clip(base, 0.0, 1.0) * shade[:, None]
+        if s > 1:
+            out = out.reshape(height, s, width, s, 3).mean(axis=(1, 3))
+        images.append(np.round(out * 255.0).astype(np.uint8))
+    return np.stack(images) if images else np.zeros((0, height, width, 3), np.uint8)
 
 
 def overview_camera(
