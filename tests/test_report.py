@@ -1,9 +1,11 @@
 """The scene report: built from real (tiny) procedural scenes run through the pipeline, checked as HTML
-(every segment and attempt, escaped user text, inlined images, only local links) and rendered in headless
-Chromium (no console errors, every image decoded, a full-page screenshot of the expected size).
+(every segment and attempt, escaped user text, inlined images, only local links, the scene's videos and
+mesh pictures) and rendered in headless Chromium (no console errors, every image decoded, both videos
+load and decode a frame, a full-page screenshot of the expected size); rewritten only when the store changed.
 
 Ground truth: the procedural world's injected faults (a scene seed is chosen so that exactly segment s000's
-first attempt has a camera teleport), the files we create, and the store's own listing."""
+first attempt has a camera teleport), the files and videos we create, the config's video settings, and the
+store's own listing."""
 
 from __future__ import annotations
 
@@ -13,6 +15,7 @@ import io
 import os
 import re
 import shutil
+import time
 from html.parser import HTMLParser
 from pathlib import Path
 
@@ -24,12 +27,13 @@ from hypothesis import strategies as st
 from PIL import Image
 
 from flows.pipeline import execute
-from flows.report import write_report
+from flows.report import report_state, write_report
 from tasks import STEPS
 from tasks.generate_segments import attempt_seed
 from tasks.segments import attempt_ids, segment_ids
 from wonderverse.config import build_config
 from wonderverse.errors import WonderError
+from wonderverse.media import write_mp4
 from wonderverse.report import (
     AttemptInfo,
     FileEntry,
@@ -38,16 +42,27 @@ from wonderverse.report import (
     StepTiming,
     colorize_depth,
     colorize_normals,
+    fmt_bytes,
     image_size,
     render_html,
+    video_stills,
 )
 from wonderverse.store import SceneStore
 from wonderverse.video.procedural import ProceduralOptions, draw_fault
 
 VIEWPORT = {"width": 1280, "height": 900}
+VIDEOS = ("novel.mp4", "flythrough.mp4")
 PROMPT = 'a snowy village <script>alert("x")</script> & <b>lanterns</b>'
 # A long jump: on 6-frame segments a short one can hide in the median step (measured 3.4x for 1.7 m).
 FAULTS = {"fault_probability": 0.5, "fault_types": ["teleport"], "teleport_m": [3.0, 4.0]}
+
+
+# Resolves, per video, whether seeking to its middle ends with a decoded frame (readyState >= 2) within 10 s.
+SEEK_AND_DECODE = """() => Promise.all(Array.from(document.querySelectorAll('video')).map(v => new Promise(done => {
+    const timer = setTimeout(() => done(false), 10000);
+    v.addEventListener('seeked', () => { clearTimeout(timer); done(v.readyState >= 2); }, {once: true});
+    v.currentTime = v.duration / 2;
+})))"""
 
 
 class Page(HTMLParser):
@@ -127,7 +142,8 @@ def section(text: str, sid: str) -> str:
 
 
 def assert_self_contained(text: str, scene: Path) -> Page:
-    """Images are decodable data URIs of the size they declare; links are in-page or existing local files."""
+    """Images are decodable data URIs of the size they declare; links and videos are in-page or existing
+    local files beside the report."""
     page = Page(text)
     assert not re.search(r"https?://", text)
     assert not page.attrs_of("script") and "<script" not in text.lower()
@@ -143,7 +159,13 @@ def assert_self_contained(text: str, scene: Path) -> Page:
             assert f'id="{href[1:]}"' in text, f"dangling in-page link {href}"
     for a in page.attrs_of("link"):
         assert (a["href"] or "").startswith("data:")
+    for a in page.attrs_of("video"):
+        assert "/" not in (a["src"] or "/") and (scene / a["src"]).is_file(), a["src"]
     return page
+
+
+def png_pixels(img_tag_attrs: dict[str, str | None]) -> np.ndarray:
+    return np.asarray(Image.open(io.BytesIO(base64.b64decode((img_tag_attrs["src"] or "").split(",", 1)[1]))))
 
 
 # -- library ------------------------------------------------------------------------------------
@@ -156,6 +178,33 @@ def test_image_size_reads_png_and_jpeg_headers():
         assert image_size(buf.getvalue()) == (mime, 37, 21)
     with pytest.raises(ValueError):
         image_size(b"GIF89a....")
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(1_000_000, 999_949_999))
+def test_sizes_are_decimal_as_inspect_prints_them(n):
+    assert fmt_bytes(n) == f"{n / 1e6:.1f} MB"  # how `wonderverse inspect` prints sizes
+
+
+def test_size_units():
+    assert [fmt_bytes(n) for n in (0, 999, 1000, 1499, 999_949, 999_950, 2_500_000_000)] == [
+        "0 B", "999 B", "1.0 kB", "1.5 kB", "999.9 kB", "1.0 MB", "2.5 GB",
+    ]  # fmt: skip
+
+
+def test_video_stills_are_the_evenly_spaced_frames(tmp_path: Path):
+    grey = (np.arange(12) * 20).astype(np.uint8)  # frame i is uniformly 20 * i
+    frames = np.broadcast_to(grey[:, None, None, None], (12, 24, 32, 3)).copy()
+    path = write_mp4(frames, tmp_path / "v.mp4", fps=6)
+    stills, idx, n, seconds = video_stills(path, 4)
+    assert idx == [0, 4, 7, 11] and n == 12 and abs(seconds - 2.0) < 0.2  # round(linspace(0, 11, 4))
+    assert stills.shape == (4, 24, 32, 3) and stills.dtype == np.uint8
+    np.testing.assert_allclose(stills.reshape(4, -1).mean(axis=1), grey[idx], atol=4)
+    everything, idx_all, _, _ = video_stills(path, 50)  # more asked than there are: every frame once
+    assert idx_all == list(range(12)) and len(everything) == 12
+    (tmp_path / "bad.mp4").write_bytes(b"not a video")
+    with pytest.raises((OSError, RuntimeError, ValueError)):
+        video_stills(tmp_path / "bad.mp4", 4)
 
 
 def test_depth_and_normal_colours():
@@ -239,6 +288,67 @@ def test_report_shows_prompt_escaped_timings_metrics_curves_and_files(full_scene
     assert len(page.attrs_of("img")) >= 4 * 2 + 3 + 4  # attempts, previews, overview/paths/trajectory/curves
 
 
+def test_scene_section_shows_the_videos_and_the_mesh(full_scene: Path):
+    text = (full_scene / "report.html").read_text()
+    assert text.index('<section id="scene">') < text.index('<section id="plan">')  # near the top
+    scene = section(text, "scene")
+    page = Page(scene)
+    store = SceneStore.open(full_scene)
+    out = store.root.attrs["config"]["steps"]["outputs"]
+    w, h = store.attrs("outputs")["render_size"]
+    videos = page.attrs_of("video")
+    assert [v["src"] for v in videos] == list(VIDEOS)
+    for v in videos:
+        assert all(k in v for k in ("controls", "muted", "loop", "playsinline")) and v["preload"] == "metadata"
+        assert (v["width"], v["height"]) == (str(w + w % 2), str(h + h % 2))  # the mp4 is padded to even sizes
+    # stills: a sheet of 4 evenly spaced frames per video (count from the config), then the two mesh pictures
+    n = out["video_frames"]
+    for name in VIDEOS:
+        assert f"{name}: 4 of its {n} frames, evenly spaced" in scene
+        assert f"{n} frames, {n / out['video_fps']:.1f} s" in scene
+    imgs = page.attrs_of("img")
+    assert len(imgs) == 4
+    front, over = (png_pixels(a) for a in imgs[2:])
+    assert front.shape == over.shape == (320, 480, 3)  # ReportParams.mesh_view_width_px, the frames' aspect
+    # the mesh was fused from the first camera's renders: seen from there it fills much of the picture
+    assert (front != 255).any(axis=2).mean() > 0.25
+    assert (over != 255).any(axis=2).mean() > 0.02
+    red = (over[..., 0] > 180) & (over[..., 1] < 80) & (over[..., 2] < 80)
+    assert red.sum() >= 30  # the camera path drawn over the overview
+    assert "from the first camera of the video" in scene and "above and behind the camera path" in scene
+    assert "No renders" not in scene and "No mesh" not in scene
+
+
+def test_report_is_rewritten_only_when_the_store_changed(full_scene: Path, tmp_path: Path):
+    scene = tmp_path / "copy"
+    shutil.copytree(full_scene, scene)
+    report = scene / "report.html"
+    stamp = report.stat().st_mtime_ns
+    # the copy's report names the original folder: it is stale here
+    write_report(scene, only_if_stale=True)
+    assert report.stat().st_mtime_ns != stamp and str(scene) in report.read_text()
+    state = report_state(SceneStore.open(scene))
+    assert f'<meta name="wonderverse-state" content="{state}">' in report.read_text()[:2000]
+    before, stamp = report.read_bytes(), report.stat().st_mtime_ns
+    t0 = time.perf_counter()
+    assert write_report(scene, only_if_stale=True) == report
+    seconds = time.perf_counter() - t0
+    assert report.stat().st_mtime_ns == stamp and report.read_bytes() == before
+    assert seconds < 0.5, f"an up-to-date report took {seconds:.2f} s to check"
+    # a step group's cache key changes (as a re-run with other settings would): the report is redrawn
+    SceneStore.open(scene, mode="r+").group("outputs").attrs["cache_key"] = "0" * 64
+    write_report(scene, only_if_stale=True)
+    assert report.stat().st_mtime_ns != stamp and report.read_bytes() != before
+    assert f'content="{state}"' not in report.read_text()[:2000]
+    # a video beside the store disappears: redrawn, and the page says so instead of linking it
+    (scene / "novel.mp4").unlink()
+    stamp = report.stat().st_mtime_ns
+    text = write_report(scene, only_if_stale=True).read_text()
+    assert report.stat().st_mtime_ns != stamp
+    assert "No renders of the splats yet: novel.mp4 is written by the outputs step." in section(text, "scene")
+    assert [v["src"] for v in Page(section(text, "scene")).attrs_of("video")] == ["flythrough.mp4"]
+
+
 def test_partial_scene_report_says_what_is_missing(partial_scene: Path, tmp_path: Path):
     scene = tmp_path / "scene"
     shutil.copytree(partial_scene, scene)
@@ -256,6 +366,9 @@ def test_partial_scene_report_says_what_is_missing(partial_scene: Path, tmp_path
     assert_self_contained(text, scene)
     assert "not checked" in row(text, "s000-a0") and "not checked yet</span></h3>" in text
     assert "The splats step has not run yet." in text
+    scene_html = section(text, "scene")
+    assert "No renders of the splats yet: novel.mp4 and flythrough.mp4 are written by the outputs step." in scene_html
+    assert "No mesh yet: mesh.ply is written by the outputs step." in scene_html and "<video" not in scene_html
     steps = section(text, "steps")
     for name in ("check", "poses", "priors", "splats"):
         assert f'<td>{name}</td><td><span class="badge muted">missing</span>' in steps
@@ -298,6 +411,17 @@ def test_report_renders_in_headless_chromium(full_scene: Path):
             page.on("pageerror", lambda e: errors.append(f"page error: {e}"))
             page.on("request", lambda r: requests.append(r.url))
             page.goto(report.as_uri(), wait_until="load")
+            page.wait_for_function(
+                "Array.from(document.querySelectorAll('video')).every(v => v.readyState >= 1 || v.error)",
+                timeout=15_000,
+            )
+            videos = page.evaluate(
+                "Array.from(document.querySelectorAll('video')).map(v => ({src: v.getAttribute('src'), "
+                "ready: v.readyState, duration: v.duration, width: v.videoWidth, height: v.videoHeight, "
+                "error: v.error && (v.error.code + ' ' + v.error.message)}))"
+            )
+            # metadata is not a picture: seek to the middle and wait until that frame is decoded
+            decoded = page.evaluate(SEEK_AND_DECODE)
             images = page.evaluate(
                 "Array.from(document.images).map(i => [i.complete, i.naturalWidth, i.naturalHeight, i.alt])"
             )
@@ -307,7 +431,18 @@ def test_report_renders_in_headless_chromium(full_scene: Path):
         finally:
             browser.close()
     assert errors == []
-    assert requests == [report.as_uri()]  # data URIs only: nothing else is fetched
+    # data URIs only, but for the videos beside the report: nothing else is fetched
+    assert requests[0] == report.as_uri()
+    assert set(requests[1:]) <= {(full_scene / v).as_uri() for v in VIDEOS}
+    store = SceneStore.open(full_scene)
+    out = store.root.attrs["config"]["steps"]["outputs"]
+    w, h = store.attrs("outputs")["render_size"]
+    assert [v["src"] for v in videos] == list(VIDEOS)
+    for v in videos:
+        assert v["error"] is None, v
+        assert v["ready"] >= 1 and v["width"] == w + w % 2 and v["height"] == h + h % 2, v
+        assert abs(v["duration"] - out["video_frames"] / out["video_fps"]) < 0.1, v
+    assert decoded == [True, True], "a video's frame did not decode after seeking"
     assert len(images) >= 15
     assert all(ok and w > 0 and h > 0 for ok, w, h, _ in images), [alt for ok, w, h, alt in images if not w]
     assert overflow <= 0  # nothing wider than the window

@@ -2,9 +2,12 @@
 
 `ReportContent` holds what the page shows (plain values and PNG bytes; it knows nothing of the store);
 `render_html` turns it into one HTML document with inline CSS, every image inlined as a base64 data URI,
-no scripts and no external resources, so the file can be mailed, archived or opened offline. All text is
-escaped (prompts and intents are user input). `curves_plot` and `depth_normal_preview` draw the two
-figures the check/trajectory plots of `wonderverse.plots` do not cover.
+no scripts and no external resources, so the file can be mailed, archived or opened offline. The only
+things it points to are files beside it: the links of the file table and the scene's videos, which play
+in the page (`<video src="novel.mp4">`, relative) while their stills are inlined like every image. All
+text is escaped (prompts and intents are user input). `curves_plot` and `depth_normal_preview` draw the
+two figures the check/trajectory plots of `wonderverse.plots` do not cover; `video_stills` reads frames
+of an mp4.
 """
 
 from __future__ import annotations
@@ -16,6 +19,7 @@ import math
 import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
@@ -34,6 +38,10 @@ class ReportParams(BaseModel):
     preview_thumb_width_px: int = Field(200, ge=32, le=1024, description="width of one preview tile")
     overview_frames: int = Field(24, ge=1, le=256, description="stitched frames in the overview sheet")
     curve_smooth_frac: float = Field(0.02, ge=0, le=0.5, description="moving-average window, share of iterations")
+    scene_stills: int = Field(4, ge=1, le=16, description="evenly spaced frames shown of each scene video")
+    still_width_px: int = Field(240, ge=32, le=1024, description="width of one still of a scene video")
+    mesh_view_width_px: int = Field(480, ge=32, le=2048, description="width of the mesh pictures")
+    mesh_supersample: int = Field(2, ge=1, le=4, description="rays per pixel side of the mesh pictures")
 
 
 # -- content -------------------------------------------------------------------------------------
@@ -98,6 +106,20 @@ class StepTiming:
 
 
 @dataclass(frozen=True)
+class VideoClip:
+    """A video beside the report, played in the page: `href` is relative to the report; `stills` a
+    contact sheet of a few of its frames (inlined, so the page shows the scene where the video cannot play)."""
+
+    href: str
+    title: str
+    width: int
+    height: int
+    frames: int
+    seconds: float
+    stills: Picture | None = None
+
+
+@dataclass(frozen=True)
 class FileEntry:
     """A file or folder beside the store; `path` is relative to the report."""
 
@@ -113,7 +135,10 @@ class ReportContent:
 
     facts: short label -> value lines for the summary table (settings, headline figures).
     metrics: group title -> {name: value}, e.g. ground-truth errors or the splats' PSNR.
-    curves: training curves, name -> one value per iteration."""
+    curves: training curves, name -> one value per iteration.
+    videos, mesh_views, scene_notes: the 3D result (renders of the splats, pictures of the mesh) and one
+    line for each thing of it that is missing.
+    state: a fingerprint of what the report was made from, written into the page (see `STATE_META`)."""
 
     title: str
     prompt: str
@@ -123,6 +148,9 @@ class ReportContent:
     segments: list[SegmentInfo] = field(default_factory=list)
     overview: Picture | None = None
     trajectory: Picture | None = None
+    videos: list[VideoClip] = field(default_factory=list)
+    mesh_views: list[Picture] = field(default_factory=list)
+    scene_notes: list[str] = field(default_factory=list)
     planned_paths: Picture | None = None
     timings: list[StepTiming] = field(default_factory=list)
     metrics: dict[str, dict[str, Value]] = field(default_factory=dict)
@@ -131,6 +159,7 @@ class ReportContent:
     files: list[FileEntry] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
     generated: str = ""
+    state: str = ""
 
 
 # -- figures -------------------------------------------------------------------------------------
@@ -256,7 +285,52 @@ def depth_normal_preview(
     return buf.getvalue()
 
 
+def video_stills(path: Path | str, count: int) -> tuple[np.ndarray, list[int], int, float]:
+    """`count` evenly spaced frames of a video (first and last included; fewer when it is shorter).
+
+    Returns frames (n,H,W,3) uint8, their indices, the video's frame count and its duration in seconds
+    (from the container, as ffmpeg counts them). Decodes once, up to the last frame wanted (ffmpeg from
+    imageio-ffmpeg). Raises ValueError for a video with no frame and OSError/RuntimeError when ffmpeg
+    cannot read the file."""
+    import imageio_ffmpeg
+
+    path = str(path)
+    n, seconds = imageio_ffmpeg.count_frames_and_secs(path)
+    if n < 1:
+        raise ValueError(f"{path} holds no video frame")
+    picks = sorted({int(i) for i in np.linspace(0, n - 1, min(count, n)).round()})
+    reader = imageio_ffmpeg.read_frames(path)
+    try:
+        w, h = next(reader)["size"]
+        out = []
+        for i, buf in enumerate(reader):
+            if i in picks:
+                out.append(np.frombuffer(buf, np.uint8).reshape(h, w, 3).copy())
+            if i >= picks[-1]:
+                break
+    finally:
+        reader.close()
+    if len(out) != len(picks):  # the container's frame count promised more than the stream held
+        picks = picks[: len(out)]
+    if not out:
+        raise ValueError(f"{path}: no frame could be decoded")
+    return np.stack(out), picks, int(n), float(seconds)
+
+
+def png_bytes(rgb: np.ndarray) -> bytes:
+    """PNG bytes of an (H,W,3) uint8 image."""
+    from PIL import Image
+
+    buf = io.BytesIO()
+    Image.fromarray(np.asarray(rgb, np.uint8)).save(buf, format="PNG")
+    return buf.getvalue()
+
+
 # -- HTML ----------------------------------------------------------------------------------------
+
+# The fingerprint of the store state a report was made from, as `<meta name=... content=SHA256>` in its
+# head (first bytes of the file): a cached re-run compares it and leaves an up-to-date report alone.
+STATE_META = "wonderverse-state"
 
 CSS = """
 *{box-sizing:border-box}
@@ -291,6 +365,7 @@ ul.reasons{margin:0;padding-left:18px}
 p.meta{margin:0 0 8px;color:#4b5363;font-size:14px}
 .attempt{display:grid;grid-template-columns:4fr 3fr;gap:12px;align-items:start}
 .cols{display:grid;grid-template-columns:repeat(auto-fill,minmax(440px,1fr));gap:0 24px}
+video{width:100%;height:auto;display:block;background:#111;border-radius:4px}
 footer{text-align:center;color:#8a91a0;font-size:12px;padding:10px}
 """
 
@@ -326,11 +401,12 @@ def fmt_seconds(s: float | None) -> str:
 
 
 def fmt_bytes(n: int) -> str:
+    """A size in decimal units (1 kB = 1000 B, 1 MB = 1e6 B), as `wonderverse inspect` prints them."""
     size = float(n)
-    for unit in ("B", "KB", "MB", "GB"):
-        if size < 1024 or unit == "GB":
+    for unit in ("B", "kB", "MB", "GB"):
+        if round(size, 1) < 1000 or unit == "GB":
             return f"{size:.0f} {unit}" if unit == "B" else f"{size:.1f} {unit}"
-        size /= 1024
+        size /= 1000
     return f"{n} B"
 
 
@@ -505,6 +581,30 @@ def _files_html(files: Sequence[FileEntry]) -> str:
     return "<table><tr><th>file</th><th>size</th><th>what</th></tr>" + "".join(rows) + "</table>"
 
 
+def _video_html(v: VideoClip) -> str:
+    # muted + playsinline: browsers let a muted video play inline without a user gesture; preload=metadata
+    # reads only the header until someone presses play
+    video = (
+        f'<video controls muted loop playsinline preload="metadata" src="{esc(quote(v.href))}" '
+        f'width="{v.width}" height="{v.height}"></video>'
+    )
+    what = f"{v.frames} frames, {fmt_seconds(v.seconds)}, {v.width}×{v.height} px"
+    link = f'<a href="{esc(quote(v.href))}">{esc(v.href)}</a>'
+    stills = _figure(v.stills.data, v.stills.caption) if v.stills else ""
+    return f'<div><h3>{esc(v.title)}</h3>{video}<p class="meta">{link} · {esc(what)}</p>{stills}</div>'
+
+
+def _scene_html(c: ReportContent) -> str:
+    parts = []
+    if c.videos:
+        parts.append(f'<div class="cols">{"".join(_video_html(v) for v in c.videos)}</div>')
+    if c.mesh_views:
+        figs = "".join(_figure(p.data, p.caption) for p in c.mesh_views)
+        parts.append(f'<h3>Mesh</h3><div class="cols">{figs}</div>')
+    parts += [_empty(n) for n in c.scene_notes]
+    return "".join(parts) or _empty("Nothing to show yet: the outputs step writes the videos and the mesh.")
+
+
 def _summary_rows(c: ReportContent) -> dict[str, Value]:
     attempts = [a for s in c.segments for a in s.attempts]
     rows: dict[str, Value] = dict(c.facts)
@@ -520,8 +620,9 @@ def _summary_rows(c: ReportContent) -> dict[str, Value]:
 
 
 def render_html(content: ReportContent, params: ReportParams | None = None) -> str:
-    """The report as one self-contained HTML document (UTF-8 text; inline CSS, images as data URIs,
-    no scripts, no external resources). Raises ValueError for images that are not PNG/JPEG."""
+    """The report as one HTML document (UTF-8 text; inline CSS, images as data URIs, no scripts; the only
+    resources it loads are the videos beside it, by relative paths). Raises ValueError for images that are
+    not PNG/JPEG."""
     p = params or ReportParams()
     c = content
     curves = {k: v for k, v in c.curves.items() if len(v)}
@@ -534,6 +635,7 @@ def render_html(content: ReportContent, params: ReportParams | None = None) -> s
         curves_html += f'<p class="empty">{esc(c.curves_note)}</p>'
     sections = [
         ("summary", "Summary", _kv_table(_summary_rows(c))),
+        ("scene", "Scene", _scene_html(c)),
         ("plan", "Plan", _plan_html(c)),
         (
             "video",
@@ -554,15 +656,17 @@ def render_html(content: ReportContent, params: ReportParams | None = None) -> s
     nav = "".join(f'<a href="#{sid}">{esc(title)}</a>' for sid, title, _ in sections)
     notes = "".join(f'<div class="note">{esc(n)}</div>' for n in c.notes)
     body = "".join(f'<section id="{sid}"><h2>{esc(title)}</h2>{inner}</section>' for sid, title, inner in sections)
+    state = f'<meta name="{STATE_META}" content="{esc(c.state)}">' if c.state else ""
     return (
         "<!DOCTYPE html>\n"
-        '<html lang="en"><head><meta charset="utf-8">'
+        f'<html lang="en"><head><meta charset="utf-8">{state}'
         '<meta name="viewport" content="width=device-width, initial-scale=1">'
         # An empty inline icon: without it a browser asks the server (or disk) for /favicon.ico.
         '<link rel="icon" href="data:,">'
         f"<title>{esc(c.title)}</title><style>{CSS}</style></head><body>"
         f'<header><h1>{esc(c.title)}</h1><div class="sub">{esc(c.generated)}</div><nav>{nav}</nav></header>'
         f'<main><blockquote class="prompt">{esc(c.prompt)}</blockquote>{notes}{body}</main>'
-        "<footer>Written by WonderVerse. Self-contained: every image is inside this file.</footer>"
+        "<footer>Written by WonderVerse. Every image is inside this file; the videos and the linked files are "
+        "the ones beside it.</footer>"
         "</body></html>\n"
     )
