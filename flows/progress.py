@@ -44,10 +44,10 @@ class PlainReporter(_StepLines):
         super().started(step, description)
         self.console.print(f"[{self.done + 1}/{self.total}] {step}: {description} …", highlight=False)
 
-    def advance(self, done: int, total: int, unit: str, note: str = "") -> None:
+    def advance(self, done: int, total: int, unit: str, note: str = "", eta: bool = True) -> None:
         self.rate.update(unit, done)
         if self.rate.line_due(done, total):
-            line = describe(done, total, unit, note, self.rate.seconds_left(done, total))
+            line = describe(done, total, unit, note, self.rate.seconds_left(done, total) if eta else None)
             self.console.print(f"[{self.done + 1}/{self.total}] {self.step}: {line}", highlight=False)
 
 
@@ -72,11 +72,11 @@ class RichReporter(_StepLines):
         self._task = self._bar.add_task(f"[{self.done + 1}/{self.total}] {step}: {description}", total=None)
         self._bar.start()
 
-    def advance(self, done: int, total: int, unit: str, note: str = "") -> None:
+    def advance(self, done: int, total: int, unit: str, note: str = "", eta: bool = True) -> None:
         if self._bar is None:
             return
         self.rate.update(unit, done)
-        line = describe(done, total, unit, note, self.rate.seconds_left(done, total))
+        line = describe(done, total, unit, note, self.rate.seconds_left(done, total) if eta else None)
         self._bar.update(
             self._task, description=f"[{self.done + 1}/{self.total}] {self.step}: {line}", completed=done, total=total
         )

@@ -24,7 +24,7 @@ class Reporter:
 
     def started(self, step: str, description: str) -> None: ...
 
-    def advance(self, done: int, total: int, unit: str, note: str = "") -> None: ...
+    def advance(self, done: int, total: int, unit: str, note: str = "", eta: bool = True) -> None: ...
 
     def finished(self, result: StepResult) -> None: ...
 
@@ -97,9 +97,10 @@ def _prefect_logger() -> logging.Logger | logging.LoggerAdapter | None:
     return get_run_logger() if TaskRunContext.get() is not None else None
 
 
-def advance(done: int, total: int, unit: str, note: str = "") -> None:
-    """Report that `done` of `total` `unit` of the running step are finished."""
-    current.get().advance(done, total, unit, note)
+def advance(done: int, total: int, unit: str, note: str = "", eta: bool = True) -> None:
+    """Report that `done` of `total` `unit` of the running step are finished. `eta=False`: units of very
+    unequal length (stages), whose pace so far says nothing of the time left; none is shown."""
+    current.get().advance(done, total, unit, note, eta=eta)
     logger = _prefect_logger()
     if logger is None:
         return
@@ -109,13 +110,13 @@ def advance(done: int, total: int, unit: str, note: str = "") -> None:
         _prefect_rate.set(rate)
     rate.update(unit, done)
     if rate.line_due(done, total):
-        logger.info(describe(done, total, unit, note, rate.seconds_left(done, total)))
+        logger.info(describe(done, total, unit, note, rate.seconds_left(done, total) if eta else None))
 
 
-def callback(unit: str) -> ProgressFn:
-    """A library progress callback that reports `unit` of the running step."""
+def callback(unit: str, eta: bool = True) -> ProgressFn:
+    """A library progress callback that reports `unit` of the running step (`eta` as in `advance`)."""
 
     def report(done: int, total: int, note: str = "") -> None:
-        advance(done, total, unit, note)
+        advance(done, total, unit, note, eta)
 
     return report
