@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 
 from tasks.base import Step
+from tasks.progress import callback
 from wonderverse.config import RunConfig
 from wonderverse.errors import WonderError
 from wonderverse.store import SceneStore, cache_key, write_array
@@ -190,6 +191,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
         fixed_gaussians=fixed,
         focus_views=new_views,
         focus_share=p.extend_new_view_share,
+        progress=callback("iterations"),
     )
     arrays = model.to_numpy()
     ply = write_ply(Path(store.scene_dir) / "splats.ply", arrays, norm)
