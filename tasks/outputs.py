@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from tasks.base import Step
+from tasks.progress import callback
 from wonderverse.config import RunConfig
 from wonderverse.store import SceneStore
 
@@ -93,18 +94,22 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     workers = p.render_workers or _usable_cores()
     files: list[Path] = []
 
-    def render(poses: np.ndarray) -> list[Any]:
-        return list(render_views(arrays, norm, poses, Kr, w, h, renderer, background=background, workers=workers))
+    def render(poses: np.ndarray, unit: str) -> list[Any]:
+        views = render_views(
+            arrays, norm, poses, Kr, w, h, renderer, background=background, workers=workers, progress=callback(unit)
+        )
+        return list(views)
 
     cloud = gaussian_points(arrays, norm, p.mesh.points_min_opacity)
     files.append(write_points_ply(out / "points.ply", cloud))
 
     cams = fusion_cameras(w2c, p.mesh.extra_views_per_gap)
     # colour as uint8 and depth only: the fusion needs nothing else, and every view is held until the extent is known
-    views = [(np.round(v.rgb * 255).astype(np.uint8), v.depth) for v in render(cams)]
+    views = [(np.round(v.rgb * 255).astype(np.uint8), v.depth) for v in render(cams, "views rendered for the mesh")]
     depths = [d for _, d in views]
     extent = scene_extent(cams, depths)
-    raw = fuse_tsdf(((rgb, d, Kr, c) for (rgb, d), c in zip(views, cams, strict=True)), extent, p.mesh)
+    fused = [(rgb, d, Kr, c) for (rgb, d), c in zip(views, cams, strict=True)]
+    raw = fuse_tsdf(fused, extent, p.mesh, progress=callback("views fused"))
     mesh = clean_mesh(raw, p.mesh)
     files += [write_mesh(mesh, out / "mesh.ply"), write_mesh(mesh, out / "mesh.glb")]
 
@@ -119,15 +124,16 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     fly = flythrough_path(w2c, p.video_frames)
     files.append(write_camera_path(out / "camera_path.json", fly, Kr, w, h, p.video_fps))
 
-    def video(poses: np.ndarray, name: str) -> np.ndarray:
-        rgb = np.stack([np.round(v.rgb * 255).astype(np.uint8) for v in render(poses)])
+    def video(poses: np.ndarray, name: str, unit: str) -> np.ndarray:
+        rgb = np.stack([np.round(v.rgb * 255).astype(np.uint8) for v in render(poses, unit)])
         files.append(write_mp4(rgb, out / name, p.video_fps))
         return rgb
 
-    video(fly, "flythrough.mp4")
-    novel = video(novel_view_path(w2c, p.video_frames, p.novel_offset_frac, look), "novel.mp4")
+    video(fly, "flythrough.mp4", "fly-through frames")
+    novel = video(novel_view_path(w2c, p.video_frames, p.novel_offset_frac, look), "novel.mp4", "novel-view frames")
     picks = np.linspace(0, len(novel) - 1, min(p.quality_frames, len(novel))).round().astype(int)
-    quality = score_views(list(novel[picks]), cfg.scene.prompt, p.quality)  # of the novel views, as the paper
+    metrics = callback("quality metrics", eta=False)  # unequal: NIQE is quick, a CLIP model loads first
+    quality = score_views(list(novel[picks]), cfg.scene.prompt, p.quality, metrics)  # of the novel views, as the paper
 
     listed = [{"path": f.name, "bytes": _size(f)} for f in files]
     stats = {"triangles": len(mesh.triangles), "vertices": len(mesh.vertices), "points": len(cloud.points)}

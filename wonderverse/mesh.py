@@ -14,13 +14,15 @@ background and are not fused.
 
 from __future__ import annotations
 
-from collections.abc import Iterable
+from collections.abc import Iterable, Sized
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
+
+from wonderverse.progress import ProgressFn, no_progress
 
 if TYPE_CHECKING:
     from wonderverse.splats.model import SceneNormalization
@@ -165,11 +167,17 @@ def fuse_tsdf(
     views: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
     extent: float,
     params: MeshParams | None = None,
+    progress: ProgressFn | None = None,
 ) -> TriMesh:
-    """Fuse (rgb, depth, K, w2c) views (conventions in the module docstring) and extract the raw mesh."""
+    """Fuse (rgb, depth, K, w2c) views (conventions in the module docstring) and extract the raw mesh.
+    progress(views fused, number of views, "") after each view, when `views` has a length (a list)."""
     fusion = TsdfFusion(extent, params)
-    for rgb, depth, K, w2c in views:
+    n = len(views) if isinstance(views, Sized) else 0
+    report = progress if progress is not None and n else no_progress
+    report(0, n, "")
+    for i, (rgb, depth, K, w2c) in enumerate(views):
         fusion.integrate(rgb, depth, K, w2c)
+        report(i + 1, n, "")
     return fusion.extract()
 
 

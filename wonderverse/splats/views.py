@@ -21,6 +21,7 @@ from typing import TypeVar
 import numpy as np
 import torch
 
+from wonderverse.progress import ProgressFn, no_progress
 from wonderverse.splats.model import GaussianModel, SceneNormalization
 from wonderverse.splats.renderer import Renderer
 
@@ -52,10 +53,12 @@ def render_views(
     background: np.ndarray | None = None,
     min_alpha: float = 0.5,
     workers: int = 1,
+    progress: ProgressFn | None = None,
 ) -> Iterator[RenderedView]:
     """Render `arrays` (GaussianModel.to_numpy layout, training frame) from world W2C poses (N,4,4) with
     intrinsics K (3,3) or (N,3,3) at width×height; yields one RenderedView per camera, in order, lazily
-    (`workers` > 1 on the CPU: up to twice that many views ahead, see the module docstring)."""
+    (`workers` > 1 on the CPU: up to twice that many views ahead, see the module docstring).
+    progress(views yielded, N, "") is called before the first view and as each one is yielded."""
     model = GaussianModel.from_numpy(arrays).to(renderer.device)
     w2c_n = norm.apply_w2c(np.asarray(w2c, np.float64).reshape(-1, 4, 4))
     Ks = np.broadcast_to(np.asarray(K, np.float64), (len(w2c_n), 3, 3)).copy()
@@ -90,11 +93,17 @@ def render_views(
         return RenderedView(rgb.clamp(0, 1).cpu().numpy().astype(np.float32), z, a, n)
 
     cameras = zip(w2c_n, Ks, strict=True)
+    report, n = progress or no_progress, len(w2c_n)
+    report(0, n, "")
     if workers <= 1 or torch.device(dev).type != "cpu":
-        yield from map(one, cameras)
+        for i, view in enumerate(map(one, cameras)):
+            yield view
+            report(i + 1, n, "")
         return
     with _torch_threads(1):
-        yield from ordered_map(one, cameras, workers)
+        for i, view in enumerate(ordered_map(one, cameras, workers)):
+            yield view
+            report(i + 1, n, "")
 
 
 @contextmanager
