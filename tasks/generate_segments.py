@@ -15,6 +15,7 @@ import numpy as np
 from tasks.base import Step
 from tasks.parallel import fan_out
 from tasks.plan import load_plan
+from tasks.progress import advance
 from tasks.segments import frames, stitched_frame_index
 from wonderverse.camera import intrinsics, move_path
 from wonderverse.config import RunConfig
@@ -143,14 +144,23 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     clips = [len(c.frames) for c in model.clips] if cfg.scene.video.backend == "files" else None  # type: ignore[attr-defined]
     info = plan_paths(cfg, plan, initial_pose(model), clips)
     todo = [seg for seg, i in info.items() if not store.is_complete(f"segments/{seg}", i["key"])]
+    done = 0
     for wave in sorted({i["wave"] for i in info.values()}):
         batch = [seg for seg in todo if info[seg]["wave"] == wave]
+
+        def rendered(k: int, n: int, seg: str, before: int = done) -> None:
+            """One count over every wave: a wave's k-th segment is the (earlier waves' + k)-th of the step."""
+            if k or not before:
+                advance(before + k, len(todo), "segments rendered", seg)
+
         fan_out(
             "generate_segments",
             batch,
             lambda seg: _generate_one(store, cfg, model, seg, info[seg]),
             cfg.steps.generate.max_workers,
+            progress=rendered,
         )
+        done += len(batch)
     for stale in set(store.children("segments")) - set(info):
         store.remove(f"segments/{stale}")
     store.mark_complete("segments", key, order=stitched_order(plan.segments))

@@ -7,9 +7,11 @@ nothing big travels through the scheduler and workers never share a writer."""
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, as_completed
 from contextlib import contextmanager
 from typing import Any, TypeVar
+
+from wonderverse.progress import ProgressFn, no_progress
 
 T = TypeVar("T")
 
@@ -22,26 +24,55 @@ def _in_prefect_task() -> bool:
     return TaskRunContext.get() is not None
 
 
-def fan_out(step: str, items: Sequence[Any], work: Callable[[Any], T], concurrency: int = 1) -> list[T]:
+def fan_out(
+    step: str,
+    items: Sequence[Any],
+    work: Callable[[Any], T],
+    concurrency: int = 1,
+    progress: ProgressFn | None = None,
+) -> list[T]:
     """[work(item) for item in items] with at most `concurrency` at once; results in input order.
+
+    progress(items finished, len(items), the item just finished) is called once before any item (0 of N)
+    and then as each item finishes, in completion order, from the calling thread (where the step's reporter
+    and Prefect task run are; worker threads see neither).
 
     Inside a Prefect task run (the step's), each item runs as a nested task run named "<step> <item>",
     so the UI shows per-segment work with its own state, duration and logs; a failure fails the step."""
+    report = progress or no_progress
+    n = len(items)
+    if n:
+        report(0, n, "")
+    out: list[Any] = [None] * n
     if not _in_prefect_task():
-        if concurrency <= 1 or len(items) <= 1:
-            return [work(item) for item in items]
+        if concurrency <= 1 or n <= 1:
+            for k, item in enumerate(items):
+                out[k] = work(item)
+                report(k + 1, n, str(item))
+            return out
         with ThreadPoolExecutor(concurrency) as pool:
-            return list(pool.map(work, items))
+            index = {pool.submit(work, item): k for k, item in enumerate(items)}
+            for done, future in enumerate(as_completed(index), 1):
+                out[index[future]] = future.result()
+                report(done, n, str(items[index[future]]))
+        return out
     from prefect import task
     from prefect.cache_policies import NO_CACHE
+    from prefect.futures import as_completed as prefect_as_completed
 
     per_item = task(name=f"{step} segment", cache_policy=NO_CACHE)(work)
     size = max(concurrency, 1)
-    out: list[T] = []
-    for start in range(0, len(items), size):
-        chunk = items[start : start + size]
-        futures = [per_item.with_options(task_run_name=f"{step} {item}").submit(item) for item in chunk]
-        out += [f.result() for f in futures]
+    done = 0
+    for start in range(0, n, size):
+        futures = [
+            per_item.with_options(task_run_name=f"{step} {item}").submit(item) for item in items[start : start + size]
+        ]
+        where = {id(f): start + j for j, f in enumerate(futures)}
+        for future in prefect_as_completed(futures):
+            k = where[id(future)]
+            out[k] = future.result()
+            done += 1
+            report(done, n, str(items[k]))
     return out
 
 
@@ -70,13 +101,19 @@ def map_segments(
     workers: int = 2,
     address: str | None = None,
     step: str = "segments",
+    progress: ProgressFn | None = None,
 ) -> list[T]:
     """[fn(item, *args) for item in items], run concurrently on Dask; results in input order.
 
-    One item or one worker runs in-process (no cluster start-up). `step` names the per-item task runs."""
+    One item or one worker runs in-process (no cluster start-up). `step` names the per-item task runs;
+    `progress` hears of each finished item as in `fan_out`."""
     if not items:
         return []
     if address is None and (workers <= 1 or len(items) == 1):
-        return fan_out(step, items, lambda item: fn(item, *args))
+        return fan_out(step, items, lambda item: fn(item, *args), progress=progress)
+    if progress is not None:
+        progress(0, len(items), "starting Dask workers" if address is None else "connecting to Dask")
     with _dask_client(address, min(workers, len(items))) as client:
-        return fan_out(step, items, lambda item: client.submit(fn, item, *args, pure=False).result(), len(items))
+        return fan_out(
+            step, items, lambda item: client.submit(fn, item, *args, pure=False).result(), len(items), progress
+        )

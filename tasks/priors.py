@@ -13,6 +13,7 @@ import numpy as np
 
 from tasks.base import Step
 from tasks.parallel import map_segments
+from tasks.progress import callback
 from tasks.segments import accepted_attempt, attempt_path, segment_ids
 from wonderverse.config import RunConfig
 from wonderverse.errors import WonderError
@@ -133,6 +134,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
         workers=cfg.steps.priors.workers,
         address=cfg.steps.priors.dask_address,
         step="priors",
+        progress=callback("segments with priors"),
     )
     for group in ("priors", "priors_raw"):
         for stale in set(store.children(group)) - set(segs):
