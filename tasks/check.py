@@ -17,6 +17,7 @@ import numpy as np
 from tasks.base import Step
 from tasks.generate_segments import render_attempt, write_attempt
 from tasks.parallel import map_segments
+from tasks.progress import callback
 from tasks.segments import attempt_ids, intrinsics, segment_ids
 from wonderverse.config import RunConfig
 from wonderverse.errors import WonderError
@@ -24,6 +25,7 @@ from wonderverse.store import SceneStore, cache_key, write_array
 
 log = logging.getLogger("wonderverse.check")
 VERSION = 1
+THIS_RUN = "this_run"  # the key of what `check_segment` did in this run (returned, never stored)
 
 
 def _params(cfg: RunConfig) -> dict[str, Any]:
@@ -71,17 +73,21 @@ def _badness(check: dict[str, Any]) -> tuple[int, float]:
 
 
 def check_segment(seg: str, scene_dir: str, cfg: RunConfig) -> dict[str, Any]:
-    """Check (and regenerate) one segment until an attempt passes; writes `segments/<seg>/accepted`."""
+    """Check (and regenerate) one segment until an attempt passes; writes `segments/<seg>/accepted`.
+
+    Returns that summary plus THIS_RUN: {"cached": the segment was already checked under this key,
+    "regenerated": attempts rendered by this call} (what this run did, not stored)."""
     store = SceneStore.open(scene_dir, mode="r+")
     seg_key = store.cache_key_of(f"segments/{seg}")
     if seg_key is None:
         raise WonderError(f"segment {seg} is not complete; run generate_segments first")
     key = segment_key(cfg, seg_key)
     if store.is_complete(f"segments/{seg}/accepted", key):
-        return store.attrs(f"segments/{seg}/accepted")
+        return store.attrs(f"segments/{seg}/accepted") | {THIS_RUN: {"cached": True, "regenerated": 0}}
     p = cfg.steps.check
     model = None
     checks: dict[int, dict[str, Any]] = {}
+    rendered = 0  # attempts a run before this one left (killed mid-check) are reused, not counted
     clips = cfg.scene.video.backend == "files"  # a user's clip cannot be regenerated
     for k in range(1 if clips else p.max_attempts):
         if k not in attempt_ids(store, seg):
@@ -94,6 +100,7 @@ def check_segment(seg: str, scene_dir: str, cfg: RunConfig) -> dict[str, Any]:
                 f"segments/{seg}/attempts/{k}", cache_key("attempt", VERSION, {"seed": seed}, [seg_key])
             ) as g:
                 write_attempt(g, video, seed, cfg.scene.video.backend)
+            rendered += 1
         checks[k] = _judge(store, cfg, seg, k, cache_key("attempt_check", VERSION, {"k": k}, [key]))
         if checks[k]["accepted"]:
             break
@@ -114,15 +121,24 @@ def check_segment(seg: str, scene_dir: str, cfg: RunConfig) -> dict[str, Any]:
             log.warning("segment %s kept its best failing attempt %d: %s", seg, best, "; ".join(reasons))
     with store.staged(f"segments/{seg}/accepted", key, **summary):
         pass
-    return summary
+    return summary | {THIS_RUN: {"cached": False, "regenerated": rendered}}
 
 
 def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     p = cfg.steps.check
     segs = segment_ids(store)
-    summaries = map_segments(
-        check_segment, segs, str(store.scene_dir), cfg, workers=p.workers, address=p.dask_address, step="check"
+    results = map_segments(
+        check_segment,
+        segs,
+        str(store.scene_dir),
+        cfg,
+        workers=p.workers,
+        address=p.dask_address,
+        step="check",
+        progress=callback("segments checked"),
     )
+    this_run = [s[THIS_RUN] for s in results]
+    summaries = [{k: v for k, v in s.items() if k != THIS_RUN} for s in results]
     extra = [s["extra_trials"] for s in summaries]
     dropped = [s["segment"] for s in summaries if s["dropped"]]
     failing = [s["segment"] for s in summaries if s["reasons"] and not s["dropped"]]
@@ -130,7 +146,9 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
         "check", key, segments=summaries, mean_extra_trials=float(np.mean(extra)), dropped=dropped, kept_failing=failing
     ):
         pass
-    msg = f"{len(segs)} segments, {sum(extra)} regenerated (mean extra trials {np.mean(extra):.2f})"
+    cached = sum(r["cached"] for r in this_run)
+    msg = f"{len(segs)} segments" + (f" ({cached} cached)" if cached else "")
+    msg += f", {sum(r['regenerated'] for r in this_run)} regenerated this run"
     return (
         msg
         + (f", dropped {', '.join(dropped)}" if dropped else "")
