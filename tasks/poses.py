@@ -24,16 +24,24 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 
 from tasks.base import Step
+from tasks.progress import advance
 from tasks.segments import accepted_attempt, attempt_path, stitched
 from wonderverse.camera import Sim3
 from wonderverse.config import PosesParams, RunConfig
 from wonderverse.errors import WonderError
+from wonderverse.progress import ProgressFn
 from wonderverse.store import SceneStore, cache_key, write_array
 
 if TYPE_CHECKING:
     from wonderverse.sfm import SfmResult, SfmWorkspace
 
 log = logging.getLogger("wonderverse.poses")
+UNIT = "SfM stages"
+
+
+def _report(prefix: str) -> ProgressFn:
+    """The SfM's progress as this step's, its notes led by `prefix` ("solve 2 of 3: matching features")."""
+    return lambda done, total, note: advance(done, total, UNIT, f"{prefix}{note}", eta=False)  # stages: no pace
 
 
 def _params(cfg: RunConfig) -> dict[str, Any]:
@@ -228,7 +236,8 @@ def _full_solve(
     tried = []
     for retry in range(p.disagreement_retries + 1):
         sfm = p.sfm.model_copy(update={"random_seed": p.sfm.random_seed + retry})
-        res = reconstruct(frames, sfm, K_prior=K, names=names, keep_workspace=True)
+        solve = f"solve {retry + 1} of up to {p.disagreement_retries + 1}: " if retry else ""
+        res = reconstruct(frames, sfm, K_prior=K, names=names, keep_workspace=True, progress=_report(solve))
         posed = bool(res.registered.any())
         worst = segment_disagreement(store, res.poses, keys) if posed else {}
         tried.append((posed, -max(worst.values(), default=0.0), retry, res, worst))
@@ -258,7 +267,9 @@ def _sfm_poses(
     if prev is not None:
         old_names = set(prev["sfm_names"])
         new_frames = {name: frames[k] for name, k in zip(names, sel, strict=True) if name not in old_names}
-        res, _ = extend_reconstruction(_load_workspace(store), names, new_frames, p.sfm)  # also in res.workspace
+        res, _ = extend_reconstruction(  # the workspace is also in res.workspace
+            _load_workspace(store), names, new_frames, p.sfm, progress=_report("extension: ")
+        )
         if res.gates_passed:
             poses, registered, points = _incremental_poses(store, prev, res, sel, index)
             sim_attrs = {"model_to_world": prev["model_to_world"], "kept_frame": prev.get("kept_frame")}

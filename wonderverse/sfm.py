@@ -48,6 +48,8 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from wonderverse.progress import ProgressFn, no_progress
+
 if TYPE_CHECKING:
     import pycolmap
 
@@ -56,6 +58,8 @@ if TYPE_CHECKING:
 # scene's first segment gave "no 3D points" (global) and a focal of 15 px instead of 208 (incremental);
 # held at the prior, the same frames gave every rotation step within 0.002 rad of the truth.
 PRIOR_FOCAL = "incremental_prior_focal"
+# What `progress` reports: done/total over these stages, the stage now running as the note.
+STAGES = ("writing frames", "extracting features", "matching features", "mapping")
 
 # COLMAP logs every mapper iteration through glog; keep warnings and errors only unless asked otherwise.
 os.environ.setdefault("GLOG_minloglevel", "2")
@@ -506,9 +510,11 @@ def _reconstruct_dir(
     timings: dict[str, float],
     keep_workspace: bool = False,
     K_known: bool = False,
+    progress: ProgressFn = no_progress,
 ) -> SfmResult:
     """SIFT + sequential matching + mapping over `names` in `image_dir` (all of size `size_wh`, in sequence
-    order); with `keep_workspace` the result carries the database and the kept model."""
+    order); with `keep_workspace` the result carries the database and the kept model. Reports stages 1-3
+    of `STAGES` to `progress` (not the last one, done: the caller's)."""
     import pycolmap
 
     pycolmap.set_random_seed(params.random_seed)
@@ -520,11 +526,13 @@ def _reconstruct_dir(
         # The prior both fixes the initial focal and marks it as trusted (has_prior_focal_length).
         reader.camera_params = _camera_params_string(K_prior, params.camera_model)
     t = time.perf_counter()
+    progress(1, len(STAGES), f"{STAGES[1]} ({len(names)} frames)")
     _extract(db_path, image_dir, names, params, reader)
     timings["extract"] = time.perf_counter() - t
 
     t = time.perf_counter()
     pairs = sequential_pairs(len(names), params.matcher_overlap, params.quadratic_overlap)
+    progress(2, len(STAGES), f"{STAGES[2]} ({len(pairs)} pairs)")
     verification = _match(db_path, [(names[i], names[j]) for i, j in pairs], params)
     timings["match"] = time.perf_counter() - t
 
@@ -550,7 +558,9 @@ def _reconstruct_dir(
     if K_prior is not None and params.prior_focal_fallback and not (hold and "incremental" in kinds):
         kinds.append(PRIOR_FOCAL)  # with the camera held, "incremental" already is this
     tried: list[tuple[str, tuple[SfmResult, Any] | None]] = []
-    for kind in kinds:
+    for k, kind in enumerate(kinds):
+        fallback = f", fallback {k} of {len(kinds) - 1}" if k else ""
+        progress(3, len(STAGES), f"{STAGES[3]} ({kind}{fallback})")
         out = run(kind)
         tried.append((kind, out))
         if out is not None and out[0].gates_passed:
@@ -603,6 +613,7 @@ def reconstruct(
     names: Sequence[str] | None = None,
     keep_workspace: bool = False,
     K_known: bool = False,
+    progress: ProgressFn | None = None,
 ) -> SfmResult:
     """Reconstruct one segment: (T,H,W,3) uint8 frames (or a list of (H,W,3) uint8), in sequence order ->
     SfmResult.
@@ -617,7 +628,9 @@ def reconstruct(
     COLMAP numbers images by sorted name and the global mapper depends on that (`tasks.poses.image_names`).
     keep_workspace: return the database and kept model in `result.workspace` (for
     `sfm_extend.extend_reconstruction`).
+    progress(stage, len(STAGES), what it is doing): each of `STAGES` as it starts, then done.
     """
+    report = progress or no_progress
     params = params or SfmParams()
     frame_list = _validate_frames(frames)
     K = _validate_K(K_prior)
@@ -633,10 +646,12 @@ def reconstruct(
         image_dir.mkdir(parents=True, exist_ok=True)
         timings: dict[str, float] = {}
         t = time.perf_counter()
+        report(0, len(STAGES), STAGES[0])
         write_png_frames(image_dir, names, frame_list)
         timings["write"] = time.perf_counter() - t
-        res = _reconstruct_dir(image_dir, names, sizes[0], params, K, work, timings, keep_workspace, K_known)
+        res = _reconstruct_dir(image_dir, names, sizes[0], params, K, work, timings, keep_workspace, K_known, report)
     res.timings["total"] = time.perf_counter() - t_start
+    report(len(STAGES), len(STAGES), f"{res.n_registered}/{len(names)} frames registered")
     return res
 
 

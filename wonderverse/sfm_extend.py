@@ -23,7 +23,9 @@ from typing import Any
 
 import numpy as np
 
+from wonderverse.progress import ProgressFn, no_progress
 from wonderverse.sfm import (
+    STAGES,
     SfmParams,
     SfmResult,
     SfmWorkspace,
@@ -88,6 +90,7 @@ def extend_reconstruction(
     new_frames: Mapping[str, np.ndarray],
     params: SfmParams | None = None,
     workdir: Path | None = None,
+    progress: ProgressFn | None = None,
 ) -> tuple[SfmResult, SfmWorkspace]:
     """Register new frames into the reconstruction held by `workspace`; returns (result, updated workspace).
 
@@ -106,10 +109,12 @@ def extend_reconstruction(
     else the database with the new frames' features and matches and the extended model. ValueError when
     `order` misses a workspace image, repeats a name, or `new_frames` does not match the names missing
     from the workspace.
+    progress(stage, len(STAGES), what it is doing) as each stage starts, then done (4 of 4).
     """
     import pycolmap
 
     params = params or SfmParams()
+    report = progress or no_progress
     order = _checked_names(order, len(order))
     frames = _validate_frames([new_frames[n] for n in new_frames])
     t_start = time.perf_counter()
@@ -154,6 +159,7 @@ def extend_reconstruction(
         image_dir = work / "images"
         image_dir.mkdir(parents=True, exist_ok=True)
         t = time.perf_counter()
+        report(0, len(STAGES), f"writing {len(wanted)} new frames")
         write_png_frames(image_dir, wanted, [new_frames[n] for n in wanted])
         timings["write"] = time.perf_counter() - t
 
@@ -162,18 +168,22 @@ def extend_reconstruction(
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = params.camera_model
         reader.existing_camera_id = camera.camera_id  # the scene's one camera, with its solved intrinsics
+        report(1, len(STAGES), "extracting features of the new frames")
         _extract(db_path, image_dir, wanted, params, reader)
         timings["extract"] = time.perf_counter() - t
 
         t = time.perf_counter()
         pairs = sequential_pairs(len(order), params.matcher_overlap, params.quadratic_overlap)
-        verification = _match(db_path, [(order[i], order[j]) for i, j in pairs if is_new[i] or is_new[j]], params)
+        new_pairs = [(order[i], order[j]) for i, j in pairs if is_new[i] or is_new[j]]
+        report(2, len(STAGES), f"matching the new frames ({len(new_pairs)} pairs)")
+        verification = _match(db_path, new_pairs, params)
         timings["match"] = time.perf_counter() - t
         feature_problems, _ = _feature_problems(db_path, order, verification.min_num_inliers)
 
         t = time.perf_counter()
         out_dir = work / "extended"
         out_dir.mkdir(exist_ok=True)
+        report(3, len(STAGES), "registering the new frames into the model")
         models = pycolmap.incremental_mapping(
             db_path, image_dir, out_dir, options=_extension_options(params), input_path=model_dir
         )
@@ -198,4 +208,5 @@ def extend_reconstruction(
         res.gates_passed = not res.problems
         res.workspace = SfmWorkspace.pack(db_path, rec, work / "kept")
     res.timings = timings | {"total": time.perf_counter() - t_start}
+    report(len(STAGES), len(STAGES), f"{int(res.registered[is_new].sum())}/{len(wanted)} new frames registered")
     return res, res.workspace
