@@ -31,9 +31,9 @@ app = typer.Typer(
     help="WonderVerse: text prompt -> extendable 3D scene.",
     pretty_exceptions_enable=False,
 )
-# Piped output is not cut to 80 columns: tables stay one row per line in logs and CI.
-console = Console(stderr=True, width=None if sys.stderr.isatty() else 140)
-out = Console(width=None if sys.stdout.isatty() else 140)
+# Piped output is not cut to 80 columns: tables stay one row per line in logs and CI, and lines are not wrapped.
+console = Console(stderr=True, width=None if sys.stderr.isatty() else 140, soft_wrap=not sys.stderr.isatty())
+out = Console(width=None if sys.stdout.isatty() else 140, soft_wrap=not sys.stdout.isatty())
 
 
 def _default_out(prompt: str) -> Path:
