@@ -319,9 +319,10 @@ def main() -> None:
 
 
 if __name__ == "__main__":  # `python -m flows.cli ...`, as `wonderverse ...` (supervised: see flows.supervise)
-    from flows.supervise import CHILD_ENV, run_supervised
+    from flows.supervise import CHILD_ENV, run_supervised, start_reaper
 
     if os.environ.get(CHILD_ENV) == "1":
+        start_reaper()
         main()
     else:
         sys.exit(run_supervised(sys.argv[1:]))

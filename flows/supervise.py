@@ -3,7 +3,9 @@
 The command runs in a child process of its own session, and this small parent only waits for it. A
 terminal's Ctrl-C (SIGINT), SIGTERM and SIGHUP therefore reach the parent alone: it kills the child's whole
 process group (the run, its Dask workers, Prefect's ephemeral server) with SIGKILL, says so in one line and
-exits 128 + the signal's number (130 for Ctrl-C, 143 for SIGTERM).
+exits 128 + the signal's number (130 for Ctrl-C, 143 for SIGTERM). Should the parent itself be killed
+(kill -9), a tiny reaper process in the child's group kills it as soon as the parent is gone, so no run, Dask worker
+or Prefect server outlives the command.
 
 Why a kill and not a graceful stop: the main thread may sit for a minute inside a C call (COLMAP's mapper,
 Open3D) where Python cannot interrupt it, Prefect and Dask react to SIGINT in their own ways (the first
@@ -39,11 +41,26 @@ def _kill_group(child: subprocess.Popen) -> None:
             p.kill()
 
 
+# Kills its process group (the child's: the run, its workers, Prefect's server) once the parent is gone,
+# however it went (kill -9 included): it waits for the end of a pipe whose only writer is the parent. As a
+# member of the group it also keeps the group's id from being reused by an unrelated process meanwhile.
+_REAPER = """import os, signal
+os.read(0, 1)
+os.killpg(os.getpgrp(), signal.SIGKILL)
+"""
+_PARENT_FD_ENV = "WONDERVERSE_PARENT_FD"
+
+
 def run_supervised(argv: list[str]) -> int:
     """Run `python -m flows.cli ARGV` as a child in its own session; returns the exit code to use."""
+    parent_alive, _writer = os.pipe()  # the write end stays open in this process only, until it exits
     child = subprocess.Popen(
-        [sys.executable, "-m", "flows.cli", *argv], env={**os.environ, CHILD_ENV: "1"}, start_new_session=True
+        [sys.executable, "-m", "flows.cli", *argv],
+        env={**os.environ, CHILD_ENV: "1", _PARENT_FD_ENV: str(parent_alive)},
+        start_new_session=True,
+        pass_fds=(parent_alive,),
     )
+    os.close(parent_alive)
     stops: list[int] = []
 
     def stop(signum: int, frame: object) -> None:
@@ -75,11 +92,21 @@ def run_supervised(argv: list[str]) -> int:
     return rc
 
 
+def start_reaper() -> None:
+    """In the child: start the reaper of this process group, reading the parent's pipe."""
+    fd = os.environ.pop(_PARENT_FD_ENV, None)
+    if fd is None:
+        return
+    subprocess.Popen([sys.executable, "-c", _REAPER], stdin=int(fd))
+    os.close(int(fd))
+
+
 def main() -> None:
     """`wonderverse ...`: supervise the command, or (in the child) run it."""
     if os.environ.get(CHILD_ENV) == "1":
         from flows.cli import main as run_command
 
+        start_reaper()
         run_command()
         return
     sys.exit(run_supervised(sys.argv[1:]))

@@ -39,7 +39,7 @@ def tiny_file(tmp_path: Path, **scene) -> Path:
         (["generate", "x" * 10_000], "prompt has 10000 characters"),
         (["generate", "a forest", "--preset", "turbo"], "unknown preset 'turbo'"),
         (["generate", "a forest", "--until", "nope"], "unknown step 'nope'"),
-        (["generate", "a forest", "--engine", "warp"], "--engine must be prefect or local"),
+        (["generate", "a forest", "--engine", "warp"], "--engine must be auto, prefect or local"),
         (["inspect", "/nonexistent/scene"], "holds no scene store"),
     ],
 )
@@ -124,12 +124,12 @@ def prefect_task_runs(home: Path) -> dict[str, str]:
 
 
 def test_generate_through_prefect_engine(tmp_path: Path):
-    """The default engine: a real Prefect flow (ephemeral local API, no server to start) whose task runs are the
+    """`--engine prefect`: a real Prefect flow (ephemeral local API, no server to start) whose task runs are the
     steps and, nested in them, one per segment; a re-run records the steps as cached."""
     home = tmp_path / "prefect"
     env = {"PREFECT_HOME": str(home), "PREFECT_SERVER_ANALYTICS_ENABLED": "false"}
     cfg = tiny_file(tmp_path, prompt="a cosy reading room with shelves", extensions={"directions": ["left"]})
-    args = ("generate", "--config", str(cfg), "--out", str(tmp_path / "s"), "--until", "check")
+    args = ("generate", "--config", str(cfg), "--out", str(tmp_path / "s"), "--until", "check", "--engine", "prefect")
     r = run_cli(*args, env=env, timeout=400)
     assert r.returncode == 0, r.stderr[-3000:]
     assert "generate_segments" in r.stderr and "ran" in r.stderr

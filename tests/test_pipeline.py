@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import psutil
 import pytest
 import yaml
 from conftest import ROOT, tiny_config
@@ -123,8 +124,11 @@ def test_sigkill_during_generation_resumes_from_last_complete_segment(tmp_path: 
         if done and staging.exists() and any(p.is_dir() for p in staging.iterdir()):
             break
         time.sleep(0.05)
-    child.send_signal(signal.SIGKILL)
+    run = psutil.Process(child.pid).children(recursive=True)  # the command's worker process and its own
+    child.send_signal(signal.SIGKILL)  # kill -9 of the command: its reaper takes the run down with it
     child.wait()
+    _, alive = psutil.wait_procs(run, timeout=10)
+    assert not alive, [p.cmdline() for p in alive]
 
     store = SceneStore.open(scene)
     committed = store.children("segments")

@@ -155,3 +155,17 @@ def test_a_rerun_keeps_the_extensions_and_a_changed_prompt_is_refused_unless_ask
     assert r.returncode == 0, r.stderr
     store = SceneStore.open(scene)
     assert segment_ids(store) == ["s000"] and store.root.attrs["config"]["scene"]["prompt"] == "a desert canyon at noon"
+
+
+@pytest.mark.slow
+def test_kill_9_of_the_command_takes_its_run_and_prefects_server_down(tmp_path):
+    scene = tmp_path / "scene"
+    args = ("generate", "--config", str(tiny_spec(tmp_path)), "--out", str(scene), "--engine", "prefect")
+    proc = start_cli(*args, env=prefect_env(tmp_path))
+    wait_for_line(proc, "] generate_segments:")  # Prefect's ephemeral server is up by now
+    run = psutil.Process(proc.pid).children(recursive=True)
+    assert any("uvicorn" in " ".join(p.cmdline()) for p in run), [p.cmdline() for p in run]
+    proc.kill()
+    proc.wait()
+    _, alive = psutil.wait_procs(run, timeout=5)
+    assert not alive, [p.cmdline() for p in alive]
