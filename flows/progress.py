@@ -46,7 +46,7 @@ class PlainReporter(_StepLines):
 
     def advance(self, done: int, total: int, unit: str, note: str = "", eta: bool = True) -> None:
         self.rate.update(unit, done)
-        if self.rate.line_due(done, total):
+        if self.rate.line_due(done, total) or not eta:
             line = describe(done, total, unit, note, self.rate.seconds_left(done, total) if eta else None)
             self.console.print(f"[{self.done + 1}/{self.total}] {self.step}: {line}", highlight=False)
 

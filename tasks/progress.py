@@ -99,7 +99,8 @@ def _prefect_logger() -> logging.Logger | logging.LoggerAdapter | None:
 
 def advance(done: int, total: int, unit: str, note: str = "", eta: bool = True) -> None:
     """Report that `done` of `total` `unit` of the running step are finished. `eta=False`: units of very
-    unequal length (stages), whose pace so far says nothing of the time left; none is shown."""
+    unequal length (stages), whose pace so far says nothing of the time left: none is shown, and each
+    report is a plain line (stages are few, and a long one would otherwise go unnamed in a log)."""
     current.get().advance(done, total, unit, note, eta=eta)
     logger = _prefect_logger()
     if logger is None:
@@ -109,7 +110,7 @@ def advance(done: int, total: int, unit: str, note: str = "", eta: bool = True) 
         rate = Rate()
         _prefect_rate.set(rate)
     rate.update(unit, done)
-    if rate.line_due(done, total):
+    if rate.line_due(done, total) or not eta:
         logger.info(describe(done, total, unit, note, rate.seconds_left(done, total) if eta else None))
 
 
