@@ -131,6 +131,8 @@ def test_plain_lines_of_the_run(run) -> None:
     assert re.search(rf"\[6/7\] splats: iterations {ITERATIONS}/{ITERATIONS} \(100 %\), loss \d", text), text
     assert re.search(r"\[3/7\] check: segments checked 3/3 \(100 %\), s00\d", text), text
     assert "[4/7] poses: SfM stages 0/4 (0 %), writing frames\n" in text, text
+    assert "[4/7] poses: SfM stages 3/4 (75 %), mapping (" in text, text  # stages: a line each, unthrottled
+    assert not re.search(r"poses: SfM stages.* left", text), text
     # throttled (a unit's first and last report, then one every 10 s): 101 reports, a few lines
     assert len(run["rec"].of("iterations")) == ITERATIONS + 1
     assert 2 <= len([ln for ln in text.splitlines() if "splats: iterations" in ln]) <= 4
@@ -250,3 +252,4 @@ def test_prefect_task_runs_log_the_progress(run, tmp_path: Path) -> None:
     assert any(re.match(rf"iterations 0/{ITERATIONS} \(0 %\), \d+ Gaussians$", m) for m in splats), logs
     assert any(re.match(rf"iterations {ITERATIONS}/{ITERATIONS} \(100 %\), loss \d", m) for m in splats), logs
     assert any(re.match(r"segments checked 3/3 \(100 %\), s00\d$", m) for m in logs.get("check", [])), logs
+    assert any(m.startswith("SfM stages 3/4 (75 %), mapping (") for m in logs.get("poses", [])), logs
