@@ -148,18 +148,19 @@ def _finish(scene_dir: Path, results: list[Any]) -> None:
     if changed and (Path(scene_dir) / PREVIEW_FILE).exists():
         write_preview(scene_dir)
     out.print(f"scene: {scene_dir}", highlight=False)
-    if any(r.step == "outputs" for r in results):
-        for f in _output_files(scene_dir):
-            out.print(f"  {f}", highlight=False)
+    for f in _output_files(scene_dir, {r.step for r in results}):
+        out.print(f"  {f}", highlight=False)
     out.print(f"report: {report}", highlight=False)
 
 
-def _output_files(scene_dir: Path) -> list[Path]:
-    """The files the outputs step wrote (empty when it has not run)."""
+def _output_files(scene_dir: Path, steps: set[str]) -> list[Path]:
+    """The files that `steps` of this run wrote or found current: splats.ply, then the outputs step's."""
     from wonderverse.store import SceneStore
 
-    files = SceneStore.open(scene_dir).attrs("outputs").get("files", [])
-    return [Path(scene_dir) / f["path"] for f in files]
+    files = [Path(scene_dir) / "splats.ply"] if "splats" in steps else []
+    if "outputs" in steps:
+        files += [Path(scene_dir) / f["path"] for f in SceneStore.open(scene_dir).attrs("outputs").get("files", [])]
+    return files
 
 
 @app.command()

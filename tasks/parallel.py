@@ -87,7 +87,14 @@ def _dask_client(address: str | None, n_workers: int) -> Iterator[Any]:
     # Worker processes use one thread each: the work inside (SfM, rendering) sets its own thread count.
     with (
         LocalCluster(
-            n_workers=n_workers, threads_per_worker=1, processes=True, dashboard_address=None, host="127.0.0.1"
+            n_workers=n_workers,
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            # The scheduler serves HTTP whatever the dashboard setting; on a free port, so a busy 8787 (another
+            # cluster, a dashboard) costs no "Port 8787 is already in use" warning. No dashboard.
+            dashboard_address="127.0.0.1:0",
+            scheduler_kwargs={"dashboard": False},
         ) as cluster,
         Client(cluster) as client,
     ):

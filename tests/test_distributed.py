@@ -119,3 +119,23 @@ def test_segments_are_checked_and_their_priors_written_on_the_cluster_workers(cl
         assert set(on) <= set(workers) and os.getpid() not in {workers[w] for w in on}
     assert len({w for _, w in ran}) == 2, ran  # both workers took part
     print(f"until priors on the 2-worker cluster: {seconds:.1f} s", [(r.step, round(r.seconds, 1)) for r in results])
+
+
+def _double(x: int) -> int:
+    return 2 * x
+
+
+def test_a_local_cluster_says_nothing_when_port_8787_is_taken(recwarn):
+    """Another cluster or dashboard on 8787 (common) must not put "Port 8787 is already in use" on the user's
+    terminal: our LocalCluster serves its scheduler's HTTP on a free port."""
+    import contextlib
+    import socket
+
+    from tasks.parallel import map_segments
+
+    with socket.socket() as busy:
+        with contextlib.suppress(OSError):  # taken already: the case itself
+            busy.bind(("127.0.0.1", 8787))
+            busy.listen()
+        assert map_segments(_double, [1, 2, 3], workers=2) == [2, 4, 6]
+    assert not [w for w in recwarn if "already in use" in str(w.message)], [str(w.message) for w in recwarn]

@@ -60,6 +60,7 @@ def test_sigkill_during_training_resumes_from_its_checkpoint(tmp_path: Path, tra
     import sys
     import time
 
+    import psutil
     import yaml
     from conftest import ROOT
 
@@ -90,8 +91,11 @@ def test_sigkill_during_training_resumes_from_its_checkpoint(tmp_path: Path, tra
     while SceneStore.open(scene).attrs("splats_checkpoint").get("complete") is not True:
         assert child.poll() is None and time.monotonic() < deadline, "training ended before a checkpoint"
         time.sleep(0.1)
-    child.send_signal(signal.SIGKILL)
+    run = psutil.Process(child.pid).children(recursive=True)  # the command's worker process
+    child.send_signal(signal.SIGKILL)  # kill -9 of the command: its reaper takes the run down with it
     child.wait()
+    _, alive = psutil.wait_procs(run, timeout=10)
+    assert not alive, [p.cmdline() for p in alive]
     step = SceneStore.open(scene).attrs("splats_checkpoint")["step"]
     assert 20 <= step < 200 and not SceneStore.open(scene).exists("splats")
     with caplog.at_level("WARNING", logger="wonderverse.splats"):
