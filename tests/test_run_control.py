@@ -137,6 +137,8 @@ def test_a_rerun_keeps_the_extensions_and_a_changed_prompt_is_refused_unless_ask
     assert store.root.attrs["config"]["scene"]["extensions"]["added"] == ["go left past the trees"]
     assert "cached" in next(ln for ln in r.stderr.splitlines() if "] generate_segments:" in ln)
 
+    assert run_cli("preview", str(scene)).returncode == 0
+    preview = (scene / "preview.mp4").read_bytes()
     before = tree_digest(scene)
     other = tiny_spec(tmp_path, prompt="a desert canyon at noon", extensions={"rounds": 0})
     for engine in ("local", "prefect"):
@@ -155,6 +157,7 @@ def test_a_rerun_keeps_the_extensions_and_a_changed_prompt_is_refused_unless_ask
     assert r.returncode == 0, r.stderr
     store = SceneStore.open(scene)
     assert segment_ids(store) == ["s000"] and store.root.attrs["config"]["scene"]["prompt"] == "a desert canyon at noon"
+    assert (scene / "preview.mp4").read_bytes() != preview  # derived files follow the scene they show
 
 
 @pytest.mark.slow
