@@ -87,6 +87,7 @@ def generate(
     from flows.extend import with_extensions
     from flows.pipeline import run_pipeline, steps_until, stored_config
     from wonderverse.config import build_config, read_yaml
+    from wonderverse.store import check_scene_dir
 
     check_engine(engine)
     try:
@@ -97,6 +98,7 @@ def generate(
         raise WonderError(f"unknown step {until!r}; steps are: {', '.join(STEP_NAMES)}") from None
     file_prompt = (read_yaml(config).get("scene") or {}).get("prompt") if config else None
     scene_dir = out_dir or _default_out(str(prompt if prompt is not None else file_prompt or ""))
+    check_scene_dir(scene_dir)  # a bad --out is refused before anything slow
     stored = stored_config(scene_dir)
     name, why = _choose_preset(preset, config, stored)
     overrides: dict = {"scene": {"seed": seed}} if seed is not None else {}
@@ -178,6 +180,7 @@ def reconstruct(
     """Reconstruct your own clips (any video generator or a phone): check, poses, priors, splats, outputs."""
     from flows.pipeline import run_pipeline, stored_config
     from wonderverse.config import build_config
+    from wonderverse.store import check_scene_dir
     from wonderverse.video.files import group_sources
 
     check_engine(engine)
@@ -198,6 +201,7 @@ def reconstruct(
         "steps": {"check": {"on_failure": on_failure}},
     }
     scene_dir = out_dir or _default_out(Path(paths[0]).stem)
+    check_scene_dir(scene_dir)
     name, why = _choose_preset(preset, None, stored_config(scene_dir))
     cfg = build_config(
         prompt=f"reconstruction of {', '.join(Path(p).name for p in paths)}", preset=name, overrides=overrides
@@ -280,8 +284,11 @@ def inspect(
 def preview(scene_dir: Annotated[Path, typer.Argument(help="scene folder")]) -> None:
     """Write preview.mp4 (the stitched video), contact_sheet.png and plots/ (check plots, top views)."""
     from flows.preview import write_preview
+    from flows.report import REPORT_NAME, write_report
 
     files = write_preview(scene_dir)
+    if (scene_dir / REPORT_NAME).exists():  # it lists these files: keep it current
+        files.append(write_report(scene_dir, only_if_stale=True))
     for f in files:
         out.print(f"wrote {f}", highlight=False)
 

@@ -652,7 +652,7 @@ def report_state(store: SceneStore, params: ReportParams | None = None) -> str:
     Covers every group's attributes (cache keys and completeness of the steps, segments, attempts, checks,
     accepted pointers and priors; the spec and config; step times; metrics and curves) and every array's
     metadata, all as the bytes of the store's `zarr.json` files; the step keys the stored config expects
-    now (they decide complete or stale); the scene folder's path and the name, size and time of each file
+    now (they decide complete or stale); the scene folder's path and the name and size of each file
     beside the store; the report's parameters; and the code that draws the report (WonderVerse's version
     and the report modules' source). Cheap: metadata files only, no array and no plotting library
     (4 ms on a tiny scene; 0.09 s with 10 MB of training curves in the splats' attributes)."""
@@ -687,8 +687,8 @@ def report_state(store: SceneStore, params: ReportParams | None = None) -> str:
         for e in entries:
             if e.name.startswith(".") or e.name in (REPORT_NAME, STORE_NAME):
                 continue  # the lock file, reports being written, this report, the store (above)
-            st = e.stat()
-            beside.append((e.name, e.is_dir(), 0 if e.is_dir() else st.st_size, st.st_mtime_ns))
+            # Name and size, as the Files table shows them (a file rewritten by a step changes the store too).
+            beside.append((e.name, e.is_dir(), 0 if e.is_dir() else e.stat().st_size))
     add("beside", json.dumps(sorted(beside)).encode())
     return h.hexdigest()
 

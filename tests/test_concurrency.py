@@ -134,3 +134,27 @@ def test_lock_creates_a_new_scene_folder_and_refuses_a_foreign_one_untouched(tmp
         pass
     with pytest.raises(StoreError, match="cannot write to output folder"), scene_lock(blocker / "scene"):
         pass
+
+
+def test_a_bad_output_folder_is_refused_before_anything_is_made(tmp_path: Path):
+    from wonderverse.store import check_scene_dir
+
+    a_file = tmp_path / "a-file"
+    a_file.write_text("x")
+    locked = tmp_path / "locked"
+    locked.mkdir()
+    locked.chmod(0o500)
+    cases = [
+        (a_file, "is not a folder"),
+        (a_file / "deeper" / "scene", "a-file is not a folder"),
+        (tmp_path, "not empty and holds no scene"),
+    ]
+    if os.geteuid() != 0:  # root may write anywhere
+        cases.append((locked / "scene", "permission denied"))
+    before = sorted(p.name for p in tmp_path.rglob("*"))
+    for path, message in cases:
+        with pytest.raises(StoreError, match=message):
+            check_scene_dir(path)
+    assert sorted(p.name for p in tmp_path.rglob("*")) == before  # nothing created
+    check_scene_dir(tmp_path / "new" / "scene")  # a folder that can be made is fine
+    assert not (tmp_path / "new").exists()

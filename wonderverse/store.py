@@ -258,6 +258,24 @@ def _holder(lock_file: Path) -> str:
         return "holder not yet recorded"  # it has the lock but has not written its details yet
 
 
+def check_scene_dir(scene_dir: Path | str) -> None:
+    """StoreError, touching nothing, when `scene_dir` cannot hold a scene: a file, a non-empty folder that holds
+    no scene, or a folder that could not be created or written (the nearest existing ancestor is a file or not
+    writable). Cheap, so a command can refuse a bad --out before anything slow."""
+    scene_dir = Path(scene_dir)
+    if scene_dir.exists() and not scene_dir.is_dir():
+        raise StoreError(f"output path {scene_dir} exists and is not a folder")
+    lock_file = scene_dir / LOCK_NAME
+    foreign = scene_dir.is_dir() and not (scene_dir / STORE_NAME).exists() and not lock_file.exists()
+    if foreign and any(scene_dir.iterdir()):
+        raise StoreError(f"output folder {scene_dir} is not empty and holds no scene; choose another --out")
+    existing = next(p for p in (scene_dir, *scene_dir.absolute().parents) if p.exists() or p == p.parent)
+    if not existing.is_dir():
+        raise StoreError(f"cannot write to output folder {scene_dir}: {existing} is not a folder")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise StoreError(f"cannot write to output folder {scene_dir}: permission denied on {existing}")
+
+
 @contextmanager
 def scene_lock(scene_dir: Path | str, wait_s: float = 0.0, poll_s: float = 0.1) -> Iterator[Path]:
     """Hold the one-writer lock of a scene while the block runs; yields the lock file's path.
@@ -274,11 +292,7 @@ def scene_lock(scene_dir: Path | str, wait_s: float = 0.0, poll_s: float = 0.1) 
 
     scene_dir = Path(scene_dir)
     lock_file = scene_dir / LOCK_NAME
-    if scene_dir.exists() and not scene_dir.is_dir():
-        raise StoreError(f"output path {scene_dir} exists and is not a folder")
-    foreign = scene_dir.is_dir() and not (scene_dir / STORE_NAME).exists() and not lock_file.exists()
-    if foreign and any(scene_dir.iterdir()):
-        raise StoreError(f"output folder {scene_dir} is not empty and holds no scene; choose another --out")
+    check_scene_dir(scene_dir)
     try:
         scene_dir.mkdir(parents=True, exist_ok=True)
         fd = os.open(lock_file, os.O_RDWR | os.O_CREAT, 0o644)  # no O_TRUNC: the holder's details stay readable
