@@ -10,6 +10,7 @@ from tasks import STEPS, step_keys
 from tasks.segments import accepted_attempt, attempt_ids, segment_ids
 from wonderverse.config import validate_config
 from wonderverse.errors import WonderError
+from wonderverse.schema import ATTEMPT, SEGMENT, SEGMENTS
 from wonderverse.store import SceneStore
 
 
@@ -45,17 +46,17 @@ def summarize(store: SceneStore) -> dict[str, Any]:
         steps.append({"name": s.name, "group": s.group, "status": status, "cache_key": key})
     segments = []
     for seg in segment_ids(store):
-        a = store.attrs(f"segments/{seg}")
+        a = store.attrs(SEGMENT.at(seg=seg))
         attempts = []
         for k in attempt_ids(store, seg):
-            ap = f"segments/{seg}/attempts/{k}"
+            ap = ATTEMPT.at(seg=seg, attempt=k)
             at = store.attrs(ap)
             attempts.append(
                 {
                     "index": k,
                     "seed": at.get("seed"),
-                    "check": store.attrs(f"{ap}/check") or None,
-                    "faults": store.attrs(f"{ap}/gt").get("faults") if store.exists(f"{ap}/gt") else None,
+                    "check": store.attrs(ap.check) or None,
+                    "faults": store.attrs(ap.gt).get("faults") if store.exists(ap.gt) else None,
                     "arrays": _arrays(store, ap),
                     "bytes": store.size_bytes(ap),
                 }
@@ -86,7 +87,7 @@ def summarize(store: SceneStore) -> dict[str, Any]:
         "format": root.get("format"),
         "wonderverse_version": root.get("wonderverse_version"),
         "spec": root.get("spec"),
-        "order": store.attrs("segments").get("order", []),
+        "order": store.attrs(SEGMENTS.path).get("order", []),
         "steps": steps,
         "segments": segments,
         "extensions": extensions,

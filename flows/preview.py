@@ -9,6 +9,7 @@ import numpy as np
 
 from tasks.segments import attempt_ids, segment_ids, stitched
 from wonderverse.errors import WonderError
+from wonderverse.schema import ATTEMPT, SFM
 from wonderverse.store import SceneStore
 
 PREVIEW_FILE = "preview.mp4"
@@ -44,8 +45,8 @@ def write_plots(store: SceneStore, out: Path) -> list[Path]:
     written = []
     for seg in segment_ids(store):
         for k in attempt_ids(store, seg):
-            ap = f"segments/{seg}/attempts/{k}"
-            attrs = store.attrs(f"{ap}/check")
+            ap = ATTEMPT.at(seg=seg, attempt=k)
+            attrs = store.attrs(ap.check)
             if attrs.get("complete") is not True:
                 continue
             p = out / f"{seg}_attempt{k}_check.png"
@@ -54,17 +55,17 @@ def write_plots(store: SceneStore, out: Path) -> list[Path]:
             p = out / f"{seg}_attempt{k}_topview.png"
             p.write_bytes(
                 trajectory_topview_plot(
-                    [store.array(f"{ap}/sfm/poses")],
+                    [store.array(ap.sfm.poses)],
                     [f"{seg}/{k} SfM"],
                     f"{seg} attempt {k}: SfM camera path (top view)",
                 )
             )
             written.append(p)
-    if store.cache_key_of("sfm"):
+    if store.cache_key_of(SFM.path):
         p = out / "trajectory_topview.png"
         p.write_bytes(
             trajectory_topview_plot(
-                [store.array("sfm/poses")], ["global"], "stitched video: global camera path (top view)"
+                [store.array(SFM.poses)], ["global"], "stitched video: global camera path (top view)"
             )
         )
         written.append(p)

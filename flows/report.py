@@ -43,6 +43,7 @@ from wonderverse.report import (
     VideoClip,
     render_html,
 )
+from wonderverse.schema import ATTEMPT, CHECK, OUTPUTS, PLAN, PRIORS_SEGMENT, SEGMENT, SFM, SPLATS
 from wonderverse.store import STORE_NAME, SceneStore
 
 log = logging.getLogger("wonderverse.report")
@@ -149,12 +150,12 @@ def _attempt(store: SceneStore, seg: str, k: int, chosen: int | None, params: An
     from flows.preview import _check_result
     from wonderverse.plots import segment_check_plot
 
-    ap = f"segments/{seg}/attempts/{k}"
+    ap = ATTEMPT.at(seg=seg, attempt=k)
     info = AttemptInfo(index=k, seed=store.attrs(ap).get("seed"), chosen=k == chosen)
-    has_gt = store.exists(f"{ap}/gt")
+    has_gt = store.exists(ap.gt)
     if has_gt:
-        info.fault = _fault_words(store.attrs(f"{ap}/gt").get("faults"))
-    check = store.attrs(f"{ap}/check")
+        info.fault = _fault_words(store.attrs(ap.gt).get("faults"))
+    check = store.attrs(ap.check)
     if check.get("complete") is not True:
         return info
     info.accepted = bool(check.get("accepted"))
@@ -164,9 +165,9 @@ def _attempt(store: SceneStore, seg: str, k: int, chosen: int | None, params: An
     info.registered_frac = check.get("registered_frac")
     info.sfm_seconds = check.get("sfm_seconds")
     info.check_plot = segment_check_plot(_check_result(check), params, f"{seg} attempt {k}")
-    if _has_array(store, f"{ap}/sfm/poses"):
-        est = store.array(f"{ap}/sfm/poses")
-        gt = store.array(f"{ap}/gt/poses") if has_gt and _has_array(store, f"{ap}/gt/poses") else None
+    if _has_array(store, ap.sfm.poses):
+        est = store.array(ap.sfm.poses)
+        gt = store.array(ap.gt.poses) if has_gt and _has_array(store, ap.gt.poses) else None
         info.topview = _topview(est, gt, "SfM", f"{seg} attempt {k}: camera path from above")
         if gt is not None:
             info.metrics["SfM ATE (% of path)"] = _ate_percent(est, gt)
@@ -174,7 +175,7 @@ def _attempt(store: SceneStore, seg: str, k: int, chosen: int | None, params: An
 
 
 def _status(store: SceneStore, seg: str, n_attempts: int) -> tuple[str, bool | None]:
-    acc = store.attrs(f"segments/{seg}/accepted")
+    acc = store.attrs(SEGMENT.at(seg=seg).accepted)
     if acc.get("complete") is True:
         if acc.get("dropped"):
             return f"dropped after {acc.get('attempts', n_attempts)} attempts", False
@@ -190,43 +191,42 @@ def _previews(store: SceneStore, seg: str, p: ReportParams) -> list[Picture]:
     """Depth/normal priors of a few frames beside the frame (and the ground truth when there is one)."""
     from wonderverse.report import depth_normal_preview
 
-    if store.cache_key_of(f"priors/{seg}") is None or accepted_attempt(store, seg) is None:
+    if store.cache_key_of(PRIORS_SEGMENT.at(seg=seg)) is None or accepted_attempt(store, seg) is None:
         return []
     ap = attempt_path(store, seg)
-    shape = _shape(store, f"priors/{seg}/depth")
-    if shape is None or not _has_array(store, f"priors/{seg}/normals"):
+    shape = _shape(store, PRIORS_SEGMENT.at(seg=seg).depth)
+    if shape is None or not _has_array(store, PRIORS_SEGMENT.at(seg=seg).normals):
         return []
     idx = np.unique(np.linspace(0, shape[0] - 1, p.preview_frames).round().astype(int))
-    gt = store.exists(f"{ap}/gt") and _has_array(store, f"{ap}/gt/depth") and _has_array(store, f"{ap}/gt/normals")
+    gt = store.exists(ap.gt) and _has_array(store, ap.gt.depth) and _has_array(store, ap.gt.normals)
     png = depth_normal_preview(
-        _rows(store, f"{ap}/frames", idx),
-        _rows(store, f"priors/{seg}/depth", idx),
-        _rows(store, f"priors/{seg}/normals", idx).astype(np.float32),
+        _rows(store, ap.frames, idx),
+        _rows(store, PRIORS_SEGMENT.at(seg=seg).depth, idx),
+        _rows(store, PRIORS_SEGMENT.at(seg=seg).normals, idx).astype(np.float32),
         [f"frame {i}" for i in idx],
-        gt_depth=_rows(store, f"{ap}/gt/depth", idx) if gt else None,
-        gt_normals=_rows(store, f"{ap}/gt/normals", idx).astype(np.float32) if gt else None,
+        gt_depth=_rows(store, ap.gt.depth, idx) if gt else None,
+        gt_normals=_rows(store, ap.gt.normals, idx).astype(np.float32) if gt else None,
         thumb_width_px=p.preview_thumb_width_px,
     )
-    kind = store.attrs(f"priors/{seg}").get("kind", "")
+    kind = store.attrs(PRIORS_SEGMENT.at(seg=seg)).get("kind", "")
     words = f" (the network predicts {kind.replace('_', ' ')})" if kind else ""
     return [Picture(png, f"{seg}: depth (turbo, near = warm, sky grey) and normal priors{words}")]
 
 
 def _global_gt(store: SceneStore) -> tuple[np.ndarray, np.ndarray] | None:
     """(global SfM poses, ground-truth poses of the same stitched frames), when every frame has GT."""
-    if store.cache_key_of("sfm") is None:
+    if store.cache_key_of(SFM.path) is None:
         return None
-    segs = store.attrs("sfm").get("segments", [])
-    index = store.array("sfm/frame_index")
+    segs = store.attrs(SFM.path).get("segments", [])
+    index = store.array(SFM.frame_index)
     gts: dict[str, np.ndarray] = {}
     for seg in segs:
         k = accepted_attempt(store, seg)
-        path = f"segments/{seg}/attempts/{k}/gt/poses"
-        if k is None or not _has_array(store, path):
+        if k is None or not _has_array(store, ATTEMPT.at(seg=seg, attempt=k).gt.poses):
             return None
-        gts[seg] = store.array(path)
+        gts[seg] = store.array(ATTEMPT.at(seg=seg, attempt=k).gt.poses)
     gt = np.stack([gts[segs[a]][i] for a, i in index]) if len(index) else np.zeros((0, 4, 4))
-    return store.array("sfm/poses"), gt
+    return store.array(SFM.poses), gt
 
 
 def _prior_errors(store: SceneStore, segments: list[SegmentInfo], sfm_to_gt_scale: float) -> dict[str, Any]:
@@ -238,14 +238,14 @@ def _prior_errors(store: SceneStore, segments: list[SegmentInfo], sfm_to_gt_scal
     tot = {"d_n": 0, "absrel": 0.0, "delta1": 0.0, "sq": 0.0, "n_n": 0, "deg": 0.0, "good": 0.0}
     for info in segments:
         seg = info.id
-        if store.cache_key_of(f"priors/{seg}") is None or accepted_attempt(store, seg) is None:
+        if store.cache_key_of(PRIORS_SEGMENT.at(seg=seg)) is None or accepted_attempt(store, seg) is None:
             continue
         ap = attempt_path(store, seg)
-        if not (_has_array(store, f"{ap}/gt/depth") and _has_array(store, f"{ap}/gt/normals")):
+        if not (_has_array(store, ap.gt.depth) and _has_array(store, ap.gt.normals)):
             continue
-        prior = store.array(f"priors/{seg}/depth")
-        d = depth_errors(prior, store.array(f"{ap}/gt/depth") * sfm_to_gt_scale, mask=np.isfinite(prior))
-        n = normal_errors(store.array(f"priors/{seg}/normals"), store.array(f"{ap}/gt/normals"))
+        prior = store.array(PRIORS_SEGMENT.at(seg=seg).depth)
+        d = depth_errors(prior, store.array(ap.gt.depth) * sfm_to_gt_scale, mask=np.isfinite(prior))
+        n = normal_errors(store.array(PRIORS_SEGMENT.at(seg=seg).normals), store.array(ap.gt.normals))
         info.metrics |= {
             "depth prior AbsRel": d["absrel"],
             "depth prior δ1 (%)": 100 * d["delta1"] if d["n"] else None,
@@ -281,14 +281,14 @@ def _prior_errors(store: SceneStore, segments: list[SegmentInfo], sfm_to_gt_scal
 def _segments(store: SceneStore, p: ReportParams) -> list[SegmentInfo]:
     """Planned segments (from the plan, else from the store) with attempts, status and previews."""
     params = _check_params(store)
-    plan = store.attrs("plan") if store.cache_key_of("plan") else {}
+    plan = store.attrs(PLAN.path) if store.cache_key_of(PLAN.path) else {}
     planned = list((plan.get("plan") or {}).get("segments", []))
     moves = list(plan.get("moves", []))
     ids = [s["id"] for s in planned] + [s for s in segment_ids(store) if s not in {x["id"] for x in planned}]
     out = []
     for i, seg in enumerate(ids):
         entry = planned[i] if i < len(planned) else {}
-        attrs = store.attrs(f"segments/{seg}")
+        attrs = store.attrs(SEGMENT.at(seg=seg))
         ref_seg = attrs.get("reference_segment", entry.get("reference_segment"))
         if ref_seg:
             frame = attrs.get("reference_frame")
@@ -309,7 +309,7 @@ def _segments(store: SceneStore, p: ReportParams) -> list[SegmentInfo]:
             attempts=[_attempt(store, seg, k, chosen, params) for k in ks],
         )
         if chosen is not None and ks:
-            shape = _shape(store, f"segments/{seg}/attempts/{chosen}/frames")
+            shape = _shape(store, ATTEMPT.at(seg=seg, attempt=chosen).frames)
             info.frames = shape[0] if shape else None
         info.previews = _previews(store, seg, p)
         out.append(info)
@@ -331,7 +331,7 @@ def _files(store: SceneStore) -> list[FileEntry]:
     """Files and folders beside the store: the known ones, and those steps list in their attributes."""
     root = store.scene_dir.resolve()
     wanted: dict[str, str] = {}
-    for group in ("splats", "outputs"):
+    for group in (SPLATS.path, OUTPUTS.path):
         for f in store.attrs(group).get("files", []) or []:
             name, what = (f.get("path") or f.get("name"), f.get("description", "")) if isinstance(f, dict) else (f, "")
             if isinstance(name, str) and name:
@@ -361,10 +361,10 @@ def _stitched_pictures(store: SceneStore, p: ReportParams) -> tuple[Picture | No
         overview = Picture(png, f"{len(frames)} stitched frames, {len(pick)} shown (segment:frame)")
     trajectory = None
     pair = _global_gt(store)
-    if store.cache_key_of("sfm") is not None:
-        est = store.array("sfm/poses")
+    if store.cache_key_of(SFM.path) is not None:
+        est = store.array(SFM.poses)
         gt = pair[1] if pair is not None else None
-        src = store.attrs("sfm").get("source", "sfm")
+        src = store.attrs(SFM.path).get("source", "sfm")
         png = _topview(est, gt, f"global ({src})", "stitched video: global camera path from above")
         trajectory = Picture(png, "global camera path (square = first frame, arrows = viewing direction)")
     return overview, trajectory
@@ -404,19 +404,19 @@ def _one_line(e: BaseException) -> str:
 
 def _first_camera(store: SceneStore) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int] | None:
     """(W2C of the first posed frame, every finite W2C, K, width, height) of the global poses, or None."""
-    if store.cache_key_of("sfm") is None or not _has_array(store, "sfm/K"):
+    if store.cache_key_of(SFM.path) is None or not _has_array(store, SFM.K):
         return None
-    poses = store.array("sfm/poses")
+    poses = store.array(SFM.poses)
     finite = np.isfinite(poses).all(axis=(1, 2))
     if not finite.any():
         return None
     first = int(np.flatnonzero(finite)[0])
-    seg_index, _ = store.array("sfm/frame_index")[first]
-    seg = store.attrs("sfm")["segments"][int(seg_index)]
+    seg_index, _ = store.array(SFM.frame_index)[first]
+    seg = store.attrs(SFM.path)["segments"][int(seg_index)]
     shape = _shape(store, f"{attempt_path(store, seg)}/frames") if accepted_attempt(store, seg) is not None else None
     if shape is None:
         return None
-    return poses[first], poses[finite], np.asarray(store.array("sfm/K"), np.float64), shape[2], shape[1]
+    return poses[first], poses[finite], np.asarray(store.array(SFM.K), np.float64), shape[2], shape[1]
 
 
 def _mesh_views(store: SceneStore, p: ReportParams) -> tuple[list[Picture], list[str]]:
@@ -467,7 +467,7 @@ def _scene(store: SceneStore, p: ReportParams) -> tuple[list[VideoClip], list[Pi
     clips, notes = _video_clips(store, p)
     views, mesh_notes = _mesh_views(store, p)
     notes += mesh_notes
-    if (clips or views) and store.cache_key_of("outputs") is None:
+    if (clips or views) and store.cache_key_of(OUTPUTS.path) is None:
         notes.append("The outputs step has not completed: the videos and the mesh may be from an earlier run.")
     return clips, views, notes
 
@@ -475,11 +475,11 @@ def _scene(store: SceneStore, p: ReportParams) -> tuple[list[VideoClip], list[Pi
 def _planned_paths(store: SceneStore, segments: list[SegmentInfo]) -> Picture | None:
     from wonderverse.plots import trajectory_topview_plot
 
-    with_path = [s for s in segments if _has_array(store, f"segments/{s.id}/path")]
+    with_path = [s for s in segments if _has_array(store, SEGMENT.at(seg=s.id).path)]
     if not with_path:
         return None
     png = trajectory_topview_plot(
-        [store.array(f"segments/{s.id}/path") for s in with_path],
+        [store.array(SEGMENT.at(seg=s.id).path) for s in with_path],
         [f"{s.id} ({s.role})" for s in with_path],
         "planned camera paths from above (world +z up)",
         plane="xy",
@@ -491,17 +491,17 @@ def _metrics(store: SceneStore, segments: list[SegmentInfo]) -> tuple[dict[str, 
     """Metric groups, and headline figures for the summary."""
     metrics: dict[str, dict[str, Any]] = {}
     headline: dict[str, Any] = {}
-    check = store.attrs("check")
+    check = store.attrs(CHECK.path)
     if check.get("complete") is True:
         metrics["Geometric correction"] = {
             "mean extra trials per segment": check.get("mean_extra_trials"),
             "dropped segments": ", ".join(check.get("dropped", [])) or "none",
             "kept failing": ", ".join(check.get("kept_failing", [])) or "none",
         }
-    if store.cache_key_of("sfm") is not None:
-        a = store.attrs("sfm")
-        poses = store.array("sfm/poses")
-        points = _shape(store, "sfm/points3d")
+    if store.cache_key_of(SFM.path) is not None:
+        a = store.attrs(SFM.path)
+        poses = store.array(SFM.poses)
+        points = _shape(store, SFM.points3d)
         metrics["Global camera path"] = {
             "source": a.get("source"),
             "mapper": a.get("mapper"),
@@ -530,7 +530,7 @@ def _metrics(store: SceneStore, segments: list[SegmentInfo]) -> tuple[dict[str, 
             ok = np.isfinite(est).all(axis=(1, 2)) & np.isfinite(gt).all(axis=(1, 2))
             scale = umeyama(camera_centers(gt[ok]), camera_centers(est[ok]), allow_degenerate=True).s
             metrics |= _prior_errors(store, segments, scale)
-    sp = store.attrs("splats")
+    sp = store.attrs(SPLATS.path)
     if sp.get("complete") is True:
         m = sp.get("metrics", {})
         metrics["Gaussian splats"] = {
@@ -545,7 +545,7 @@ def _metrics(store: SceneStore, segments: list[SegmentInfo]) -> tuple[dict[str, 
         }
         if m.get("test_psnr") is not None:
             headline["held-out PSNR"] = f"{m['test_psnr']:.2f} dB"
-    q = store.attrs("outputs").get("quality") if store.attrs("outputs").get("complete") is True else None
+    q = store.attrs(OUTPUTS.path).get("quality") if store.attrs(OUTPUTS.path).get("complete") is True else None
     if q:
         metrics["Novel views, no reference"] = {
             "NIQE (lower is better)": q.get("niqe"),
@@ -583,14 +583,14 @@ def gather(store: SceneStore, params: ReportParams | None = None) -> ReportConte
     """Everything the report shows, read from the store (nothing is written)."""
     p = params or ReportParams()
     spec = store.root.attrs.get("spec") or {}
-    plan = store.attrs("plan") if store.cache_key_of("plan") else {}
+    plan = store.attrs(PLAN.path) if store.cache_key_of(PLAN.path) else {}
     plan_model = plan.get("plan") or {}
     segments = _segments(store, p)
     overview, trajectory = _stitched_pictures(store, p)
     videos, mesh_views, scene_notes = _scene(store, p)
     metrics, headline = _metrics(store, segments)
     timings = _timings(store)
-    curves = {k: [float(x) for x in v] for k, v in (store.attrs("splats").get("curves") or {}).items()}
+    curves = {k: [float(x) for x in v] for k, v in (store.attrs(SPLATS.path).get("curves") or {}).items()}
     skipped = curves.pop("skipped", [])
     notes = []
     stale = [t.step for t in timings if t.status == "stale"]

@@ -4,43 +4,44 @@ from __future__ import annotations
 
 import numpy as np
 
+from wonderverse.schema import ATTEMPT, ATTEMPTS, SEGMENT, SEGMENTS, GroupPath
 from wonderverse.store import SceneStore
 
 
 def segment_ids(store: SceneStore) -> list[str]:
-    return store.children("segments")
+    return store.children(SEGMENTS.path)
 
 
 def attempt_ids(store: SceneStore, seg: str) -> list[int]:
-    return sorted(int(a) for a in store.children(f"segments/{seg}/attempts") if a.isdigit())
+    return sorted(int(a) for a in store.children(ATTEMPTS.at(seg=seg)) if a.isdigit())
 
 
 def accepted_attempt(store: SceneStore, seg: str) -> int | None:
     """The attempt later steps follow: the check step's `accepted` pointer (None: segment dropped);
     before any check, attempt 0."""
-    a = store.attrs(f"segments/{seg}/accepted")
+    a = store.attrs(SEGMENT.at(seg=seg).accepted)
     if a.get("complete") is not True:
         return 0
     return None if a.get("attempt") is None else int(a["attempt"])
 
 
-def attempt_path(store: SceneStore, seg: str, attempt: int | None = None) -> str:
+def attempt_path(store: SceneStore, seg: str, attempt: int | None = None) -> GroupPath:
     """Group of an attempt (the accepted one by default; KeyError when the segment was dropped)."""
     k = accepted_attempt(store, seg) if attempt is None else attempt
     if k is None:
         raise KeyError(f"segment {seg} was dropped by the check")
-    return f"segments/{seg}/attempts/{k}"
+    return ATTEMPT.at(seg=seg, attempt=k)
 
 
 def frames(store: SceneStore, seg: str, attempt: int | None = None) -> np.ndarray:
     """(T,H,W,3) uint8 frames of an attempt (the accepted one by default), in generation order."""
-    return store.array(f"{attempt_path(store, seg, attempt)}/frames")
+    return store.array(attempt_path(store, seg, attempt).frames)
 
 
 def intrinsics(store: SceneStore, seg: str) -> tuple[np.ndarray, bool]:
     """A segment's K (3,3) and whether it is known (the renderer's, or a clip's given field of view) rather
     than guessed; stores written before the flag existed count as guessed."""
-    return store.array(f"segments/{seg}/K"), store.attrs(f"segments/{seg}").get("k_is_guess", True) is False
+    return store.array(SEGMENT.at(seg=seg).K), store.attrs(SEGMENT.at(seg=seg)).get("k_is_guess", True) is False
 
 
 def stitched_frame_index(reversed_: bool, n_frames: int, which: str) -> int:
@@ -55,12 +56,12 @@ def stitched(store: SceneStore) -> tuple[np.ndarray, list[tuple[str, int]]]:
     Left extensions play reversed; every generated extension's frame 0 repeats its reference frame and
     is dropped so the video never stalls at a seam (user clips keep all their frames). Segments the check
     dropped are left out."""
-    order = store.attrs("segments").get("order") or segment_ids(store)
+    order = store.attrs(SEGMENTS.path).get("order") or segment_ids(store)
     out, index = [], []
     for seg in order:
         if accepted_attempt(store, seg) is None:
             continue
-        attrs = store.attrs(f"segments/{seg}")
+        attrs = store.attrs(SEGMENT.at(seg=seg))
         f = frames(store, seg)
         idx = np.arange(len(f))
         if attrs.get("repeats_reference", attrs.get("role", "init") != "init"):
