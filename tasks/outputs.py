@@ -53,43 +53,27 @@ def posed_frames(store: SceneStore) -> tuple[np.ndarray, np.ndarray, list[str]]:
     return np.stack(out), poses[keep], names
 
 
-def _render_size(width: int, height: int, K: np.ndarray, max_side: int) -> tuple[int, int, np.ndarray]:
-    s = min(1.0, max_side / max(width, height))
-    w, h = max(1, round(width * s)), max(1, round(height * s))
-    Ks = np.asarray(K, np.float64).copy()
-    Ks[0] *= w / width
-    Ks[1] *= h / height
-    return w, h, Ks
-
-
 def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
+    from wonderverse.camera import fit_intrinsics, scene_extent
     from wonderverse.exports import write_camera_path, write_colmap_text, write_nerfstudio
     from wonderverse.media import write_mp4
-    from wonderverse.mesh import (
-        clean_mesh,
-        fuse_tsdf,
-        fusion_cameras,
-        gaussian_points,
-        scene_extent,
-        write_mesh,
-        write_points_ply,
-    )
+    from wonderverse.mesh import clean_mesh, fuse_tsdf, fusion_cameras, gaussian_points, write_mesh, write_points_ply
     from wonderverse.paths import flythrough_path, novel_view_path
     from wonderverse.quality import score_views
-    from wonderverse.splats.model import GaussianModel, SceneNormalization
+    from wonderverse.splats.model import GaussianModel, normalization_from_dict
     from wonderverse.splats.renderer import make_renderer
     from wonderverse.splats.views import render_views
 
     p = cfg.steps.outputs
     out = Path(store.scene_dir)
     splats = store.attrs("splats")
-    norm = SceneNormalization.from_dict(splats["normalization"])
+    norm = normalization_from_dict(splats["normalization"])
     arrays = {name: store.array(f"splats/{name}") for name in GaussianModel.PARAM_NAMES}
     background = splats.get("metrics", {}).get("background_rgb")
     frames, w2c, names = posed_frames(store)
     K = store.array("sfm/K")
     height, width = frames.shape[1:3]
-    w, h, Kr = _render_size(width, height, K, p.render_max_side_px)
+    w, h, Kr = fit_intrinsics(width, height, K, p.render_max_side_px)
     renderer = make_renderer(cfg.steps.splats.renderer)
     workers = p.render_workers or _usable_cores()
     files: list[Path] = []

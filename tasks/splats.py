@@ -56,7 +56,13 @@ def load_views(store: SceneStore) -> tuple[Any, list[str]]:
         normals.append(cache[seg]["normals"][i].astype(np.float32))
     if not frames:
         raise WonderError("no posed frames to train on")
-    views = Views(np.stack(frames), poses[keep], store.array("sfm/K"), np.stack(depth), np.stack(normals))
+    views = Views(
+        frames=np.stack(frames),
+        w2c=poses[keep],
+        K=store.array("sfm/K"),
+        prior_depth=np.stack(depth),
+        prior_normals=np.stack(normals),
+    )
     return views, names
 
 
@@ -101,14 +107,14 @@ def _extended_model(
     from scipy.spatial import cKDTree
 
     from wonderverse.splats.data import backproject_depth
-    from wonderverse.splats.model import GaussianModel, SceneNormalization, init_from_points, voxel_downsample
+    from wonderverse.splats.model import GaussianModel, init_from_points, normalization_from_dict, voxel_downsample
     from wonderverse.splats.ply import to_training_frame, to_world
-    from wonderverse.splats.trainer import Views, auto_scene_scale
+    from wonderverse.splats.trainer import auto_scene_scale
 
     p = cfg.steps.splats
     old = {k: store.array(f"splats/{k}") for k in GaussianModel.PARAM_NAMES}
-    old = to_training_frame(to_world(old, SceneNormalization.from_dict(previous["normalization"])), norm)
-    sub = Views(nviews.frames[new], nviews.w2c[new], nviews.K, nviews.prior_depth[new], nviews.prior_normals[new])
+    old = to_training_frame(to_world(old, normalization_from_dict(previous["normalization"])), norm)
+    sub = nviews.subset(new)
     pts, cols = backproject_depth(sub, p.init_depth_stride_px, p.init_depth_frame_stride)
     voxel = p.init_voxel_frac * auto_scene_scale(nviews.w2c, old["means"])
     pts, rgb = voxel_downsample(pts, cols.astype(np.float64) / 255.0, voxel)
@@ -146,27 +152,22 @@ def _load_checkpoint(store: SceneStore, key: str) -> dict[str, Any] | None:
 
 def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     from wonderverse.splats.data import downscale_views
-    from wonderverse.splats.model import SceneNormalization
+    from wonderverse.splats.model import normalization_from_cameras, normalization_to_dict
     from wonderverse.splats.ply import write_ply
     from wonderverse.splats.renderer import make_renderer
     from wonderverse.splats.trainer import continuation_params, normalize_views, train
 
     p = cfg.steps.splats
     views, names = load_views(store)
-    if p.frame_stride > 1:
-        from wonderverse.splats.trainer import Views
-
-        sel = slice(None, None, p.frame_stride)
-        views = Views(views.frames[sel], views.w2c[sel], views.K, views.prior_depth[sel], views.prior_normals[sel])
-        names = names[sel]
+    views, names = views.subset(slice(None, None, p.frame_stride)), names[:: p.frame_stride]
     views = downscale_views(views, p.max_side_px)
     points, colors = store.array("sfm/points3d"), store.array("sfm/colors")
-    norm = SceneNormalization.from_cameras(views.w2c, points)  # train in a unit-sized frame
+    norm = normalization_from_cameras(views.w2c, points)  # train in a unit-sized frame
     nviews = normalize_views(views, norm)
     previous = _extendable(store, cfg, names)
     train_params, fixed, new_views = p.train, 0, []
     if previous is None:
-        model = _initial_model(nviews, norm.apply_points(points), colors, cfg)
+        model = _initial_model(nviews, norm.apply(points), colors, cfg)
     else:
         seen = set(previous["frames"])
         new_views = [i for i, n in enumerate(names) if n not in seen]
@@ -198,7 +199,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     with store.staged(
         "splats",
         key,
-        normalization=norm.to_dict(),
+        normalization=normalization_to_dict(norm),
         metrics=metrics,
         files=[ply.name],
         frames=names,

@@ -11,7 +11,7 @@ import open3d as o3d
 import pytest
 import trimesh
 
-from wonderverse.camera import intrinsics, look_at
+from wonderverse.camera import Sim3, intrinsics, look_at, scene_extent
 from wonderverse.mesh import (
     SH_C0,
     MeshParams,
@@ -22,7 +22,6 @@ from wonderverse.mesh import (
     fuse_tsdf,
     fusion_cameras,
     gaussian_points,
-    scene_extent,
     write_mesh,
     write_points_ply,
 )
@@ -199,18 +198,17 @@ def test_points_ply_loads_in_open3d_and_trimesh(tmp_path):
 
 def test_gaussian_points_filter_by_opacity_and_return_to_the_world():
     from wonderverse.splats.model import SH_C0 as MODEL_SH_C0
-    from wonderverse.splats.model import SceneNormalization
 
     assert SH_C0 == MODEL_SH_C0
     rng = np.random.default_rng(1)
     world = rng.normal(size=(6, 3)) * 5 + [100.0, -20.0, 3.0]
     a = np.pi / 5
     rot = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
-    norm = SceneNormalization(center=np.array([100.0, -20.0, 0.0]), scale=0.2, rotation=rot)
+    norm = Sim3(0.2, rot, np.zeros(3), center=np.array([100.0, -20.0, 0.0]))
     opacity = np.array([0.9, 0.2, 0.6, 0.49, 0.51, 0.99])
     rgb = rng.random((6, 3))
     arrays = {
-        "means": norm.apply_points(world).astype(np.float32),
+        "means": norm.apply(world).astype(np.float32),
         "logit_opacities": np.log(opacity / (1 - opacity)).astype(np.float32),
         "sh0": ((rgb - 0.5) / SH_C0)[:, None, :].astype(np.float32),
         "shN": np.zeros((6, 3, 3), np.float32),
