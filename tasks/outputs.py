@@ -54,10 +54,10 @@ def posed_frames(store: SceneStore) -> tuple[np.ndarray, np.ndarray, list[str]]:
 
 
 def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
-    from wonderverse.camera import fit_intrinsics, scene_extent
+    from wonderverse.camera import fit_intrinsics
     from wonderverse.exports import write_camera_path, write_colmap_text, write_nerfstudio
     from wonderverse.media import write_mp4
-    from wonderverse.mesh import clean_mesh, fuse_tsdf, fusion_cameras, gaussian_points, write_mesh, write_points_ply
+    from wonderverse.mesh import fusion_cameras, gaussian_points, mesh_from_views, write_mesh, write_points_ply
     from wonderverse.paths import flythrough_path, novel_view_path
     from wonderverse.quality import score_views
     from wonderverse.splats.model import GaussianModel, normalization_from_dict
@@ -90,11 +90,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     cams = fusion_cameras(w2c, p.mesh.extra_views_per_gap)
     # colour as uint8 and depth only: the fusion needs nothing else, and every view is held until the extent is known
     views = [(np.round(v.rgb * 255).astype(np.uint8), v.depth) for v in render(cams, "views rendered for the mesh")]
-    depths = [d for _, d in views]
-    extent = scene_extent(cams, depths)
-    fused = [(rgb, d, Kr, c) for (rgb, d), c in zip(views, cams, strict=True)]
-    raw = fuse_tsdf(fused, extent, p.mesh, progress=callback("views fused"))
-    mesh = clean_mesh(raw, p.mesh)
+    mesh, extent = mesh_from_views(views, cams, Kr, p.mesh, progress=callback("views fused"))
     files += [write_mesh(mesh, out / "mesh.ply"), write_mesh(mesh, out / "mesh.glb")]
 
     if p.colmap:
@@ -103,7 +99,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     if p.nerfstudio:
         files.append(write_nerfstudio(out / "nerfstudio", frames, K, w2c, names).parent)
 
-    finite = np.concatenate([d[np.isfinite(d)] for d in depths]) if depths else np.zeros(0)
+    finite = np.concatenate([d[np.isfinite(d)] for _, d in views]) if views else np.zeros(0)
     look = float(np.median(finite)) if finite.size else None
     fly = flythrough_path(w2c, p.video_frames)
     files.append(write_camera_path(out / "camera_path.json", fly, Kr, w, h, p.video_fps))

@@ -14,7 +14,7 @@ background and are not fused.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sized
+from collections.abc import Iterable, Sequence, Sized
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -187,6 +187,23 @@ def _from_o3d(m: Any) -> TriMesh:
         triangles=np.asarray(m.triangles, np.int32).reshape(-1, 3).copy(),
         colors=np.clip(c, 0.0, 1.0) if len(c) == len(v) else np.full((len(v), 3), 0.5),
     )
+
+
+def mesh_from_views(
+    views: Sequence[tuple[np.ndarray, np.ndarray]],
+    w2c: np.ndarray,
+    K: np.ndarray,
+    params: MeshParams | None = None,
+    progress: ProgressFn | None = None,
+) -> tuple[TriMesh, float]:
+    """The cleaned mesh (`fuse_tsdf`, then `clean_mesh`) of views (rgb (H,W,3), depth (H,W) world z, +inf
+    where nothing is) seen from W2C cameras (N,4,4) with intrinsics K (3,3), and the extent its lengths
+    followed: `camera.scene_extent` of those cameras and depths. Returns (mesh, extent)."""
+    from wonderverse.camera import scene_extent
+
+    extent = scene_extent(w2c, [d for _, d in views])
+    fused = [(rgb, d, K, c) for (rgb, d), c in zip(views, w2c, strict=True)]
+    return clean_mesh(fuse_tsdf(fused, extent, params, progress=progress), params), extent
 
 
 def clean_mesh(mesh: TriMesh, params: MeshParams | None = None) -> TriMesh:
