@@ -271,3 +271,15 @@ def test_sample_mesh_points_uniform_by_area_and_seeded():
     # uniform inside a triangle: the mean is the centroid
     np.testing.assert_allclose(a[:, :2].mean(0), [1 / 3, 1 / 3], atol=0.01)
     assert sample_mesh_points(v, np.zeros((0, 3), int), 10).shape == (0, 3)
+
+
+def test_mesh_from_views_fuses_at_the_scene_extent_of_those_views():
+    from wonderverse.mesh import mesh_from_views
+
+    cams = ring_cameras(6)
+    views = [(np.round(rgb * 255).astype(np.uint8), depth) for depth, rgb in (raycast(c, []) for c in cams)]
+    mesh, extent = mesh_from_views(views, cams, K, MeshParams(voxel_frac=1 / 64, min_component_frac=0.0))
+    assert extent == scene_extent(cams, [d for _, d in views])
+    assert len(mesh.triangles) > 100
+    assert np.abs(mesh.vertices[:, 2]).max() < 2 * extent / 64  # on the plane, within two voxels
+    np.testing.assert_allclose(mesh.colors.mean(0), PLANE_RGB, atol=0.02)

@@ -10,7 +10,7 @@ import pytest
 from wonderverse.camera import Sim3, look_at
 from wonderverse.config import SplatsStepParams
 from wonderverse.errors import WonderError
-from wonderverse.splats.model import init_from_points, knn_mean_distance
+from wonderverse.splats.model import SH_C0, init_from_points, knn_mean_distance
 from wonderverse.splats.seeding import (
     PreviousSplats,
     extended_model,
@@ -78,6 +78,19 @@ def test_extended_model_keeps_the_old_gaussians_in_the_new_frame_then_seeds() ->
     # each seed sized by its nearest Gaussians, old ones included (not by the distant other seeds alone)
     size = knn_mean_distance(seeds, 3, arrays["means"][:n_old].astype(np.float64))
     np.testing.assert_allclose(np.exp(arrays["log_scales"][n_old:, 0]), size, rtol=1e-5)
+
+
+def test_initial_model_starts_at_the_sfm_points_plus_the_prior_depth() -> None:
+    views = _wall_views(1)
+    sfm = np.array([[-2.0, 0, 3.0], [2.0, 1, 3.5], [0.0, -2, 2.0]])  # in front of the wall, far apart
+    colors = np.array([[255, 0, 0], [0, 255, 0], [0, 0, 255]], np.uint8)
+    only_sfm = initial_model(views, sfm, colors, PARAMS.model_copy(update={"init_from_depth": False})).to_numpy()
+    np.testing.assert_allclose(only_sfm["means"], sfm, atol=1e-6)  # one Gaussian per voxel, at the points
+    np.testing.assert_allclose(only_sfm["sh0"][:, 0] * SH_C0 + 0.5, colors / 255, atol=1e-6)
+    both = initial_model(views, sfm, colors, PARAMS).to_numpy()["means"]
+    on_wall = np.abs(both[:, 2] - Z) < 1e-5
+    assert on_wall.sum() > 50 and (~on_wall).sum() == 3  # the wall from the depth prior, and the SfM points
+    assert both[on_wall, 0].min() < -3.5 and both[on_wall, 0].max() > 3.5
 
 
 def test_start_training_continues_from_the_previous_run() -> None:
