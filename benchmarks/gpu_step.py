@@ -87,7 +87,7 @@ def _train(data: dict, loss_update: dict, iterations: int | None, backend: str) 
     from wonderverse.metrics import depth_errors
     from wonderverse.priors.from_depth import NormalsFromDepth
     from wonderverse.splats.data import backproject_depth
-    from wonderverse.splats.model import SceneNormalization, init_from_points, voxel_downsample
+    from wonderverse.splats.model import init_from_points, normalization_from_cameras, voxel_downsample
     from wonderverse.splats.renderer import make_renderer
     from wonderverse.splats.trainer import Views, auto_scene_scale, normalize_views, train
 
@@ -99,8 +99,8 @@ def _train(data: dict, loss_update: dict, iterations: int | None, backend: str) 
     params = params.model_copy(update={"checkpoint_every_iters": params.iterations})  # one snapshot, at the end
     depth = data["prior_depth"].astype(np.float32)
     normals = NormalsFromDepth().predict(data["frames"], K=data["K"], depth=depth).normals  # as the priors step
-    views = Views(data["frames"], data["w2c"], data["K"], depth, normals)
-    norm = SceneNormalization.from_cameras(views.w2c)
+    views = Views(frames=data["frames"], w2c=data["w2c"], K=data["K"], prior_depth=depth, prior_normals=normals)
+    norm = normalization_from_cameras(views.w2c)
     nv = normalize_views(views, norm)
     pts, cols = backproject_depth(nv, step.init_depth_stride_px, step.init_depth_frame_stride)
     pts, rgb = voxel_downsample(pts, cols / 255.0, step.init_voxel_frac * auto_scene_scale(nv.w2c, pts))
@@ -134,7 +134,7 @@ def _train(data: dict, loss_update: dict, iterations: int | None, backend: str) 
                 h,
                 sh_degree=params.sh_degree,
             )
-        z = (d / a.clamp_min(1e-6)).squeeze(-1).cpu().numpy() / norm.scale
+        z = (d / a.clamp_min(1e-6)).squeeze(-1).cpu().numpy() / norm.s
         ok = a.squeeze(-1).cpu().numpy() > 0.5
         errs.append(depth_errors(z, data["gt_depth_heldout"][j], mask=ok)["absrel"])
     return {

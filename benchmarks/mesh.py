@@ -13,7 +13,7 @@
 - Ground truth: points sampled by area on the world mesh near the cameras, kept where a training camera
   sees them (in frame, |z - true depth| < 1 % of z) no farther than the fusion's max depth; the
   prediction is sampled by area on the cleaned mesh. Thresholds are 1 % and 2 % of the scene extent
-  (`mesh.scene_extent` of the true cameras and depths); distances in metres.
+  (`camera.scene_extent` of the true cameras and depths); distances in metres.
 - Row "true depth": the standard preset's fusion of the true depth at the true poses of the training frames
   (video resolution, no extra views): the ceiling of the fusion itself, so the gap to it is the splats' depth.
 - Seconds: fusion (integrating every view) and extraction (marching cubes + clean-up), per preset.
@@ -73,13 +73,13 @@ def load_trained(scene_dir: Path) -> dict[str, Any]:
     """Splat arrays, normalisation, SfM poses/K of the posed frames, and the true poses, depths (+inf: sky)
     and video frames of the same frames."""
     from tasks.segments import attempt_path
-    from wonderverse.splats.model import SceneNormalization
+    from wonderverse.splats.model import normalization_from_dict
     from wonderverse.store import SceneStore
 
     store = SceneStore.open(scene_dir)
     names = ("means", "quats", "log_scales", "logit_opacities", "sh0", "shN")
     arrays = {n: store.array(f"splats/{n}") for n in names}
-    norm = SceneNormalization.from_dict(store.attrs("splats")["normalization"])
+    norm = normalization_from_dict(store.attrs("splats")["normalization"])
     poses, K = store.array("sfm/poses"), store.array("sfm/K")
     segs, index = store.attrs("sfm")["segments"], store.array("sfm/frame_index")
     attempts = {a: attempt_path(store, segs[a]) for a in np.unique(index[:, 0])}
@@ -204,18 +204,14 @@ def main() -> None:
 def measure(cfg: Any, scene: dict[str, Any]) -> tuple[list[dict[str, Any]], tuple[int, int], float]:
     """One row per preset's MeshParams on the trained splats, and one fusing the true depth; also the
     render size (w, h) and the true scene extent (m)."""
-    from wonderverse.camera import Sim3, camera_centers, umeyama
-    from wonderverse.mesh import scene_extent
+    from wonderverse.camera import Sim3, camera_centers, fit_intrinsics, scene_extent, umeyama
     from wonderverse.video import make_video_model
 
     video = make_video_model(cfg.scene)
     world, true_K = video.world, video.K
     vw, vh = cfg.scene.video.width, cfg.scene.video.height
     # render at the training resolution (frames were downscaled to max_side_px on the longer side)
-    f = min(1.0, cfg.steps.splats.max_side_px / max(vw, vh))
-    rw, rh = round(vw * f), round(vh * f)
-    K = scene["K"].copy()
-    K[:2] *= np.array([[rw / vw], [rh / vh]])
+    rw, rh, K = fit_intrinsics(vw, vh, scene["K"], cfg.steps.splats.max_side_px)
     to_world = umeyama(camera_centers(scene["w2c"]), camera_centers(scene["gt_w2c"]), with_scale=True)
 
     depth, gt_w2c = scene["gt_depth"], scene["gt_w2c"]

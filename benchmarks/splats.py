@@ -75,7 +75,7 @@ def _heldout_depth_absrel(model, views, test_ids, renderer, norm, gt_depth) -> f
                 h,
                 sh_degree=model.sh_degree,
             )
-        z = (d / a.clamp_min(1e-6))[..., 0].numpy() / norm.scale
+        z = (d / a.clamp_min(1e-6))[..., 0].numpy() / norm.s
         errs.append(depth_errors(z, gt_depth[i], mask=a[..., 0].numpy() > 0.5)["absrel"])
     return float(np.mean(errs))
 
@@ -86,7 +86,7 @@ def ablation(iterations: int) -> list[dict]:
     from wonderverse.priors.from_depth import NormalsFromDepth
     from wonderverse.priors.oracle import OracleDepth
     from wonderverse.splats.data import backproject_depth
-    from wonderverse.splats.model import SceneNormalization, init_from_points
+    from wonderverse.splats.model import init_from_points, normalization_from_cameras
     from wonderverse.splats.params import LossParams, TrainParams
     from wonderverse.splats.renderer import make_renderer
     from wonderverse.splats.trainer import Views, normalize_views, train
@@ -106,8 +106,9 @@ def ablation(iterations: int) -> list[dict]:
     )
     prior[~np.isfinite(v.gt.depth)] = np.inf
     normals = NormalsFromDepth().predict(v.frames, K=v.K, depth=prior).normals
-    norm = SceneNormalization.from_cameras(path)
-    views = normalize_views(Views(v.frames, path, v.K, prior, normals), norm)
+    norm = normalization_from_cameras(path)
+    views = Views(frames=v.frames, w2c=path, K=v.K, prior_depth=prior, prior_normals=normals)
+    views = normalize_views(views, norm)
     pts, cols = backproject_depth(views, 3, 3)
     renderer = make_renderer("torch")
     rows = []
@@ -139,7 +140,7 @@ def fox(iterations: int) -> dict | None:
 
     from wonderverse.sfm import SfmParams, reconstruct_from_images
     from wonderverse.splats.data import downscale_views
-    from wonderverse.splats.model import SceneNormalization, init_from_points
+    from wonderverse.splats.model import init_from_points, normalization_from_cameras
     from wonderverse.splats.params import TrainParams
     from wonderverse.splats.renderer import make_renderer
     from wonderverse.splats.trainer import Views, normalize_views, train
@@ -151,10 +152,10 @@ def fox(iterations: int) -> dict | None:
     frames = np.stack([np.asarray(Image.open(p).convert("RGB").resize((320, 569))) for p in paths])[ok]
     K = res.K.copy()
     K[:2] *= 320 / 1080  # full-size pixels -> 320 px wide frames
-    views = downscale_views(Views(frames, res.poses[ok], K), 160)
-    norm = SceneNormalization.from_cameras(views.w2c, res.points)
+    views = downscale_views(Views(frames=frames, w2c=res.poses[ok], K=K), 160)
+    norm = normalization_from_cameras(views.w2c, res.points)
     nv = normalize_views(views, norm)
-    model = init_from_points(norm.apply_points(res.points), res.colors / 255.0, 1, init_opacity=0.1)
+    model = init_from_points(norm.apply(res.points), res.colors / 255.0, 1, init_opacity=0.1)
     _, _, m = train(model, nv, TrainParams(iterations=iterations, sh_degree=1, holdout_every=8), make_renderer("torch"))
     return {
         "what": f"fox: {int(ok.sum())}/{len(paths)} frames posed by our SfM",

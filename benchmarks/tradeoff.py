@@ -132,11 +132,10 @@ def score(scene_dir: Path, cfg: Any) -> dict[str, Any]:
     import trimesh
 
     from benchmarks.mesh import visible_gt_points
-    from wonderverse.camera import camera_centers, umeyama
-    from wonderverse.mesh import scene_extent
+    from wonderverse.camera import camera_centers, scene_extent, umeyama
     from wonderverse.metrics import ate, chamfer_fscore, depth_errors, sample_mesh_points
     from wonderverse.quality import niqe_many
-    from wonderverse.splats.model import GaussianModel, SceneNormalization
+    from wonderverse.splats.model import GaussianModel, normalization_from_dict
     from wonderverse.splats.renderer import make_renderer
     from wonderverse.splats.views import render_views
     from wonderverse.store import SceneStore
@@ -151,7 +150,7 @@ def score(scene_dir: Path, cfg: Any) -> dict[str, Any]:
 
     # rendered depth at the held-out frames, in metres, against the truth
     arrays = {n: store.array(f"splats/{n}") for n in GaussianModel.PARAM_NAMES}
-    norm = SceneNormalization.from_dict(splats["normalization"])
+    norm = normalization_from_dict(splats["normalization"])
     v = cfg.scene.video
     absrel = []
     views = render_views(arrays, norm, f["w2c"][test], store.array("sfm/K"), v.width, v.height, make_renderer("auto"))

@@ -67,16 +67,13 @@ def _judge(store: SceneStore, cfg: RunConfig, seg: str, k: int, key: str) -> dic
     return store.attrs(f"{ap}/check")
 
 
-def _badness(check: dict[str, Any]) -> tuple[int, float]:
-    """Order attempts for `keep_best`: fewer reasons, then more frames registered."""
-    return len(check.get("reasons", [])), -float(check.get("registered_frac", 0.0))
-
-
 def check_segment(seg: str, scene_dir: str, cfg: RunConfig) -> dict[str, Any]:
     """Check (and regenerate) one segment until an attempt passes; writes `segments/<seg>/accepted`.
 
     Returns that summary plus THIS_RUN: {"cached": the segment was already checked under this key,
     "regenerated": attempts rendered by this call} (what this run did, not stored)."""
+    from wonderverse.check import least_bad
+
     store = SceneStore.open(scene_dir, mode="r+")
     seg_key = store.cache_key_of(f"segments/{seg}")
     if seg_key is None:
@@ -109,7 +106,7 @@ def check_segment(seg: str, scene_dir: str, cfg: RunConfig) -> dict[str, Any]:
     if passed:
         summary |= {"attempt": passed[0], "dropped": False, "reasons": []}
     else:
-        best = min(checks, key=lambda k: _badness(checks[k]))
+        best = least_bad(checks)
         reasons = checks[best]["reasons"]
         if p.on_failure == "fail":
             raise WonderError(f"segment {seg} failed all {len(checks)} attempts; last reasons: {'; '.join(reasons)}")

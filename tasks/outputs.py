@@ -53,43 +53,27 @@ def posed_frames(store: SceneStore) -> tuple[np.ndarray, np.ndarray, list[str]]:
     return np.stack(out), poses[keep], names
 
 
-def _render_size(width: int, height: int, K: np.ndarray, max_side: int) -> tuple[int, int, np.ndarray]:
-    s = min(1.0, max_side / max(width, height))
-    w, h = max(1, round(width * s)), max(1, round(height * s))
-    Ks = np.asarray(K, np.float64).copy()
-    Ks[0] *= w / width
-    Ks[1] *= h / height
-    return w, h, Ks
-
-
 def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
+    from wonderverse.camera import fit_intrinsics
     from wonderverse.exports import write_camera_path, write_colmap_text, write_nerfstudio
     from wonderverse.media import write_mp4
-    from wonderverse.mesh import (
-        clean_mesh,
-        fuse_tsdf,
-        fusion_cameras,
-        gaussian_points,
-        scene_extent,
-        write_mesh,
-        write_points_ply,
-    )
+    from wonderverse.mesh import fusion_cameras, gaussian_points, mesh_from_views, write_mesh, write_points_ply
     from wonderverse.paths import flythrough_path, novel_view_path
     from wonderverse.quality import score_views
-    from wonderverse.splats.model import GaussianModel, SceneNormalization
+    from wonderverse.splats.model import GaussianModel, normalization_from_dict
     from wonderverse.splats.renderer import make_renderer
     from wonderverse.splats.views import render_views
 
     p = cfg.steps.outputs
     out = Path(store.scene_dir)
     splats = store.attrs("splats")
-    norm = SceneNormalization.from_dict(splats["normalization"])
+    norm = normalization_from_dict(splats["normalization"])
     arrays = {name: store.array(f"splats/{name}") for name in GaussianModel.PARAM_NAMES}
     background = splats.get("metrics", {}).get("background_rgb")
     frames, w2c, names = posed_frames(store)
     K = store.array("sfm/K")
     height, width = frames.shape[1:3]
-    w, h, Kr = _render_size(width, height, K, p.render_max_side_px)
+    w, h, Kr = fit_intrinsics(width, height, K, p.render_max_side_px)
     renderer = make_renderer(cfg.steps.splats.renderer)
     workers = p.render_workers or _usable_cores()
     files: list[Path] = []
@@ -106,11 +90,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     cams = fusion_cameras(w2c, p.mesh.extra_views_per_gap)
     # colour as uint8 and depth only: the fusion needs nothing else, and every view is held until the extent is known
     views = [(np.round(v.rgb * 255).astype(np.uint8), v.depth) for v in render(cams, "views rendered for the mesh")]
-    depths = [d for _, d in views]
-    extent = scene_extent(cams, depths)
-    fused = [(rgb, d, Kr, c) for (rgb, d), c in zip(views, cams, strict=True)]
-    raw = fuse_tsdf(fused, extent, p.mesh, progress=callback("views fused"))
-    mesh = clean_mesh(raw, p.mesh)
+    mesh, extent = mesh_from_views(views, cams, Kr, p.mesh, progress=callback("views fused"))
     files += [write_mesh(mesh, out / "mesh.ply"), write_mesh(mesh, out / "mesh.glb")]
 
     if p.colmap:
@@ -119,7 +99,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     if p.nerfstudio:
         files.append(write_nerfstudio(out / "nerfstudio", frames, K, w2c, names).parent)
 
-    finite = np.concatenate([d[np.isfinite(d)] for d in depths]) if depths else np.zeros(0)
+    finite = np.concatenate([d[np.isfinite(d)] for _, d in views]) if views else np.zeros(0)
     look = float(np.median(finite)) if finite.size else None
     fly = flythrough_path(w2c, p.video_frames)
     files.append(write_camera_path(out / "camera_path.json", fly, Kr, w, h, p.video_fps))

@@ -49,15 +49,6 @@ def segment_poses(store: SceneStore, seg: str, n_frames: int) -> np.ndarray:
     return out
 
 
-def project_points(points: np.ndarray, w2c: np.ndarray, K: np.ndarray) -> np.ndarray:
-    """(N,3) world points -> (N,3) (u, v, z) pixel samples (pixel centres at +0.5) in front of the camera."""
-    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
-    z = cam[:, 2]
-    front = z > 1e-6
-    uv = cam[front, :2] / z[front, None] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
-    return np.column_stack([uv, z[front]])
-
-
 def _raw_depth(store: SceneStore, seg: str, ap: str, p: Any, frames: np.ndarray, gt: Any) -> Any:
     """The depth network's output for a segment, computed once per attempt and model settings and kept in
     `priors_raw/<seg>`: poses change whenever the scene is extended, this does not (it is the costly part)."""
@@ -78,7 +69,7 @@ def _raw_depth(store: SceneStore, seg: str, ap: str, p: Any, frames: np.ndarray,
 
 
 def priors_segment(seg: str, scene_dir: str, cfg: RunConfig, step_key: str) -> dict[str, Any]:
-    from wonderverse.priors import align_scale_shift, make_normal_model
+    from wonderverse.priors import align_frames, make_normal_model
 
     store = SceneStore.open(scene_dir, mode="r+")
     ap = attempt_path(store, seg)
@@ -92,31 +83,22 @@ def priors_segment(seg: str, scene_dir: str, cfg: RunConfig, step_key: str) -> d
     if "oracle" in (p.depth_backend, p.normal_backend) and gt is None:
         raise WonderError(f"segment {seg}: the oracle prior needs procedural ground truth; use depth_anything")
     pred = _raw_depth(store, seg, ap, p, frames, gt)
-    poses = segment_poses(store, seg, len(frames))
     points = store.array("sfm/points3d") if store.exists("sfm/points3d") else np.zeros((0, 3))
-    depth = np.empty(frames.shape[:3], np.float32)
-    scale, shift, ok, reasons = np.full(len(frames), np.nan), np.full(len(frames), np.nan), [], []
-    for t in range(len(frames)):
-        ref = project_points(points, poses[t], K) if np.isfinite(poses[t]).all() else np.zeros((0, 3))
-        r = align_scale_shift(pred.depth[t], ref, space=pred.kind, params=p.align)
-        depth[t], scale[t], shift[t] = r.aligned_depth, r.scale, r.shift
-        if len(ref):  # monocular networks put the sky far away, not at infinity: mark it as sky (+inf)
-            depth[t][depth[t] > cfg.steps.priors.sky_beyond_ref * ref[:, 2].max()] = np.inf
-        ok.append(r.ok)
-        if not r.ok:
-            reasons.append(f"frame {t}: {r.reason}")
-    normals = make_normal_model(p, gt).predict(frames, K=K, depth=depth).normals
+    poses = segment_poses(store, seg, len(frames))
+    sky_beyond_ref = cfg.steps.priors.sky_beyond_ref
+    aligned = align_frames(pred.depth, pred.kind, poses, points, K, p.align, sky_beyond_ref)
+    normals = make_normal_model(p, gt).predict(frames, K=K, depth=aligned.depth).normals
     summary = {
         "segment": seg,
         "kind": pred.kind,
-        "aligned_frames": int(sum(ok)),
+        "aligned_frames": int(aligned.ok.sum()),
         "frames": len(frames),
-        "reasons": reasons[:20],
+        "reasons": aligned.reasons[:20],
     }
     with store.staged(f"priors/{seg}", key, **summary) as g:
-        write_array(g, "depth", depth)
+        write_array(g, "depth", aligned.depth)
         write_array(g, "normals", normals.astype(np.float16))
-        for name, arr in (("scale", scale), ("shift", shift), ("aligned", np.array(ok))):
+        for name, arr in (("scale", aligned.scale), ("shift", aligned.shift), ("aligned", aligned.ok)):
             write_array(g, name, arr, chunks=arr.shape)
         if pred.confidence is not None:
             write_array(g, "confidence", pred.confidence.astype(np.float16))

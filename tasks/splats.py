@@ -8,7 +8,7 @@ from __future__ import annotations
 import io
 import logging
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -18,6 +18,10 @@ from wonderverse.config import RunConfig
 from wonderverse.errors import WonderError
 from wonderverse.store import SceneStore, cache_key, write_array
 
+if TYPE_CHECKING:
+    from wonderverse.splats.seeding import PreviousSplats
+    from wonderverse.splats.trainer import Views
+
 log = logging.getLogger("wonderverse.splats")
 CHECKPOINT = "splats_checkpoint"
 
@@ -26,9 +30,10 @@ def _params(cfg: RunConfig) -> dict[str, Any]:
     return {"splats": cfg.steps.splats.model_dump(exclude={"renderer"})}
 
 
-def load_views(store: SceneStore) -> tuple[Any, list[str]]:
+def load_views(store: SceneStore) -> tuple[Views, list[str]]:
     """Every posed stitched frame with its priors, in SfM world units (frames without a pose skipped), and
     the frames' names (`s000_0007`: segment, generation-order index)."""
+    from tasks.segments import attempt_path
     from wonderverse.splats.trainer import Views
 
     segs = store.attrs("sfm")["segments"]
@@ -43,8 +48,6 @@ def load_views(store: SceneStore) -> tuple[Any, list[str]]:
         seg = segs[a]
         names.append(f"{seg}_{int(i):04d}")
         if seg not in cache:
-            from tasks.segments import attempt_path
-
             ap = attempt_path(store, seg)
             cache[seg] = {
                 "frames": store.array(f"{ap}/frames"),
@@ -56,25 +59,14 @@ def load_views(store: SceneStore) -> tuple[Any, list[str]]:
         normals.append(cache[seg]["normals"][i].astype(np.float32))
     if not frames:
         raise WonderError("no posed frames to train on")
-    views = Views(np.stack(frames), poses[keep], store.array("sfm/K"), np.stack(depth), np.stack(normals))
+    views = Views(
+        frames=np.stack(frames),
+        w2c=poses[keep],
+        K=store.array("sfm/K"),
+        prior_depth=np.stack(depth),
+        prior_normals=np.stack(normals),
+    )
     return views, names
-
-
-def _initial_model(views: Any, points: np.ndarray, colors: np.ndarray, cfg: RunConfig) -> Any:
-    """SfM points plus back-projected prior depth, voxel-averaged at a size that follows the scene."""
-    from wonderverse.splats.data import backproject_depth
-    from wonderverse.splats.model import init_from_points, voxel_downsample
-    from wonderverse.splats.trainer import auto_scene_scale
-
-    p = cfg.steps.splats
-    if p.init_from_depth:
-        dp, dc = backproject_depth(views, p.init_depth_stride_px, p.init_depth_frame_stride)
-        points, colors = np.concatenate([points, dp]), np.concatenate([colors, dc])
-    if len(points) == 0:
-        raise WonderError("no points to start the splats from (no SfM points and no valid prior depth)")
-    rgb = colors.astype(np.float64) / 255.0  # averaged as floats in [0,1], as init_from_points expects
-    points, rgb = voxel_downsample(points, rgb, p.init_voxel_frac * auto_scene_scale(views.w2c, points))
-    return init_from_points(points, rgb, p.train.sh_degree, init_opacity=p.init_opacity)
 
 
 def _train_digest(cfg: RunConfig) -> str:
@@ -83,45 +75,20 @@ def _train_digest(cfg: RunConfig) -> str:
     return cache_key("splats_train", 2, {"splats": p})
 
 
-def _extendable(store: SceneStore, cfg: RunConfig, names: list[str]) -> dict[str, Any] | None:
-    """The previous `splats/` attrs when this run only adds frames to it (same training settings, every
-    previous frame still there, something new): the scene was extended; else None (train from scratch)."""
+def _previous(store: SceneStore, cfg: RunConfig, names: list[str]) -> PreviousSplats | None:
+    """The previous splats when this run only adds frames to them (same training settings, every previous
+    frame still there, something new): the scene was extended; else None (train from scratch)."""
+    from wonderverse.splats.model import GaussianModel, normalization_from_dict
+    from wonderverse.splats.seeding import PreviousSplats
+
     prev = store.attrs("splats")
     if prev.get("complete") is not True or prev.get("train_digest") != _train_digest(cfg):
         return None
     old = set(prev.get("frames", []))
-    return prev if old and old < set(names) else None
-
-
-def _extended_model(
-    store: SceneStore, nviews: Any, norm: Any, new: list[int], previous: dict[str, Any], cfg: RunConfig
-) -> tuple[Any, int]:
-    """The previous Gaussians (moved into this run's training frame) followed by new ones seeded from the
-    prior depth of the `new` views only, away from the old ones; returns (model, number of old Gaussians)."""
-    from scipy.spatial import cKDTree
-
-    from wonderverse.splats.data import backproject_depth
-    from wonderverse.splats.model import GaussianModel, SceneNormalization, init_from_points, voxel_downsample
-    from wonderverse.splats.ply import to_training_frame, to_world
-    from wonderverse.splats.trainer import Views, auto_scene_scale
-
-    p = cfg.steps.splats
-    old = {k: store.array(f"splats/{k}") for k in GaussianModel.PARAM_NAMES}
-    old = to_training_frame(to_world(old, SceneNormalization.from_dict(previous["normalization"])), norm)
-    sub = Views(nviews.frames[new], nviews.w2c[new], nviews.K, nviews.prior_depth[new], nviews.prior_normals[new])
-    pts, cols = backproject_depth(sub, p.init_depth_stride_px, p.init_depth_frame_stride)
-    voxel = p.init_voxel_frac * auto_scene_scale(nviews.w2c, old["means"])
-    pts, rgb = voxel_downsample(pts, cols.astype(np.float64) / 255.0, voxel)
-    if len(pts) and len(old["means"]):  # where old Gaussians already are, the scene is modelled
-        far = cKDTree(old["means"]).query(pts)[0] > 2 * voxel
-        pts, rgb = pts[far], rgb[far]
-    n_old = len(old["means"])
-    if not len(pts):
-        return GaussianModel.from_numpy(old), n_old
-    # sized by their nearest Gaussians old or new: a seed beside the old ones must not span the gap to the next seed
-    seeds = init_from_points(pts, rgb, p.train.sh_degree, p.init_opacity, neighbours=old["means"]).to_numpy()
-    both = {k: np.concatenate([np.asarray(old[k], np.float32), seeds[k]]) for k in GaussianModel.PARAM_NAMES}
-    return GaussianModel.from_numpy(both), n_old
+    if not (old and old < set(names)):
+        return None
+    arrays = {k: store.array(f"splats/{k}") for k in GaussianModel.PARAM_NAMES}
+    return PreviousSplats(arrays, normalization_from_dict(prev["normalization"]), prev["frames"])
 
 
 def _save_checkpoint(store: SceneStore, key: str, step: int, state: dict[str, Any]) -> None:
@@ -145,51 +112,38 @@ def _load_checkpoint(store: SceneStore, key: str) -> dict[str, Any] | None:
 
 
 def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
-    from wonderverse.splats.data import downscale_views
-    from wonderverse.splats.model import SceneNormalization
+    from wonderverse.splats.model import normalization_to_dict
     from wonderverse.splats.ply import write_ply
     from wonderverse.splats.renderer import make_renderer
-    from wonderverse.splats.trainer import continuation_params, normalize_views, train
+    from wonderverse.splats.seeding import start_training
+    from wonderverse.splats.trainer import train
 
     p = cfg.steps.splats
     views, names = load_views(store)
-    if p.frame_stride > 1:
-        from wonderverse.splats.trainer import Views
-
-        sel = slice(None, None, p.frame_stride)
-        views = Views(views.frames[sel], views.w2c[sel], views.K, views.prior_depth[sel], views.prior_normals[sel])
-        names = names[sel]
-    views = downscale_views(views, p.max_side_px)
+    views, names = views.subset(slice(None, None, p.frame_stride)), names[:: p.frame_stride]
     points, colors = store.array("sfm/points3d"), store.array("sfm/colors")
-    norm = SceneNormalization.from_cameras(views.w2c, points)  # train in a unit-sized frame
-    nviews = normalize_views(views, norm)
-    previous = _extendable(store, cfg, names)
-    train_params, fixed, new_views = p.train, 0, []
-    if previous is None:
-        model = _initial_model(nviews, norm.apply_points(points), colors, cfg)
-    else:
-        seen = set(previous["frames"])
-        new_views = [i for i, n in enumerate(names) if n not in seen]
-        model, fixed = _extended_model(store, nviews, norm, new_views, previous, cfg)
-        train_params = continuation_params(p.train, p.extend_iterations_frac)
+    previous = _previous(store, cfg, names)
+    start = start_training(views, names, points, colors, p, previous)
+    model, fixed, norm = start.model, start.fixed, start.normalization
+    if previous is not None:
         log.info(
             "extending the splats: %d existing Gaussians kept, %d new, %d iterations (%.0f %% on %d new views)",
             fixed,
             model.num_gaussians - fixed,
-            train_params.iterations,
+            start.train.iterations,
             100 * p.extend_new_view_share,
-            len(new_views),
+            len(start.new_views),
         )
     renderer = make_renderer(p.renderer)
     model, curves, metrics = train(
         model,
-        nviews,
-        train_params,
+        start.views,
+        start.train,
         renderer,
         checkpoint_cb=lambda step, state: _save_checkpoint(store, key, step, state),
         resume_state=_load_checkpoint(store, key),
         fixed_gaussians=fixed,
-        focus_views=new_views,
+        focus_views=start.new_views,
         focus_share=p.extend_new_view_share,
         progress=callback("iterations"),
     )
@@ -198,12 +152,12 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     with store.staged(
         "splats",
         key,
-        normalization=norm.to_dict(),
+        normalization=normalization_to_dict(norm),
         metrics=metrics,
         files=[ply.name],
         frames=names,
         train_digest=_train_digest(cfg),
-        extended_from=None if previous is None else {"frames": len(previous["frames"]), "kept_gaussians": fixed},
+        extended_from=None if previous is None else {"frames": len(previous.frames), "kept_gaussians": fixed},
         curves={k: [float(x) for x in v] for k, v in curves.items()},
     ) as g:
         for name, arr in arrays.items():

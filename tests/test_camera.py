@@ -454,3 +454,128 @@ def test_relative_motion_steps_on_a_hand_built_path() -> None:
     np.testing.assert_array_equal(np.isnan(rot), [False, True, True, False])
     np.testing.assert_allclose(trans[[0, 3]], [1.0, 0.0], atol=1e-12)
     np.testing.assert_allclose(rot[[0, 3]], [0.1, 0.5], atol=1e-12)
+
+
+# ------------------------------------------------- the one Sim(3), quaternion, rot_z/rot_x, scene extent
+
+
+def test_quaternion_edges_identity_pi_and_negative_w() -> None:
+    from wonderverse.camera import quat_multiply
+
+    np.testing.assert_array_equal(quat_from_matrix(np.eye(3)), [1.0, 0.0, 0.0, 0.0])
+    np.testing.assert_array_equal(matrix_from_quat(np.array([1.0, 0, 0, 0])), np.eye(3))
+    # rotations by π: w = 0, the axis up to sign, and back to the same matrix
+    axes = [np.array(a, float) for a in ([1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [-1, 2, -2], [0.3, -0.1, 0.9])]
+    for axis in axes:
+        axis /= np.linalg.norm(axis)
+        R = Rotation.from_rotvec(PI * axis).as_matrix()
+        q = quat_from_matrix(R)
+        assert abs(q[0]) < 1e-15
+        np.testing.assert_allclose(q[1:] * np.sign(q[1:] @ axis), axis, atol=1e-15)
+        np.testing.assert_allclose(matrix_from_quat(q), R, atol=1e-15)
+    # a quaternion and its negative (w < 0) are one rotation; the canonical one has w >= 0
+    rng = np.random.default_rng(4)
+    for _ in range(20):
+        q = rng.normal(size=4)
+        q /= np.linalg.norm(q)
+        neg = -q if q[0] > 0 else q  # w < 0
+        np.testing.assert_allclose(matrix_from_quat(neg), matrix_from_quat(-neg), atol=1e-15)
+        np.testing.assert_allclose(quat_from_matrix(matrix_from_quat(neg)), -neg, atol=1e-14)
+    # the Hamilton product composes the rotations: q(a) * q(b) is a after b
+    a, b = (Rotation.random(random_state=s) for s in (1, 2))
+    qa, qb = (r.as_quat()[[3, 0, 1, 2]] for r in (a, b))
+    np.testing.assert_allclose(matrix_from_quat(quat_multiply(qa, qb)), (a * b).as_matrix(), atol=1e-14)
+
+
+def test_torch_and_numpy_rotation_from_quaternion_agree_except_at_zero() -> None:
+    import torch
+
+    from wonderverse.splats.model import quat_to_rotmat
+
+    rng = np.random.default_rng(5)
+    q = rng.normal(size=(64, 4)) * 3
+    q[:16, 0] = -np.abs(q[:16, 0])  # negative w
+    q[16] = [0.0, 1.0, 0.0, 0.0]  # rotation by π about x
+    np.testing.assert_allclose(quat_to_rotmat(torch.from_numpy(q)).numpy(), matrix_from_quat(q), atol=1e-14)
+    # a zero quaternion: the identity for a Gaussian (gsplat's convention), an error for a camera
+    np.testing.assert_array_equal(quat_to_rotmat(torch.zeros(1, 4, dtype=torch.float64)).numpy()[0], np.eye(3))
+    with pytest.raises(ValueError):
+        matrix_from_quat(np.zeros(4))
+
+
+def test_rot_z_and_rot_x() -> None:
+    from wonderverse.camera import rot_x, rot_z
+
+    np.testing.assert_allclose(rot_z(PI / 2) @ [1.0, 0, 0], [0, 1, 0], atol=1e-15)  # counter-clockwise from above
+    np.testing.assert_allclose(rot_x(PI / 2) @ [0, 1.0, 0], [0, 0, 1], atol=1e-15)  # y towards z
+    a = np.linspace(-3, 3, 7)
+    assert rot_z(a).shape == (7, 3, 3) and rot_x(a.reshape(7, 1)).shape == (7, 1, 3, 3)
+    np.testing.assert_allclose(rot_z(a), so3_exp(a[:, None] * [0, 0, 1.0]), atol=1e-15)
+    np.testing.assert_allclose(rot_x(a), so3_exp(a[:, None] * [1.0, 0, 0]), atol=1e-15)
+
+
+def test_sim3_about_a_centre_is_the_same_map_in_matrix_form() -> None:
+    rng = np.random.default_rng(6)
+    for _ in range(10):
+        s, R = 10.0 ** rng.uniform(-2, 2), random_rotation(rng)
+        t, c = rng.normal(size=3) * 10, rng.normal(size=3) * 1e3
+        a = Sim3(s, R, t, center=c)
+        p = rng.normal(size=(20, 3)) * 1e3
+        np.testing.assert_allclose(a.apply(p), s * (p - c) @ R.T + t, rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(a.apply(p), Sim3(s, R, a.translation).apply(p), rtol=1e-12, atol=1e-8)
+        h = np.concatenate([p, np.ones((20, 1))], 1)
+        np.testing.assert_allclose((h @ a.matrix().T)[:, :3], a.apply(p), rtol=1e-12, atol=1e-8)
+        np.testing.assert_allclose(a.apply_inverse(a.apply(p)), p, rtol=1e-12, atol=1e-9)
+        np.testing.assert_allclose(a.inverse().apply(a.apply(p)), p, rtol=1e-12, atol=1e-9)
+        b = Sim3(2.0, random_rotation(rng), rng.normal(size=3), center=rng.normal(size=3))
+        np.testing.assert_allclose(a.compose(b).apply(p), a.apply(b.apply(p)), rtol=1e-12, atol=1e-8)
+        # cameras move with the scene: what a camera sees (pixels) stays, depth scales by s
+        w2c = np.stack([look_at(x, x + np.array([1.0, 0.2, 0.1])) for x in p[:3]])
+        moved = a.transform_w2c(w2c)
+        cam, cam_moved = p @ w2c[0, :3, :3].T + w2c[0, :3, 3], a.apply(p) @ moved[0, :3, :3].T + moved[0, :3, 3]
+        np.testing.assert_allclose(cam_moved, s * cam, rtol=1e-9, atol=1e-6 * s * np.abs(cam).max())
+        np.testing.assert_allclose(a.inverse_transform_w2c(moved), w2c, atol=1e-9)
+        again = Sim3.from_dict(a.to_dict())
+        np.testing.assert_array_equal(again.apply(p), a.apply(p))
+
+
+def test_sim3_without_a_centre_computes_exactly_as_before() -> None:
+    rng = np.random.default_rng(7)
+    a, p = random_sim3(rng), rng.normal(size=(30, 3)) * 5
+    np.testing.assert_array_equal(a.apply(p), a.s * (p @ a.R.T) + a.t)  # the plain form, bit for bit
+    w2c = np.stack([look_at(x, x + np.array([1.0, 0.0, 0.3])) for x in p[:4]])
+    Rc = w2c[:, :3, :3] @ a.R.T
+    np.testing.assert_array_equal(a.transform_w2c(w2c)[:, :3, 3], a.s * w2c[:, :3, 3] - np.einsum("nij,j->ni", Rc, a.t))
+    assert set(a.to_dict()) == {"s", "R", "t"}  # the stored model_to_world layout
+
+
+def test_scene_extent_span_and_camera_radius() -> None:
+    from wonderverse.camera import camera_radius, scene_extent, span
+
+    cams = np.stack([look_at(np.array([x, 0.0, 1.0]), np.array([x, 5.0, 1.0])) for x in (0.0, 3.0, 6.0)])
+    assert scene_extent(cams) == pytest.approx(6.0)
+    with_nan = np.concatenate([cams, np.full((1, 4, 4), np.nan)])
+    assert scene_extent(with_nan) == pytest.approx(6.0)  # unregistered frames are skipped
+    assert scene_extent(with_nan, [np.full((2, 2), 2.0), np.array([[4.0, np.inf], [0.0, np.nan]])]) == pytest.approx(
+        6.0 + 2 * 2.0  # median of the valid depths (2, 2, 2, 2, 4) is 2
+    )
+    turning = np.stack([look_at(np.array([1e3, 0, 1]), np.array([1e3 + np.cos(a), np.sin(a), 1])) for a in (0, 1, 2)])
+    assert scene_extent(turning) == 0.0  # a camera that only turns: centres equal up to rounding
+    assert scene_extent(turning, [np.full((2, 2), np.inf)]) == 1.0  # with depths always positive
+    assert span(np.zeros((0, 3))) == 0.0 and span(np.array([[0, 0, 0], [3.0, 4, 0]])) == pytest.approx(5.0)
+    assert camera_radius(cams) == pytest.approx(3.0) and camera_radius(np.zeros((0, 4, 4))) == 0.0
+
+
+def test_fit_intrinsics_scales_rows_and_never_enlarges() -> None:
+    from wonderverse.camera import fit_intrinsics, intrinsics
+
+    K = intrinsics(640, 480, 60.0)
+    w, h, Ks = fit_intrinsics(640, 480, K, 320)
+    assert (w, h) == (320, 240)
+    np.testing.assert_allclose(Ks, np.diag([0.5, 0.5, 1.0]) @ K, atol=1e-12)
+    np.testing.assert_allclose(Ks[:2, 2], [160.0, 120.0])  # still centred: pixel centres at +0.5
+    w, h, same = fit_intrinsics(640, 480, K, 1000)
+    assert (w, h) == (640, 480) and np.array_equal(same, K) and same is not K
+    w, h, per_frame = fit_intrinsics(100, 3, np.stack([K, 2 * K]), 10)
+    assert (w, h) == (10, 1) and per_frame.shape == (2, 3, 3)
+    np.testing.assert_allclose(per_frame[1, 1], 2 * K[1] / 3)  # each side's own ratio, at least one pixel

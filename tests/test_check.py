@@ -352,3 +352,17 @@ def test_check_result_is_a_dataclass_with_documented_fields() -> None:
     assert isinstance(res, CheckResult)
     assert res.trans_steps.shape == res.step_ratio.shape == res.rot_steps.shape == (4,)
     assert res.registered_frac == 1.0 and res.median_step == pytest.approx(0.3)
+
+
+def test_least_bad_attempt_has_fewest_reasons_then_most_registered_then_is_earliest() -> None:
+    from wonderverse.check import least_bad
+
+    checks = {
+        0: {"reasons": ["a", "b"], "registered_frac": 1.0},
+        1: {"reasons": ["a"], "registered_frac": 0.5},
+        2: {"reasons": ["c"], "registered_frac": 0.9},
+        3: {"reasons": ["d"], "registered_frac": 0.9},
+    }
+    assert least_bad(checks) == 2
+    assert least_bad({k: checks[k] for k in (0, 1)}) == 1
+    assert least_bad({5: {}, 4: {}}) == 5  # nothing known: the first tried

@@ -87,7 +87,13 @@ from wonderverse.priors.from_depth import normals_from_depth
 from wonderverse.priors.params import AlignParams
 from wonderverse.sfm import reconstruct
 from wonderverse.splats.losses import LossParams, total_loss
-from wonderverse.splats.model import SceneNormalization, init_from_points, knn_mean_distance
+from wonderverse.splats.model import (
+    init_from_points,
+    knn_mean_distance,
+    normalization_from_cameras,
+    normalization_from_dict,
+    normalization_to_dict,
+)
 from wonderverse.video.procedural import ProceduralVideo, demo_path
 
 
@@ -492,10 +498,10 @@ def test_extremes_stay_finite(case: str) -> None:
         vm = torch.eye(4)
         vm[:3, 3] = -offset
         if case == "far_coords_normalised":
-            norm = SceneNormalization.from_cameras(vm.double().numpy()[None], means.double().numpy())
-            means = torch.from_numpy(norm.apply_points(means.double().numpy())).float()
-            scales = scales * norm.scale
-            vm = torch.from_numpy(norm.apply_w2c(vm.double().numpy())).float()
+            norm = normalization_from_cameras(vm.double().numpy()[None], means.double().numpy())
+            means = torch.from_numpy(norm.apply(means.double().numpy())).float()
+            scales = scales * norm.s
+            vm = torch.from_numpy(norm.transform_w2c(vm.double().numpy())).float()
     elif case == "near_plane":
         means = means.clone()
         means[:50, 2] = torch.linspace(-1.0, 0.02, 50)  # behind, at and just past the near plane
@@ -567,29 +573,33 @@ def test_normalization_preserves_projection(seed: int, offset: float, spread: fl
     centres = offset + spread * rng.normal(size=(4, 3))
     w2c = np.stack([look_at(c, c + np.array([1.0, 0.2, 0.1])) for c in centres])
     pts = centres[0] + spread * (rng.normal(size=(20, 3)) + np.array([5.0, 0, 0]))
-    norm = SceneNormalization.from_cameras(w2c, pts)
+    norm = normalization_from_cameras(w2c, pts)
     if rotate:
-        norm = SceneNormalization(norm.center, norm.scale, Rotation.random(random_state=seed).as_matrix())
-    cn = np.linalg.norm(norm.apply_points(centres), axis=1)
+        norm = Sim3(norm.s, Rotation.random(random_state=seed).as_matrix(), np.zeros(3), center=norm.center)
+    cn = np.linalg.norm(norm.apply(centres), axis=1)
     if not rotate:
         assert cn.max() == pytest.approx(1.0, rel=1e-6)
     K = np.array([[100.0, 0, 64], [0, 100, 48], [0, 0, 1]])
-    w2c_n = norm.apply_w2c(w2c)
-    pts_n = norm.apply_points(pts)
+    w2c_n = norm.transform_w2c(w2c)
+    pts_n = norm.apply(pts)
     for i in range(4):
         np.testing.assert_allclose(w2c_n[i, :3, :3] @ w2c_n[i, :3, :3].T, np.eye(3), atol=1e-9)
         uv, z = _project(w2c[i], K, pts)
         uv_n, z_n = _project(w2c_n[i], K, pts_n)
         np.testing.assert_allclose(uv_n, uv, rtol=1e-6, atol=1e-6 * np.abs(uv).max())
-        np.testing.assert_allclose(z_n, norm.scale * z, rtol=1e-6, atol=1e-9 * np.abs(z).max())
-    np.testing.assert_allclose(norm.invert_w2c(w2c_n), w2c, rtol=1e-9, atol=1e-9 * max(1.0, np.abs(w2c).max()))
-    np.testing.assert_allclose(norm.invert_points(pts_n), pts, rtol=1e-9, atol=1e-9 * np.abs(pts).max())
-    sim3 = norm.to_sim3()  # x -> s R x + t cancels large offsets in a different order: looser tolerance
-    tol = 1e-9 * max(1.0, abs(offset) * norm.scale)
-    np.testing.assert_allclose(sim3.apply(pts), pts_n, rtol=1e-9, atol=tol * max(1.0, np.abs(pts_n).max()))
-    np.testing.assert_allclose(sim3.transform_w2c(w2c), w2c_n, rtol=1e-9, atol=tol)
-    again = SceneNormalization.from_dict(norm.to_dict())
-    np.testing.assert_array_equal(again.apply_points(pts), pts_n)
+        np.testing.assert_allclose(z_n, norm.s * z, rtol=1e-6, atol=1e-9 * np.abs(z).max())
+    np.testing.assert_allclose(
+        norm.inverse_transform_w2c(w2c_n), w2c, rtol=1e-9, atol=1e-9 * max(1.0, np.abs(w2c).max())
+    )
+    np.testing.assert_allclose(norm.apply_inverse(pts_n), pts, rtol=1e-9, atol=1e-9 * np.abs(pts).max())
+    # the same map with the centre folded into t (x -> s R x + t, t = -s R c) cancels large offsets in a
+    # different order: looser tolerance
+    folded = Sim3(norm.s, norm.R, norm.translation)
+    tol = 1e-9 * max(1.0, abs(offset) * norm.s)
+    np.testing.assert_allclose(folded.apply(pts), pts_n, rtol=1e-9, atol=tol * max(1.0, np.abs(pts_n).max()))
+    np.testing.assert_allclose(folded.transform_w2c(w2c), w2c_n, rtol=1e-9, atol=tol)
+    again = normalization_from_dict(normalization_to_dict(norm))
+    np.testing.assert_array_equal(again.apply(pts), pts_n)
 
 
 # ============================================================================ splats: trainer
@@ -610,9 +620,9 @@ def small_views():
     ok = np.isfinite(zz)
     xc = np.stack([(u + 0.5 - K[0, 2]) / K[0, 0] * zz, (v + 0.5 - K[1, 2]) / K[1, 1] * zz, zz], -1)[ok]
     pts = (xc - path[0, :3, 3]) @ path[0, :3, :3]
-    norm = SceneNormalization.from_cameras(path, pts)
+    norm = normalization_from_cameras(path, pts)
     views = Views(frames=vid.frames, w2c=path, K=K, prior_depth=vid.gt.depth, prior_normals=vid.gt.normals)
-    return normalize_views(views, norm), norm.apply_points(pts)
+    return normalize_views(views, norm), norm.apply(pts)
 
 
 @pytest.mark.usefixtures("one_thread")
@@ -714,7 +724,7 @@ def scene_figures(scene: Path) -> dict:
     sfm_poses = store.array(f"{ap}/sfm/poses")
     splats = store.attrs("splats")
     arrays = {k: store.array(f"splats/{k}") for k in GaussianModel.PARAM_NAMES}
-    norm = SceneNormalization.from_dict(splats["normalization"])
+    norm = normalization_from_dict(splats["normalization"])
     K = store.array("sfm/K")
     h, w = gt_depth.shape[1:]
     rendered = np.stack([v.depth for v in render_views(arrays, norm, gt_poses, K, w, h, make_renderer("torch"))])

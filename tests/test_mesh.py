@@ -11,7 +11,7 @@ import open3d as o3d
 import pytest
 import trimesh
 
-from wonderverse.camera import intrinsics, look_at
+from wonderverse.camera import Sim3, intrinsics, look_at, scene_extent
 from wonderverse.mesh import (
     SH_C0,
     MeshParams,
@@ -22,7 +22,6 @@ from wonderverse.mesh import (
     fuse_tsdf,
     fusion_cameras,
     gaussian_points,
-    scene_extent,
     write_mesh,
     write_points_ply,
 )
@@ -199,18 +198,17 @@ def test_points_ply_loads_in_open3d_and_trimesh(tmp_path):
 
 def test_gaussian_points_filter_by_opacity_and_return_to_the_world():
     from wonderverse.splats.model import SH_C0 as MODEL_SH_C0
-    from wonderverse.splats.model import SceneNormalization
 
     assert SH_C0 == MODEL_SH_C0
     rng = np.random.default_rng(1)
     world = rng.normal(size=(6, 3)) * 5 + [100.0, -20.0, 3.0]
     a = np.pi / 5
     rot = np.array([[np.cos(a), -np.sin(a), 0], [np.sin(a), np.cos(a), 0], [0, 0, 1]])
-    norm = SceneNormalization(center=np.array([100.0, -20.0, 0.0]), scale=0.2, rotation=rot)
+    norm = Sim3(0.2, rot, np.zeros(3), center=np.array([100.0, -20.0, 0.0]))
     opacity = np.array([0.9, 0.2, 0.6, 0.49, 0.51, 0.99])
     rgb = rng.random((6, 3))
     arrays = {
-        "means": norm.apply_points(world).astype(np.float32),
+        "means": norm.apply(world).astype(np.float32),
         "logit_opacities": np.log(opacity / (1 - opacity)).astype(np.float32),
         "sh0": ((rgb - 0.5) / SH_C0)[:, None, :].astype(np.float32),
         "shN": np.zeros((6, 3, 3), np.float32),
@@ -273,3 +271,15 @@ def test_sample_mesh_points_uniform_by_area_and_seeded():
     # uniform inside a triangle: the mean is the centroid
     np.testing.assert_allclose(a[:, :2].mean(0), [1 / 3, 1 / 3], atol=0.01)
     assert sample_mesh_points(v, np.zeros((0, 3), int), 10).shape == (0, 3)
+
+
+def test_mesh_from_views_fuses_at_the_scene_extent_of_those_views():
+    from wonderverse.mesh import mesh_from_views
+
+    cams = ring_cameras(6)
+    views = [(np.round(rgb * 255).astype(np.uint8), depth) for depth, rgb in (raycast(c, []) for c in cams)]
+    mesh, extent = mesh_from_views(views, cams, K, MeshParams(voxel_frac=1 / 64, min_component_frac=0.0))
+    assert extent == scene_extent(cams, [d for _, d in views])
+    assert len(mesh.triangles) > 100
+    assert np.abs(mesh.vertices[:, 2]).max() < 2 * extent / 64  # on the plane, within two voxels
+    np.testing.assert_allclose(mesh.colors.mean(0), PLANE_RGB, atol=0.02)

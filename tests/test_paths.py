@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
-from wonderverse.camera import camera_centers, intrinsics, look_at
+from wonderverse.camera import camera_centers, intrinsics, look_at, scene_extent
 from wonderverse.paths import (
     FlythroughParams,
     NovelViewParams,
@@ -16,7 +16,6 @@ from wonderverse.paths import (
     flythrough_path,
     novel_view_path,
     orbit_path,
-    scene_extent,
 )
 
 

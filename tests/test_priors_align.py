@@ -144,3 +144,40 @@ def test_bad_arguments() -> None:
         align_scale_shift(np.ones((H, W)), np.ones((H + 1, W + 1)))
     with pytest.raises(ValueError):
         align_scale_shift(np.ones((H, W)), np.ones((H, W)), mask=np.ones((3, 3), bool))
+
+
+def test_project_points_gives_pixels_and_depth_in_front_only() -> None:
+    from wonderverse.camera import look_at
+    from wonderverse.priors import project_points
+
+    K = np.array([[50.0, 0, W / 2], [0, 50.0, H / 2], [0, 0, 1]])
+    w2c = look_at(np.array([0.0, 0, 1]), np.array([0.0, 5, 1]))  # looking along world +y, image up = +z
+    pts = np.array([[0.0, 4, 1], [1.0, 2, 1], [0.0, -3, 1], [0.0, 2, 2]])  # the third is behind the camera
+    uvz = project_points(pts, w2c, K)
+    np.testing.assert_allclose(uvz, [[W / 2, H / 2, 4], [W / 2 + 25, H / 2, 2], [W / 2, H / 2 - 25, 2]], atol=1e-12)
+
+
+def test_align_frames_recovers_each_frames_scale_and_shift_and_marks_sky() -> None:
+    from wonderverse.camera import invert_se3, look_at
+    from wonderverse.priors import align_frames
+
+    rng = np.random.default_rng(3)
+    K = np.array([[50.0, 0, W / 2], [0, 50.0, H / 2], [0, 0, 1]])
+    z = 2.0 + 0.05 * np.arange(H)[:, None] + 0.02 * np.arange(W)[None, :]  # a slanted wall, camera z
+    pose = look_at(np.array([1.0, -2, 1]), np.array([1.5, 3, 1.2]))
+    rows, cols = rng.integers(8, H, 200), rng.integers(0, W, 200)  # SfM points below the sky band
+    cam = np.stack([(cols + 0.5 - K[0, 2]) / K[0, 0], (rows + 0.5 - K[1, 2]) / K[1, 1], np.ones(200)], -1)
+    cam *= z[rows, cols, None]
+    points = cam @ invert_se3(pose)[:3, :3].T + invert_se3(pose)[:3, 3]
+    a, b = np.array([0.5, 2.0, 1.0]), np.array([0.3, -0.1, 0.0])
+    prior = (z[None] - b[:, None, None]) / a[:, None, None]  # a * prior + b = z in depth space
+    prior[:, :5] = (100.0 - b[:, None, None]) / a[:, None, None]  # the top rows: far beyond every point (sky)
+    poses = np.stack([pose, pose, np.full((4, 4), np.nan)])  # frame 2 has no global pose
+    out = align_frames(prior, "depth", poses, points, K, AlignParams(), sky_beyond_ref=4.0)
+    np.testing.assert_allclose(out.scale[:2], a[:2], rtol=1e-9)
+    np.testing.assert_allclose(out.shift[:2], b[:2], atol=1e-9)
+    np.testing.assert_allclose(out.depth[:2, 5:], np.broadcast_to(z[5:], (2, H - 5, W)), rtol=1e-5)
+    assert np.isposinf(out.depth[:2, :5]).all()  # sky: beyond 4 x the farthest point seen
+    assert out.ok.tolist() == [True, True, False] and out.depth.dtype == np.float32
+    assert len(out.reasons) == 1 and out.reasons[0].startswith("frame 2: ")
+    np.testing.assert_allclose(out.depth[2], prior[2], rtol=1e-6)  # no reference: the prior as depth, no sky rule

@@ -172,6 +172,7 @@ def test_poses_step_registers_an_extension_into_the_stored_reconstruction(world:
     from conftest import tiny_config
 
     from tasks import poses
+    from wonderverse.global_poses import can_extend
     from wonderverse.store import SceneStore
 
     store = SceneStore.open_or_create(tmp_path / "scene")
@@ -216,19 +217,20 @@ def test_poses_step_registers_an_extension_into_the_stored_reconstruction(world:
     names = [*a3["sfm_names"], "50020001_s005_0001.png"]
     name_seg = {n: n.split("_")[1] for n in names}
     sources = poses._sources(store, a3["segments"]) | {"s005": {"key": "x", "attempt": 0}}
-    assert poses._extensible(store, p, names, name_seg, sources) is not None
+    previous, key = poses._previous(store), poses._workspace_key(p)
+    assert can_extend(previous, key, names, name_seg, sources)
     changed = sources | {"s001": {**sources["s001"], "attempt": 1}}
-    assert poses._extensible(store, p, names, name_seg, changed) is None
+    assert not can_extend(previous, key, names, name_seg, changed)
     other = p.model_copy(update={"sfm": p.sfm.model_copy(update={"matcher_overlap": 3})})
-    assert poses._extensible(store, other, names, name_seg, sources) is None
+    assert not can_extend(previous, poses._workspace_key(other), names, name_seg, sources)
 
 
 def test_frame_selection_per_segment_is_stable_when_a_segment_is_prepended() -> None:
-    from tasks.poses import _selection
+    from wonderverse.global_poses import select_frames
 
     a = [("s000", i) for i in range(9)] + [("s001", i) for i in range(1, 9)]
     b = [("s002", i) for i in range(8, 0, -1)] + a
-    pick = lambda index, stride: {index[k] for k in _selection(index, stride)}  # noqa: E731
+    pick = lambda index, stride: {index[k] for k in select_frames(index, stride)}  # noqa: E731
     assert pick(a, 1) == set(a)
     assert pick(a, 3) == {("s000", i) for i in (0, 3, 6, 8)} | {("s001", i) for i in (1, 3, 6, 8)}
     assert pick(a, 3) <= pick(b, 3) and pick(b, 3) - pick(a, 3) == {("s002", i) for i in (8, 6, 3, 1)}

@@ -120,7 +120,8 @@ def test_training_with_gsplat_fits_and_densifies() -> None:
         )  # fmt: skip
         frames.append(rgb.clamp(0, 1).numpy())
         depths.append(np.where(alpha[..., 0].numpy() > 0.5, (depth / alpha.clamp_min(1e-9))[..., 0].numpy(), np.inf))
-    views = Views(np.stack(frames).astype(np.float32), w2c, gt["K"].numpy(), np.stack(depths).astype(np.float32))
+    frames_, depths_ = np.stack(frames).astype(np.float32), np.stack(depths).astype(np.float32)
+    views = Views(frames=frames_, w2c=w2c, K=gt["K"].numpy(), prior_depth=depths_)
     rng = np.random.default_rng(0)
     pts = gt["means"].numpy() + rng.normal(scale=0.05, size=(500, 3))
     model = init_from_points(pts, np.full((500, 3), 0.5), sh_degree=1, init_opacity=0.5)

@@ -9,17 +9,15 @@ import pytest
 import torch
 from scipy.spatial.transform import Rotation
 
-from wonderverse.camera import look_at
+from wonderverse.camera import look_at, quat_from_matrix, quat_multiply
 from wonderverse.splats.model import (
     SH_C0,
     GaussianModel,
-    SceneNormalization,
     eval_sh,
     init_from_points,
+    normalization_from_cameras,
     num_sh_bases,
-    quat_multiply,
     quat_to_rotmat,
-    rotmat_to_quat,
     sh_basis,
     sh_colors,
     sh_rotation_matrices,
@@ -79,7 +77,7 @@ def test_quaternions_match_scipy_and_zero_is_identity() -> None:
     np.testing.assert_allclose(R, ref, atol=1e-12)
     np.testing.assert_allclose(quat_to_rotmat(torch.zeros(1, 4)).numpy()[0], np.eye(3))
     for Rm in ref[:10]:
-        np.testing.assert_allclose(quat_to_rotmat(torch.from_numpy(rotmat_to_quat(Rm))).numpy(), Rm, atol=1e-12)
+        np.testing.assert_allclose(quat_to_rotmat(torch.from_numpy(quat_from_matrix(Rm))).numpy(), Rm, atol=1e-12)
     a, b = Rotation.random(2, random_state=3)
     qa, qb = (r.as_quat()[[3, 0, 1, 2]] for r in (a, b))
     qab = torch.from_numpy(quat_multiply(qa, qb))
@@ -153,6 +151,6 @@ def test_model_shapes_and_numpy_roundtrip() -> None:
 def test_normalization_single_camera_uses_points() -> None:
     w2c = look_at(np.array([10.0, 0, 0]), np.array([20.0, 0, 0]))[None]
     pts = np.array([[12.0, 0, 0], [14.0, 0, 0], [18.0, 0, 0]])
-    norm = SceneNormalization.from_cameras(w2c, pts)
-    assert norm.scale == pytest.approx(1 / 4.0)
-    assert SceneNormalization.from_cameras(w2c).scale == 1.0
+    norm = normalization_from_cameras(w2c, pts)
+    assert norm.s == pytest.approx(1 / 4.0)
+    assert normalization_from_cameras(w2c).s == 1.0

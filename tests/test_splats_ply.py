@@ -10,8 +10,8 @@ import torch
 from plyfile import PlyData
 from scipy.spatial.transform import Rotation
 
-from wonderverse.camera import intrinsics, look_at
-from wonderverse.splats.model import GaussianModel, SceneNormalization
+from wonderverse.camera import Sim3, intrinsics, look_at
+from wonderverse.splats.model import GaussianModel
 from wonderverse.splats.ply import ply_property_names, read_ply, to_world, write_ply
 from wonderverse.splats.render_torch import render
 
@@ -83,12 +83,10 @@ def test_export_undoes_the_normalization_exactly_as_rendered(tmp_path: Path) -> 
     world_pts = np.array([1e4, -2e4, 30.0]) + rng.normal(size=(n, 3)) * np.array([8.0, 8.0, 3.0])
     eye = np.array([1e4 - 25.0, -2e4 + 3.0, 32.0])
     w2c_world = look_at(eye, np.array([1e4, -2e4, 30.0]))
-    norm = SceneNormalization(
-        center=np.array([1e4 - 5.0, -2e4, 29.0]), scale=0.05, rotation=Rotation.random(random_state=4).as_matrix()
-    )
+    norm = Sim3(0.05, Rotation.random(random_state=4).as_matrix(), np.zeros(3), center=[1e4 - 5.0, -2e4, 29.0])
     a = _arrays(n, degree, seed=5)
-    a["means"] = norm.apply_points(world_pts).astype(np.float32)
-    a["log_scales"] = np.log(rng.uniform(0.3, 1.5, size=(n, 3)) * norm.scale).astype(np.float32)
+    a["means"] = norm.apply(world_pts).astype(np.float32)
+    a["log_scales"] = np.log(rng.uniform(0.3, 1.5, size=(n, 3)) * norm.s).astype(np.float32)
     a["logit_opacities"] = np.full(n, 1.0, np.float32)
     a["shN"] *= 0.3
     path = write_ply(tmp_path / "splats.ply", a, norm)
@@ -125,7 +123,7 @@ def test_export_undoes_the_normalization_exactly_as_rendered(tmp_path: Path) -> 
     world64 = to_world(a, norm)
     for k in world64:
         np.testing.assert_allclose(world[k], world64[k], rtol=1e-6, atol=1e-6, err_msg=k)
-    rgb_n, depth_n, alpha_n, normals_n, _ = draw(a, norm.apply_w2c(w2c_world))
+    rgb_n, depth_n, alpha_n, normals_n, _ = draw(a, norm.transform_w2c(w2c_world))
     world64["means"] = world64["means"] - eye  # translate the scene and camera together
     w2c_shift = w2c_world.copy()
     w2c_shift[:3, 3] = w2c_world[:3, :3] @ eye + w2c_world[:3, 3]
@@ -134,4 +132,4 @@ def test_export_undoes_the_normalization_exactly_as_rendered(tmp_path: Path) -> 
     np.testing.assert_allclose(rgb_w.numpy(), rgb_n.numpy(), atol=1e-8)
     np.testing.assert_allclose(alpha_w.numpy(), alpha_n.numpy(), atol=1e-8)
     np.testing.assert_allclose(normals_w.numpy(), normals_n.numpy(), atol=1e-8)
-    np.testing.assert_allclose(norm.scale * depth_w.numpy(), depth_n.numpy(), atol=1e-8 * depth_n.numpy().max())
+    np.testing.assert_allclose(norm.s * depth_w.numpy(), depth_n.numpy(), atol=1e-8 * depth_n.numpy().max())

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 import torch
 
-from wonderverse.splats.model import SceneNormalization, init_from_points, voxel_downsample
+from wonderverse.splats.model import init_from_points, normalization_from_cameras, voxel_downsample
 from wonderverse.splats.params import DensifyParams, LossParams, MCMCParams, TrainParams
 from wonderverse.splats.renderer import make_renderer
 from wonderverse.splats.trainer import (
@@ -51,9 +51,9 @@ def scene() -> dict:
         R, t = path[i, :3, :3], path[i, :3, 3]
         pts.append((xc - t) @ R)
     points, _ = voxel_downsample(np.concatenate(pts), None, 0.25)
-    norm = SceneNormalization.from_cameras(path, points)
+    norm = normalization_from_cameras(path, points)
     views = Views(frames=vid.frames, w2c=path, K=K, prior_depth=depth, prior_normals=normals)
-    return {"views": normalize_views(views, norm), "points": norm.apply_points(points), "norm": norm}
+    return {"views": normalize_views(views, norm), "points": norm.apply(points), "norm": norm}
 
 
 def _model(scene: dict, sh_degree: int = 1):
@@ -158,7 +158,7 @@ def test_non_finite_steps_are_skipped(scene: dict, caplog: pytest.LogCaptureFixt
     views: Views = scene["views"]
     frames = views.frames.astype(np.float32) / 255
     frames[1, 10, 10] = np.nan  # view 1 gives a NaN loss every time it is drawn
-    bad = Views(frames, views.w2c, views.K, views.prior_depth, views.prior_normals)
+    bad = views.replace(frames=frames)
     params = TrainParams(**{**FAST, "iterations": 14}, strategy="none")
     with caplog.at_level(logging.WARNING, logger="wonderverse.splats.trainer"):
         model, curves, metrics = train(_model(scene), bad, params, make_renderer("torch"))

@@ -4,20 +4,20 @@ from __future__ import annotations
 
 import numpy as np
 
-from wonderverse.splats.model import SceneNormalization
+from wonderverse.camera import Sim3
 from wonderverse.splats.renderer import TorchRenderer
 from wonderverse.splats.views import render_views
 
 
-def _plane(z_world: float, norm: SceneNormalization) -> dict[str, np.ndarray]:
+def _plane(z_world: float, norm: Sim3) -> dict[str, np.ndarray]:
     """A grid of flat, opaque Gaussians on the world plane z = z_world, in the training frame."""
     g = np.linspace(-3, 3, 25)
     xy = np.stack(np.meshgrid(g, g), -1).reshape(-1, 2)
     world = np.concatenate([xy, np.full((len(xy), 1), z_world)], 1)
     n = len(world)
-    step = (g[1] - g[0]) * norm.scale
+    step = (g[1] - g[0]) * norm.s
     return {
-        "means": norm.apply_points(world).astype(np.float32),
+        "means": norm.apply(world).astype(np.float32),
         "quats": np.tile([1, 0, 0, 0], (n, 1)).astype(np.float32),
         "log_scales": np.log(np.tile([step, step, 1e-3 * step], (n, 1))).astype(np.float32),
         "logit_opacities": np.full(n, 6.0, np.float32),
@@ -27,7 +27,7 @@ def _plane(z_world: float, norm: SceneNormalization) -> dict[str, np.ndarray]:
 
 
 def test_depth_in_world_units_and_sky_is_inf() -> None:
-    norm = SceneNormalization(center=np.array([1.0, -2.0, 0.5]), scale=0.37)
+    norm = Sim3(0.37, np.eye(3), np.zeros(3), center=[1.0, -2.0, 0.5])
     arrays = _plane(5.0, norm)
     K = np.array([[40.0, 0, 32], [0, 40.0, 24], [0, 0, 1]])
     looking = np.eye(4)  # camera at the origin looking down +z at the plane
@@ -44,7 +44,7 @@ def test_depth_in_world_units_and_sky_is_inf() -> None:
 def test_renders_in_threads_match_one_at_a_time_and_keep_order() -> None:
     import torch
 
-    norm = SceneNormalization(center=np.zeros(3), scale=1.0)
+    norm = Sim3.identity()
     arrays = _plane(5.0, norm)
     arrays["sh0"] = np.random.default_rng(0).uniform(0, 1, arrays["sh0"].shape).astype(np.float32)
     K = np.array([[40.0, 0, 32], [0, 40.0, 24], [0, 0, 1]])

@@ -8,7 +8,9 @@ stacks over leading axes where that is natural (`(..., 3)`, `(..., 3, 3)`, `(...
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -18,12 +20,26 @@ WORLD_UP = np.array([0.0, 0.0, 1.0])
 UMEYAMA_DEGENERATE_RTOL = 1e-10
 # Horizontal length of a unit forward vector below which the camera counts as looking straight up/down.
 VERTICAL_VIEW_TOL = 1e-9
+# Points closer together than this, relative to their coordinates' size (at least 1), count as one point.
+STILL_REL_TOL = 1e-9
 
 
 def intrinsics(width: int, height: int, fov_deg: float) -> np.ndarray:
     """Pinhole K (3x3, pixels) for a horizontal field of view; pixel centres at +0.5, so cx = W/2."""
     fx = 0.5 * width / np.tan(0.5 * np.radians(fov_deg))
     return np.array([[fx, 0.0, width / 2.0], [0.0, fx, height / 2.0], [0.0, 0.0, 1.0]])
+
+
+def fit_intrinsics(width: int, height: int, K: np.ndarray, max_side_px: int) -> tuple[int, int, np.ndarray]:
+    """(w, h, K') of an image of width x height with K (3,3) or (T,3,3) resized so that its longer side is
+    at most `max_side_px` (never enlarged): each side rounded (at least 1 pixel), K's rows scaled by the
+    side's exact ratio (pixel centres stay at +0.5). A copy of K (float64) even when nothing changes."""
+    s = min(1.0, max_side_px / max(width, height))
+    w, h = max(1, round(width * s)), max(1, round(height * s))
+    Ks = np.asarray(K, np.float64).copy()
+    Ks[..., 0, :] *= w / width
+    Ks[..., 1, :] *= h / height
+    return w, h, Ks
 
 
 def se3(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -51,6 +67,40 @@ def camera_centers(w2c: np.ndarray) -> np.ndarray:
     R = w2c[..., :3, :3]
     t = w2c[..., :3, 3]
     return -np.einsum("...ji,...j->...i", R, t)
+
+
+def camera_radius(w2c: np.ndarray) -> float:
+    """Largest distance (world units) of a camera centre from the centres' mean, for finite W2C poses
+    (N,4,4); 0 for none. What the splats' normalisation and their training scale are relative to."""
+    centres = camera_centers(np.asarray(w2c, dtype=np.float64).reshape(-1, 4, 4))
+    return float(np.max(np.linalg.norm(centres - centres.mean(axis=0), axis=1))) if len(centres) else 0.0
+
+
+def span(points: np.ndarray) -> float:
+    """Bounding-box diagonal of points (M,3) (world units); 0 when they coincide up to rounding
+    (closer than `STILL_REL_TOL` of their coordinates' size, at least 1) or when there are none."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if not len(points):
+        return 0.0
+    e = float(np.linalg.norm(points.max(0) - points.min(0)))
+    return 0.0 if e <= STILL_REL_TOL * max(1.0, float(np.abs(points).max())) else e
+
+
+def scene_extent(w2c: np.ndarray, depths: Iterable[np.ndarray] | None = None) -> float:
+    """The scene's size in world units: the bounding-box diagonal of the finite cameras' centres (W2C
+    (N,4,4); `span`, so 0 for a camera that only turns), plus, when `depths` (camera z maps) are given,
+    2 x the median of all their valid values (finite, > 0): how far the cameras see, the median keeping a
+    few far pixels (distant terrain) from inflating it. With depths the result is positive: 1.0 when
+    nothing is valid. Lengths of the fly-through and novel-view paths and of the TSDF mesh are fractions
+    of it."""
+    w2c = np.asarray(w2c, np.float64).reshape(-1, 4, 4)
+    extent = span(camera_centers(w2c[np.isfinite(w2c).all(axis=(1, 2))]))
+    if depths is None:
+        return extent
+    valid = [d[np.isfinite(d) & (d > 0)] for d in (np.asarray(x, np.float32) for x in depths)]
+    allz = np.concatenate(valid) if valid else np.zeros(0, np.float32)
+    extent = extent + 2.0 * float(np.median(allz)) if allz.size else extent
+    return extent if extent > 0 and np.isfinite(extent) else 1.0
 
 
 def look_at(eye: np.ndarray, target: np.ndarray, up: np.ndarray = WORLD_UP) -> np.ndarray:
@@ -148,7 +198,8 @@ def geodesic_angle(R0: np.ndarray, R1: np.ndarray) -> np.ndarray:
 
 
 def quat_from_matrix(R: np.ndarray) -> np.ndarray:
-    """Unit quaternions (..., 4), wxyz with w >= 0, of rotation matrices (..., 3, 3).
+    """Unit quaternions (..., 4), wxyz with w >= 0, of rotation matrices (..., 3, 3). For a rotation by π
+    (w = 0 up to rounding, where q and -q are equally canonical) either sign may come out; both give R.
 
     Shepperd's method: of the four ways to recover the quaternion, use the one dividing by the largest
     component, so nothing is divided by a small number.
@@ -174,23 +225,53 @@ def quat_from_matrix(R: np.ndarray) -> np.ndarray:
     return np.where(q[..., :1] < 0.0, -q, q)
 
 
-def matrix_from_quat(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) of quaternions (..., 4), wxyz; normalises first.
+def quat_matrix_entries(w: Any, x: Any, y: Any, z: Any) -> list[Any]:
+    """The nine entries, row by row, of the rotation matrix of the unit quaternion (w, x, y, z).
 
-    Raises ValueError if any quaternion is zero or not finite.
+    Plain arithmetic, so the components may be NumPy arrays or torch tensors (the one formula behind
+    `matrix_from_quat` and the Gaussians' differentiable `splats.model.quat_to_rotmat`).
+    """
+    return [
+        1 - 2 * (y * y + z * z),
+        2 * (x * y - w * z),
+        2 * (x * z + w * y),
+        2 * (x * y + w * z),
+        1 - 2 * (x * x + z * z),
+        2 * (y * z - w * x),
+        2 * (x * z - w * y),
+        2 * (y * z + w * x),
+        1 - 2 * (x * x + y * y),
+    ]
+
+
+def matrix_from_quat(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices (..., 3, 3) of quaternions (..., 4), wxyz; normalises first, so q and -q (and
+    any positive multiple) give the same matrix.
+
+    Raises ValueError if any quaternion is zero or not finite (a camera has no such rotation; the
+    Gaussians' convention, zero = identity, is `splats.model.quat_to_rotmat`'s).
     """
     q = np.asarray(q, dtype=np.float64)
     n = np.linalg.norm(q, axis=-1, keepdims=True)
     if not np.all(np.isfinite(q)) or np.any(n == 0.0):
         raise ValueError("matrix_from_quat: quaternion is zero or not finite")
-    w, x, y, z = np.moveaxis(q / n, -1, 0)
+    entries = quat_matrix_entries(*np.moveaxis(q / n, -1, 0))
+    return np.stack(entries, -1).reshape(*q.shape[:-1], 3, 3)
+
+
+def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Hamilton product a*b of wxyz quaternions (..., 4), broadcasting over leading axes: the rotation
+    of b followed by that of a (`matrix_from_quat(a * b) == matrix_from_quat(a) @ matrix_from_quat(b)`)."""
+    aw, ax, ay, az = np.moveaxis(np.asarray(a), -1, 0)
+    bw, bx, by, bz = np.moveaxis(np.asarray(b), -1, 0)
     return np.stack(
         [
-            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
-            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
-            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
         ],
-        -2,
+        axis=-1,
     )
 
 
@@ -224,65 +305,109 @@ def quat_slerp(q0: np.ndarray, q1: np.ndarray, t: np.ndarray | float) -> np.ndar
 
 @dataclass(frozen=True, eq=False)
 class Sim3:
-    """Similarity transform x -> s * R @ x + t (s > 0, R a rotation). Arrays are stored read-only."""
+    """Similarity transform x -> s * R @ (x - center) + t (s > 0, R a rotation). Arrays are stored read-only.
+
+    `center` is zero for a plain similarity (`Sim3(s, R, t)`). A similarity about a point, such as the
+    splats' scene normalisation (move the cameras' mean `center` to the origin, then scale), keeps it
+    instead of folding it into t = -s R center: subtracting first keeps far-off coordinates exact.
+    """
 
     s: float
     R: np.ndarray
     t: np.ndarray
+    center: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def __post_init__(self) -> None:
         s = float(self.s)
         R = np.array(self.R, dtype=np.float64)
         t = np.array(self.t, dtype=np.float64)
-        if R.shape != (3, 3) or t.shape != (3,):
-            raise ValueError(f"Sim3: R must be (3,3) and t (3,), got {R.shape} and {t.shape}")
+        c = np.array(self.center, dtype=np.float64)
+        if R.shape != (3, 3) or t.shape != (3,) or c.shape != (3,):
+            raise ValueError(f"Sim3: R must be (3,3), t and center (3,), got {R.shape}, {t.shape} and {c.shape}")
         if not (np.isfinite(s) and s > 0.0):
             raise ValueError(f"Sim3: scale must be finite and positive, got {s}")
-        R.setflags(write=False)
-        t.setflags(write=False)
+        for a in (R, t, c):
+            a.setflags(write=False)
         object.__setattr__(self, "s", s)
         object.__setattr__(self, "R", R)
         object.__setattr__(self, "t", t)
+        object.__setattr__(self, "center", c)
 
     @classmethod
     def identity(cls) -> Sim3:
         """The identity transform."""
         return cls(1.0, np.eye(3), np.zeros(3))
 
+    @property
+    def translation(self) -> np.ndarray:
+        """The translation of the matrix form x -> s R x + translation: t - s R center."""
+        return self.t - self.s * (self.R @ self.center)
+
     def apply(self, points: np.ndarray) -> np.ndarray:
-        """Transformed points (..., 3): s * R @ p + t."""
-        return self.s * (np.asarray(points, dtype=np.float64) @ self.R.T) + self.t
+        """Transformed points (..., 3): s * R @ (p - center) + t."""
+        return self.s * ((np.asarray(points, dtype=np.float64) - self.center) @ self.R.T) + self.t
+
+    def apply_inverse(self, points: np.ndarray) -> np.ndarray:
+        """Points (..., 3) mapped back: R^T (p - t) / s + center (`inverse().apply` up to rounding)."""
+        return (np.asarray(points, dtype=np.float64) - self.t) @ self.R / self.s + self.center
 
     def matrix(self) -> np.ndarray:
-        """4x4 homogeneous matrix [[s R, t], [0, 1]]."""
+        """4x4 homogeneous matrix [[s R, translation], [0, 1]]."""
         M = np.eye(4)
         M[:3, :3] = self.s * self.R
-        M[:3, 3] = self.t
+        M[:3, 3] = self.translation
         return M
 
     def inverse(self) -> Sim3:
-        """The inverse transform: p -> R^T (p - t) / s."""
-        return Sim3(1.0 / self.s, self.R.T, -(self.R.T @ self.t) / self.s)
+        """The inverse transform: p -> R^T (p - t) / s + center (a similarity about t)."""
+        return Sim3(1.0 / self.s, self.R.T, self.center, center=self.t)
 
     def compose(self, other: Sim3) -> Sim3:
         """self ∘ other: `a.compose(b).apply(p) == a.apply(b.apply(p))`."""
-        return Sim3(self.s * other.s, self.R @ other.R, self.s * (self.R @ other.t) + self.t)
+        t = self.s * (self.R @ (other.t - self.center)) + self.t
+        return Sim3(self.s * other.s, self.R @ other.R, t, center=other.center)
 
     def transform_w2c(self, w2c: np.ndarray) -> np.ndarray:
-        """W2C poses (..., 4, 4) expressed in the new world, where new_point = s R old_point + t.
+        """W2C poses (..., 4, 4) expressed in the new world, where new_point = s R (old_point - center) + t.
 
-        The scene (and the camera centres, c' = s R c + t) move by this Sim3; camera rotations become
-        R_c R^T; the result is again rigid (unit-scale rotation), so camera-space coordinates and depths
-        scale by s: t_c' = s t_c - R_c R^T t. Non-finite poses stay non-finite.
+        The scene (and the camera centres) move by this Sim3; camera rotations become R_c R^T; the result
+        is again rigid (unit-scale rotation), so camera-space coordinates and depths scale by s:
+        t_c' = s (t_c + R_c center) - R_c R^T t. Non-finite poses stay non-finite.
         """
         w2c = np.asarray(w2c, dtype=np.float64)
-        Rc = w2c[..., :3, :3] @ self.R.T
-        tc = self.s * w2c[..., :3, 3] - np.einsum("...ij,j->...i", Rc, self.t)
+        Rw = w2c[..., :3, :3]
+        Rc = Rw @ self.R.T
+        tc = self.s * (np.einsum("...ij,j->...i", Rw, self.center) + w2c[..., :3, 3])
+        tc = tc - np.einsum("...ij,j->...i", Rc, self.t)
         out = np.zeros_like(w2c)
         out[..., :3, :3] = Rc
         out[..., :3, 3] = tc
         out[..., 3, 3] = 1.0
         return out
+
+    def inverse_transform_w2c(self, w2c: np.ndarray) -> np.ndarray:
+        """W2C poses (..., 4, 4) of the new world back in the old one (`transform_w2c` undone)."""
+        w2c = np.asarray(w2c, dtype=np.float64)
+        Rc = w2c[..., :3, :3] @ self.R
+        tc = (w2c[..., :3, 3] + np.einsum("...ij,j->...i", w2c[..., :3, :3], self.t)) / self.s
+        tc = tc - np.einsum("...ij,j->...i", Rc, self.center)
+        out = np.zeros_like(w2c)
+        out[..., :3, :3] = Rc
+        out[..., :3, 3] = tc
+        out[..., 3, 3] = 1.0
+        return out
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-able {"s", "R", "t"} (and "center" when it is not zero); `from_dict` reads it back."""
+        d: dict[str, Any] = {"s": float(self.s), "R": self.R.tolist(), "t": self.t.tolist()}
+        if self.center.any():
+            d["center"] = self.center.tolist()
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> Sim3:
+        """The Sim3 of `to_dict`'s {"s", "R", "t"[, "center"]}."""
+        return cls(d["s"], d["R"], d["t"], center=d.get("center", np.zeros(3)))
 
 
 def _degenerate(points_centred: np.ndarray) -> bool:
@@ -383,13 +508,17 @@ def interpolate_poses(key_w2c: np.ndarray, key_times: np.ndarray, times: np.ndar
     return _w2c_from(R, centers)
 
 
-def _rot_z(a: np.ndarray) -> np.ndarray:
+def rot_z(a: np.ndarray | float) -> np.ndarray:
+    """Rotations (..., 3, 3) by angles `a` (radians, any shape) about +z, counter-clockwise seen from above."""
+    a = np.asarray(a, dtype=np.float64)
     c, s = np.cos(a), np.sin(a)
     o, one = np.zeros_like(a), np.ones_like(a)
     return np.stack([np.stack([c, -s, o], -1), np.stack([s, c, o], -1), np.stack([o, o, one], -1)], -2)
 
 
-def _rot_x(a: np.ndarray) -> np.ndarray:
+def rot_x(a: np.ndarray | float) -> np.ndarray:
+    """Rotations (..., 3, 3) by angles `a` (radians, any shape) about +x (y towards z)."""
+    a = np.asarray(a, dtype=np.float64)
     c, s = np.cos(a), np.sin(a)
     o, one = np.zeros_like(a), np.ones_like(a)
     return np.stack([np.stack([one, o, o], -1), np.stack([o, c, -s], -1), np.stack([o, s, c], -1)], -2)
@@ -447,7 +576,7 @@ def move_path(
     c0 = camera_centers(start)
     centers = c0 + (u * forward_m)[:, None] * h + (u * strafe_m)[:, None] * left
     # C2W rotation R^T: world yaw on the left, camera-frame pitch on the right.
-    c2w = _rot_z(u * yaw_rad) @ R0.T @ _rot_x(u * pitch_rad)
+    c2w = rot_z(u * yaw_rad) @ R0.T @ rot_x(u * pitch_rad)
     out = _w2c_from(np.swapaxes(c2w, -1, -2), centers)
     out[0] = start  # exactly, not up to the rounding of t -> c -> t
     return out

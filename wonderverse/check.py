@@ -21,7 +21,7 @@ little to triangulate, but the video is not inconsistent; SfM's own gates reject
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from itertools import pairwise
 from typing import Any, Literal
@@ -273,3 +273,9 @@ def check_trajectory(
         median_step=median_step,
         registered_frac=frac,
     )
+
+
+def least_bad(checks: Mapping[int, Mapping[str, Any]]) -> int:
+    """The attempt to keep when none passed (`on_failure: keep_best`), of `checks` (attempt -> its
+    `CheckResult.to_attrs()`): the fewest reasons, then the most frames registered, then the earliest."""
+    return min(checks, key=lambda k: (len(checks[k].get("reasons", [])), -float(checks[k].get("registered_frac", 0.0))))

@@ -5,16 +5,16 @@ in world units, where +inf, NaN or <= 0 means "nothing here" (sky, background) a
 it neither adds surface nor carves free space; K (3,3) pixels with pixel centres at +0.5; W2C (4,4) OpenCV
 axes. Outputs are `TriMesh` / `PointCloud` dataclasses of numpy arrays, so callers need not import Open3D.
 
-Every length is a fraction of the scene extent the caller passes (`scene_extent` gives one: the diagonal of
-the camera centres' bounding box plus twice the median depth, i.e. the path plus the typical distance to
-what the cameras look at), so one `MeshParams` serves a room and a valley:
+Every length is a fraction of the scene extent the caller passes (`camera.scene_extent(w2c, depths)` gives
+one: the diagonal of the camera centres' bounding box plus twice the median depth, i.e. the path plus the
+typical distance to what the cameras look at), so one `MeshParams` serves a room and a valley:
 voxel = voxel_frac * extent, truncation = trunc_voxels * voxel, depths beyond max_depth_frac * extent are
 background and are not fused.
 """
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sized
+from collections.abc import Iterable, Sequence, Sized
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -25,7 +25,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from wonderverse.progress import ProgressFn, no_progress
 
 if TYPE_CHECKING:
-    from wonderverse.splats.model import SceneNormalization
+    from wonderverse.camera import Sim3
 
 # DC spherical-harmonic constant (the same as splats.model.SH_C0, repeated so this module does not load torch)
 SH_C0 = 0.28209479177387814
@@ -72,20 +72,6 @@ class PointCloud:
 
     points: np.ndarray
     colors: np.ndarray
-
-
-def scene_extent(w2c: np.ndarray, depths: Iterable[np.ndarray]) -> float:
-    """Scene extent in world units: bounding-box diagonal of the camera centres (W2C (N,4,4); non-finite poses
-    skipped) + 2 x the median of all valid depths (finite, > 0). The median keeps a few far pixels (distant
-    terrain) from inflating it; 1.0 when nothing is valid."""
-    w2c = np.asarray(w2c, np.float64).reshape(-1, 4, 4)
-    w2c = w2c[np.isfinite(w2c).all(axis=(1, 2))]
-    centers = -np.einsum("nji,nj->ni", w2c[:, :3, :3], w2c[:, :3, 3])
-    span = float(np.linalg.norm(np.ptp(centers, axis=0))) if len(centers) else 0.0
-    valid = [d[np.isfinite(d) & (d > 0)] for d in (np.asarray(x, np.float32) for x in depths)]
-    allz = np.concatenate(valid) if valid else np.zeros(0, np.float32)
-    extent = span + 2.0 * float(np.median(allz)) if allz.size else span
-    return extent if extent > 0 and np.isfinite(extent) else 1.0
 
 
 def fusion_cameras(w2c: np.ndarray, extra_per_gap: int) -> np.ndarray:
@@ -203,6 +189,23 @@ def _from_o3d(m: Any) -> TriMesh:
     )
 
 
+def mesh_from_views(
+    views: Sequence[tuple[np.ndarray, np.ndarray]],
+    w2c: np.ndarray,
+    K: np.ndarray,
+    params: MeshParams | None = None,
+    progress: ProgressFn | None = None,
+) -> tuple[TriMesh, float]:
+    """The cleaned mesh (`fuse_tsdf`, then `clean_mesh`) of views (rgb (H,W,3), depth (H,W) world z, +inf
+    where nothing is) seen from W2C cameras (N,4,4) with intrinsics K (3,3), and the extent its lengths
+    followed: `camera.scene_extent` of those cameras and depths. Returns (mesh, extent)."""
+    from wonderverse.camera import scene_extent
+
+    extent = scene_extent(w2c, [d for _, d in views])
+    fused = [(rgb, d, K, c) for (rgb, d), c in zip(views, w2c, strict=True)]
+    return clean_mesh(fuse_tsdf(fused, extent, params, progress=progress), params), extent
+
+
 def clean_mesh(mesh: TriMesh, params: MeshParams | None = None) -> TriMesh:
     """Merge duplicate vertices, drop degenerate triangles, keep the large connected components
     (`min_component_frac` of all triangles, and at most `keep_largest` of them), then decimate to
@@ -229,15 +232,16 @@ def clean_mesh(mesh: TriMesh, params: MeshParams | None = None) -> TriMesh:
     return _from_o3d(m)
 
 
-def gaussian_points(arrays: dict[str, np.ndarray], norm: SceneNormalization, min_opacity: float = 0.5) -> PointCloud:
+def gaussian_points(arrays: dict[str, np.ndarray], norm: Sim3, min_opacity: float = 0.5) -> PointCloud:
     """Centres of the Gaussians with opacity >= `min_opacity`, mapped from the training frame back to the
-    world (`norm.invert_points`), coloured by their view-independent (DC) SH colour clipped to [0,1].
-    `arrays` is the splats step's layout (means (N,3), logit_opacities (N,), sh0 (N,1,3), …)."""
+    world (`norm.apply_inverse`, `norm` the training normalisation), coloured by their view-independent
+    (DC) SH colour clipped to [0,1]. `arrays` is the splats step's layout (means (N,3), logit_opacities
+    (N,), sh0 (N,1,3), …)."""
     logit = np.asarray(arrays["logit_opacities"], np.float64).reshape(-1)
     keep = 1.0 / (1.0 + np.exp(-logit)) >= min_opacity
     means = np.asarray(arrays["means"], np.float64).reshape(-1, 3)[keep]
     sh0 = np.asarray(arrays["sh0"], np.float64).reshape(len(logit), -1, 3)[keep, 0]
-    return PointCloud(points=norm.invert_points(means), colors=np.clip(sh0 * SH_C0 + 0.5, 0.0, 1.0))
+    return PointCloud(points=norm.apply_inverse(means), colors=np.clip(sh0 * SH_C0 + 0.5, 0.0, 1.0))
 
 
 def _trimesh(mesh: TriMesh) -> Any:

@@ -3,7 +3,7 @@ views that leave the training trajectory (a parallel track beside/above it, or a
 
 All poses are W2C (N,4,4) float64 in OpenCV camera axes (x right, y down, z forward); the world is
 right-handed with +z up. Input poses that are not finite (NaN: not registered) are skipped. The scene
-extent used for offsets is the diagonal of the bounding box of the training camera centres.
+extent used for offsets is `camera.scene_extent` of the training cameras (their centres' bounding-box diagonal).
 """
 
 from __future__ import annotations
@@ -12,12 +12,15 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from wonderverse.camera import (
+    STILL_REL_TOL,
     WORLD_UP,
     _horizontal_heading,
     camera_centers,
     look_at,
     matrix_from_quat,
     quat_from_matrix,
+    scene_extent,
+    span,
 )
 
 # Below this length of (view direction × up) a camera counts as looking straight up/down for look_at,
@@ -25,8 +28,6 @@ from wonderverse.camera import (
 NEAR_VERTICAL_SIN = 1e-3
 # Weight of the camera heading against the horizontal velocity (in typical steps) when choosing "sideways".
 HEADING_WEIGHT = 0.01
-# Centres closer together than this, relative to their coordinates' size (at least 1), count as one point.
-STILL_REL_TOL = 1e-9
 
 
 class FlythroughParams(BaseModel):
@@ -77,18 +78,6 @@ def _valid_poses(w2c: np.ndarray) -> np.ndarray:
     if len(valid) == 0:
         raise ValueError("no finite camera pose to build a path from")
     return valid
-
-
-def scene_extent(w2c: np.ndarray) -> float:
-    """Diagonal of the bounding box of the finite cameras' centres (world units); 0 when they coincide up to
-    rounding (a camera that only turns)."""
-    return _extent(camera_centers(_valid_poses(w2c)))
-
-
-def _extent(c: np.ndarray) -> float:
-    """Bounding-box diagonal of points (M,3); 0 when they coincide up to rounding."""
-    e = float(np.linalg.norm(c.max(0) - c.min(0)))
-    return 0.0 if e <= STILL_REL_TOL * max(1.0, float(np.abs(c).max())) else e
 
 
 def _odd_padded_smooth(x: np.ndarray, sigma: float) -> np.ndarray:
@@ -148,7 +137,7 @@ def flythrough_path(w2c: np.ndarray, n_frames: int, params: FlythroughParams | N
     if len(poses) == 1:
         return np.repeat(_poses(matrix_from_quat(q), c), n_frames, axis=0)
 
-    extent = _extent(c)
+    extent = span(c)
     # A camera that only turns: its path length is the turning alone, its centre one point.
     turn_len = params.turn_length_frac_per_rad * extent if extent > 0.0 else 1.0
     if extent == 0.0:

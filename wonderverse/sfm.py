@@ -625,7 +625,7 @@ def reconstruct(
     workdir keeps the images, database and models there (for debugging); otherwise a temp dir is used.
     names: one unique `.png` file name per frame, used for the images in COLMAP (default: the frame's
     position); give stable ids when the workspace is to be extended later, sorting in sequence order:
-    COLMAP numbers images by sorted name and the global mapper depends on that (`tasks.poses.image_names`).
+    COLMAP numbers images by sorted name and the global mapper depends on that (`global_poses.image_names`).
     keep_workspace: return the database and kept model in `result.workspace` (for
     `sfm_extend.extend_reconstruction`).
     progress(stage, len(STAGES), what it is doing): each of `STAGES` as it starts, then done.

@@ -10,7 +10,14 @@ from __future__ import annotations
 from typing import TYPE_CHECKING
 
 from wonderverse.errors import WonderError
-from wonderverse.priors.align import AlignResult, align_scale_shift, reference_samples
+from wonderverse.priors.align import (
+    AlignedFrames,
+    AlignResult,
+    align_frames,
+    align_scale_shift,
+    project_points,
+    reference_samples,
+)
 from wonderverse.priors.base import DepthKind, DepthModel, DepthPrediction, NormalModel, NormalPrediction
 from wonderverse.priors.from_depth import NormalsFromDepth, normals_from_depth, orient_towards_camera
 from wonderverse.priors.params import (
@@ -28,6 +35,7 @@ __all__ = [
     "ORACLE_LEVELS",
     "AlignParams",
     "AlignResult",
+    "AlignedFrames",
     "DepthKind",
     "DepthModel",
     "DepthPrediction",
@@ -37,11 +45,13 @@ __all__ = [
     "NormalsFromDepth",
     "OracleDegradation",
     "PriorsParams",
+    "align_frames",
     "align_scale_shift",
     "make_depth_model",
     "make_normal_model",
     "normals_from_depth",
     "orient_towards_camera",
+    "project_points",
     "reference_samples",
 ]
 

@@ -232,3 +232,56 @@ def align_scale_shift(
         space=space,
         n_clamped=n_clamped,
     )
+
+
+def project_points(points: np.ndarray, w2c: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """World points (N,3) seen by a W2C camera (4,4) with intrinsics K (3,3): (M,3) samples (u, v, z) in
+    pixels (centres at +0.5) and camera z, of the M points in front of the camera (z > 1e-6), in order.
+    Points outside the image are kept (`reference_samples` drops them)."""
+    cam = points @ w2c[:3, :3].T + w2c[:3, 3]
+    z = cam[:, 2]
+    front = z > 1e-6
+    uv = cam[front, :2] / z[front, None] * [K[0, 0], K[1, 1]] + [K[0, 2], K[1, 2]]
+    return np.column_stack([uv, z[front]])
+
+
+@dataclass
+class AlignedFrames:
+    """depth (T,H,W) float32 camera z: each frame's prior aligned to the SfM points it sees (or the prior
+    turned into depth where that failed), +inf where it is sky; scale, shift (T,) the fitted a, b (NaN
+    where no fit); ok (T,) bool, the alignment held; reasons: "frame t: why" for each frame that failed."""
+
+    depth: np.ndarray
+    scale: np.ndarray
+    shift: np.ndarray
+    ok: np.ndarray
+    reasons: list[str]
+
+
+def align_frames(
+    prior: np.ndarray,
+    space: DepthKind,
+    w2c: np.ndarray,
+    points: np.ndarray,
+    K: np.ndarray,
+    params: AlignParams,
+    sky_beyond_ref: float,
+) -> AlignedFrames:
+    """Each frame's depth prior (`prior` (T,H,W) in `space`) aligned (`align_scale_shift`) to the world
+    `points` (N,3) projected through its W2C pose (`w2c` (T,4,4), NaN where unknown: no reference, the
+    fallback) and K (3,3). Sky rule: monocular networks put the sky far away, not at infinity, so aligned
+    depth beyond `sky_beyond_ref` times the farthest projected point's depth becomes +inf (frames that see
+    no point are left as they are)."""
+    n = len(prior)
+    depth = np.empty(np.shape(prior)[:3], np.float32)
+    scale, shift, ok, reasons = np.full(n, np.nan), np.full(n, np.nan), [], []
+    for t in range(n):
+        ref = project_points(points, w2c[t], K) if np.isfinite(w2c[t]).all() else np.zeros((0, 3))
+        r = align_scale_shift(prior[t], ref, space=space, params=params)
+        depth[t], scale[t], shift[t] = r.aligned_depth, r.scale, r.shift
+        if len(ref):
+            depth[t][depth[t] > sky_beyond_ref * ref[:, 2].max()] = np.inf
+        ok.append(r.ok)
+        if not r.ok:
+            reasons.append(f"frame {t}: {r.reason}")
+    return AlignedFrames(depth, scale, shift, np.array(ok, dtype=bool), reasons)

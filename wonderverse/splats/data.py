@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from wonderverse.camera import fit_intrinsics
 from wonderverse.splats.trainer import Views
 
 
@@ -29,17 +30,14 @@ def downscale_views(views: Views, max_side_px: int) -> Views:
     """The same views with the longer image side at most `max_side_px` (intrinsics scaled to match;
     priors resampled nearest so sky/invalid pixels stay exactly invalid)."""
     h, w = views.frames.shape[1:3]
-    f = max_side_px / max(h, w)
-    if f >= 1:
+    if max_side_px >= max(h, w):
         return views
-    nw, nh = max(1, round(w * f)), max(1, round(h * f))
-    S = np.diag([nw / w, nh / h, 1.0])
-    K = S @ views.K if views.K.ndim == 2 else np.einsum("ij,njk->nik", S, views.K)
+    nw, nh, K = fit_intrinsics(w, h, views.K, max_side_px)
     opt = {
         name: None if getattr(views, name) is None else _resize(getattr(views, name), (nw, nh), True)
         for name in ("prior_depth", "prior_normals", "masks", "sky")
     }
-    return Views(_resize(views.frames, (nw, nh), False), views.w2c, K, **opt)
+    return views.replace(frames=_resize(views.frames, (nw, nh), False), K=K, **opt)
 
 
 def backproject_depth(views: Views, stride_px: int, frame_stride: int) -> tuple[np.ndarray, np.ndarray]:

@@ -1,7 +1,7 @@
 """The Gaussian-splat scene model, its initialisation from points, scene normalisation and SH colour.
 
 Conventions (the same as gsplat 1.5.3 and the INRIA 3DGS code):
-  means (N,3) world coordinates (the *normalised* frame while training, see `SceneNormalization`);
+  means (N,3) world coordinates (the *normalised* frame while training, see `normalization_from_cameras`);
   quats (N,4) w,x,y,z, unnormalised (normalised wherever they are used; a zero quaternion means identity);
   log_scales (N,3) natural log of the per-axis standard deviations;
   logit_opacities (N,) logit of the opacity in (0,1);
@@ -13,7 +13,6 @@ All tensors are float32.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -112,64 +111,17 @@ def sh_colors(degree: int, sh_coeffs: Tensor, dirs: Tensor) -> Tensor:
 
 
 def quat_to_rotmat(quats: Tensor) -> Tensor:
-    """Rotation matrices (...,3,3) of w,x,y,z quaternions (...,4); normalised here, zero -> identity."""
+    """Rotation matrices (...,3,3) of w,x,y,z quaternions (...,4); normalised here, zero -> identity (the
+    Gaussians' convention, as gsplat's; `camera.matrix_from_quat` is the same formula over NumPy)."""
+    from wonderverse.camera import quat_matrix_entries
+
     norm = quats.norm(dim=-1, keepdim=True)
     # A zero quaternion is mapped to the identity instead of dividing by zero.
     identity = torch.zeros_like(quats)
     identity[..., 0] = 1.0
     q = torch.where(norm > 1e-12, quats / norm.clamp_min(1e-12), identity)
-    w, x, y, z = q.unbind(-1)
-    R = torch.stack(
-        [
-            1 - 2 * (y * y + z * z),
-            2 * (x * y - w * z),
-            2 * (x * z + w * y),
-            2 * (x * y + w * z),
-            1 - 2 * (x * x + z * z),
-            2 * (y * z - w * x),
-            2 * (x * z - w * y),
-            2 * (y * z + w * x),
-            1 - 2 * (x * x + y * y),
-        ],
-        dim=-1,
-    )
+    R = torch.stack(quat_matrix_entries(*q.unbind(-1)), dim=-1)
     return R.reshape(*quats.shape[:-1], 3, 3)
-
-
-def rotmat_to_quat(R: np.ndarray) -> np.ndarray:
-    """w,x,y,z unit quaternion (w >= 0) of a rotation matrix (3,3), float64 (Shepperd's method)."""
-    R = np.asarray(R, dtype=np.float64)
-    tr = np.trace(R)
-    if tr > 0:
-        s = 2.0 * math.sqrt(tr + 1.0)
-        q = [0.25 * s, (R[2, 1] - R[1, 2]) / s, (R[0, 2] - R[2, 0]) / s, (R[1, 0] - R[0, 1]) / s]
-    else:
-        i = int(np.argmax(np.diag(R)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * math.sqrt(max(1.0 + R[i, i] - R[j, j] - R[k, k], 1e-300))
-        q = [0.0, 0.0, 0.0, 0.0]
-        q[0] = (R[k, j] - R[j, k]) / s
-        q[1 + i] = 0.25 * s
-        q[1 + j] = (R[j, i] + R[i, j]) / s
-        q[1 + k] = (R[k, i] + R[i, k]) / s
-    q = np.array(q)
-    q /= np.linalg.norm(q)
-    return q if q[0] >= 0 else -q
-
-
-def quat_multiply(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Hamilton product a*b of w,x,y,z quaternions (broadcasting over leading axes)."""
-    aw, ax, ay, az = np.moveaxis(a, -1, 0)
-    bw, bx, by, bz = np.moveaxis(b, -1, 0)
-    return np.stack(
-        [
-            aw * bw - ax * bx - ay * by - az * bz,
-            aw * bx + ax * bw + ay * bz - az * by,
-            aw * by - ax * bz + ay * bw + az * bx,
-            aw * bz + ax * by - ay * bx + az * bw,
-        ],
-        axis=-1,
-    )
 
 
 def sh_rotation_matrices(R: np.ndarray, degree: int) -> list[np.ndarray]:
@@ -194,86 +146,41 @@ def sh_rotation_matrices(R: np.ndarray, degree: int) -> list[np.ndarray]:
     return mats
 
 
-@dataclass(frozen=True)
-class SceneNormalization:
-    """Similarity x_n = scale * rotation @ (x - center) from the world frame to the training frame.
+def normalization_from_cameras(w2c: np.ndarray, points: np.ndarray | None = None, target_radius: float = 1.0) -> Sim3:
+    """The similarity from the world to the training frame, x_n = scale (x - center) (a `Sim3` about
+    `center`, no rotation, t = 0): centre = mean camera centre; scale so the farthest camera lies at
+    `target_radius`.
 
-    Training in a frame centred on the cameras with unit extent keeps learning rates and the
-    densification thresholds scene-independent. `scale` is dimensionless (normalised units per world
-    unit). Depths in the normalised frame are `scale` times world depths. Stored with the splats so
-    that exports are in the original world frame.
+    Training in a frame centred on the cameras with unit extent keeps learning rates and the densification
+    thresholds scene-independent. The scale is dimensionless (normalised units per world unit); depths in
+    the normalised frame are `scale` times world depths. With one camera (or all at one place) the extent
+    comes from `points` (their median distance to the centre) instead; with neither, scale = 1. Stored with
+    the splats (`normalization_to_dict`) so that exports are in the original world frame.
     """
+    from wonderverse.camera import Sim3, camera_centers, camera_radius
 
-    center: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    scale: float = 1.0
-    rotation: np.ndarray = field(default_factory=lambda: np.eye(3))
+    w2c = np.asarray(w2c, dtype=np.float64).reshape(-1, 4, 4)
+    center = camera_centers(w2c).mean(axis=0)
+    extent = camera_radius(w2c)
+    if not extent > 1e-9 and points is not None and len(points):
+        extent = float(np.median(np.linalg.norm(np.asarray(points, np.float64) - center, axis=1)))
+    scale = target_radius / extent if extent > 1e-9 and np.isfinite(extent) else 1.0
+    return Sim3(scale, np.eye(3), np.zeros(3), center=center)
 
-    @staticmethod
-    def from_cameras(
-        w2c: np.ndarray, points: np.ndarray | None = None, target_radius: float = 1.0
-    ) -> SceneNormalization:
-        """Centre = mean camera centre; scale so the farthest camera lies at `target_radius`.
 
-        With one camera (or all at one place) the extent comes from `points` (their median distance
-        to the centre) instead; with neither, scale = 1. Rotation is the identity (world +z stays up).
-        """
-        w2c = np.asarray(w2c, dtype=np.float64).reshape(-1, 4, 4)
-        R = w2c[:, :3, :3]
-        centers = -np.einsum("nji,nj->ni", R, w2c[:, :3, 3])
-        center = centers.mean(axis=0)
-        extent = float(np.max(np.linalg.norm(centers - center, axis=1))) if len(centers) else 0.0
-        if not extent > 1e-9 and points is not None and len(points):
-            extent = float(np.median(np.linalg.norm(np.asarray(points, np.float64) - center, axis=1)))
-        scale = target_radius / extent if extent > 1e-9 and np.isfinite(extent) else 1.0
-        return SceneNormalization(center=center, scale=scale)
+def normalization_to_dict(norm: Sim3) -> dict[str, list[float] | float]:
+    """How the splats group stores its normalisation x_n = scale rotation (x - center): {center, scale,
+    rotation}. Only a similarity about a point (t = 0) has this form."""
+    if norm.t.any():
+        raise ValueError("a scene normalisation has t = 0 (x_n = scale rotation (x - center))")
+    return {"center": norm.center.tolist(), "scale": float(norm.s), "rotation": norm.R.tolist()}
 
-    def to_sim3(self) -> Sim3:
-        """The same map as a `camera.Sim3` (x -> s R x + t with t = -s R c)."""
-        from wonderverse.camera import Sim3
 
-        return Sim3(self.scale, self.rotation, -self.scale * (self.rotation @ self.center))
+def normalization_from_dict(d: dict) -> Sim3:
+    """The `Sim3` of `normalization_to_dict`'s {center, scale, rotation} (rotation optional: identity)."""
+    from wonderverse.camera import Sim3
 
-    def to_dict(self) -> dict[str, list[float] | float]:
-        return {
-            "center": self.center.tolist(),
-            "scale": float(self.scale),
-            "rotation": self.rotation.tolist(),
-        }
-
-    @staticmethod
-    def from_dict(d: dict) -> SceneNormalization:
-        return SceneNormalization(
-            center=np.asarray(d["center"], dtype=np.float64),
-            scale=float(d["scale"]),
-            rotation=np.asarray(d.get("rotation", np.eye(3)), dtype=np.float64),
-        )
-
-    def apply_points(self, x: np.ndarray) -> np.ndarray:
-        """World points (...,3) -> normalised frame."""
-        return self.scale * (np.asarray(x, np.float64) - self.center) @ self.rotation.T
-
-    def invert_points(self, x: np.ndarray) -> np.ndarray:
-        """Normalised points (...,3) -> world frame."""
-        return np.asarray(x, np.float64) @ self.rotation / self.scale + self.center
-
-    def apply_w2c(self, w2c: np.ndarray) -> np.ndarray:
-        """World W2C poses (...,4,4) -> W2C poses of the normalised frame (rotation part stays orthonormal;
-        the camera frame is scaled by `scale` too, so normalised depth = scale * world depth)."""
-        w2c = np.asarray(w2c, dtype=np.float64)
-        out = w2c.copy()
-        Rw = w2c[..., :3, :3]
-        out[..., :3, :3] = Rw @ self.rotation.T
-        out[..., :3, 3] = self.scale * (np.einsum("...ij,j->...i", Rw, self.center) + w2c[..., :3, 3])
-        return out
-
-    def invert_w2c(self, w2c_n: np.ndarray) -> np.ndarray:
-        """Normalised-frame W2C poses (...,4,4) -> world W2C poses (inverse of `apply_w2c`)."""
-        w2c_n = np.asarray(w2c_n, dtype=np.float64)
-        out = w2c_n.copy()
-        Rw = w2c_n[..., :3, :3] @ self.rotation
-        out[..., :3, :3] = Rw
-        out[..., :3, 3] = w2c_n[..., :3, 3] / self.scale - np.einsum("...ij,j->...i", Rw, self.center)
-        return out
+    return Sim3(d["scale"], d.get("rotation", np.eye(3)), np.zeros(3), center=d["center"])
 
 
 class GaussianModel(nn.Module):

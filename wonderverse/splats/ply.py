@@ -8,8 +8,8 @@ coefficients channel-major (all of R's K coefficients, then G's, then B's: INRIA
 `features_rest.transpose(1, 2).flatten(1)`), opacity as a logit, scale_* as natural logs, rot_* a w,x,y,z
 quaternion (not necessarily unit length).
 
-The file is written in the original world frame: the inverse of the training `SceneNormalization`
-(x_n = s R (x - c)) is applied: means x = R^T x_n / s + c, log-scales shifted by -log(s), rotations
+The file is written in the original world frame: the inverse of the training normalisation (a
+`camera.Sim3`, x_n = s R (x - c) + t) is applied: means x = R^T x_n / s + c, log-scales shifted by -log(s), rotations
 composed as q_world = q(R^T) * q_n, and SH bands of degree >= 1 rotated with R^T (identity when R = I).
 """
 
@@ -20,14 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-from wonderverse.splats.model import (
-    MAX_SH_DEGREE,
-    SceneNormalization,
-    num_sh_bases,
-    quat_multiply,
-    rotmat_to_quat,
-    sh_rotation_matrices,
-)
+from wonderverse.camera import Sim3, quat_from_matrix, quat_multiply
+from wonderverse.splats.model import MAX_SH_DEGREE, num_sh_bases, sh_rotation_matrices
 
 
 def ply_property_names(sh_degree: int) -> list[str]:
@@ -43,14 +37,14 @@ def ply_property_names(sh_degree: int) -> list[str]:
     )
 
 
-def to_world(arrays: dict[str, np.ndarray], normalization: SceneNormalization) -> dict[str, np.ndarray]:
+def to_world(arrays: dict[str, np.ndarray], normalization: Sim3) -> dict[str, np.ndarray]:
     """Gaussian arrays (GaussianModel.to_numpy names) mapped from the training frame to the world frame."""
-    s, R = float(normalization.scale), np.asarray(normalization.rotation, dtype=np.float64)
+    s, R = normalization.s, normalization.R
     out = {k: np.asarray(v, dtype=np.float64).copy() for k, v in arrays.items()}
-    out["means"] = normalization.invert_points(out["means"])
+    out["means"] = normalization.apply_inverse(out["means"])
     out["log_scales"] = out["log_scales"] - math.log(s)
     if not np.allclose(R, np.eye(3), atol=1e-12):
-        q_rt = rotmat_to_quat(R.T)
+        q_rt = quat_from_matrix(R.T)
         out["quats"] = quat_multiply(np.broadcast_to(q_rt, out["quats"].shape), out["quats"])
         sh_n = out["shN"]
         degree = round(math.sqrt(sh_n.shape[1] + 1)) - 1
@@ -60,20 +54,19 @@ def to_world(arrays: dict[str, np.ndarray], normalization: SceneNormalization) -
     return out
 
 
-def to_training_frame(arrays: dict[str, np.ndarray], normalization: SceneNormalization) -> dict[str, np.ndarray]:
+def to_training_frame(arrays: dict[str, np.ndarray], normalization: Sim3) -> dict[str, np.ndarray]:
     """Inverse of `to_world`: world-frame Gaussian arrays into the normalised training frame."""
-    inverse_rot = SceneNormalization(
-        center=np.zeros(3), scale=1.0 / normalization.scale, rotation=np.asarray(normalization.rotation).T
-    )
-    # to_world with (c=0, 1/s, R^T) maps x -> R x * s, log-scales + log s, q -> q(R) q, SH rotated by R.
-    out = to_world({**arrays, "means": np.asarray(arrays["means"], np.float64) - normalization.center}, inverse_rot)
+    turn = Sim3(1.0 / normalization.s, normalization.R.T, np.zeros(3))
+    # to_world with (1/s, R^T) maps x -> R x * s, log-scales + log s, q -> q(R) q, SH rotated by R.
+    out = to_world({**arrays, "means": np.asarray(arrays["means"], np.float64) - normalization.center}, turn)
+    out["means"] = out["means"] + normalization.t
     return out
 
 
 def write_ply(
     path: str | Path,
     arrays: dict[str, np.ndarray],
-    normalization: SceneNormalization | None = None,
+    normalization: Sim3 | None = None,
 ) -> Path:
     """Write Gaussians (GaussianModel.to_numpy() arrays, training frame) as an INRIA splats.ply in the world
     frame (`normalization` inverted; None = already in the world frame). Returns the path."""
@@ -109,7 +102,7 @@ def write_ply(
     return path
 
 
-def read_ply(path: str | Path, normalization: SceneNormalization | None = None) -> dict[str, np.ndarray]:
+def read_ply(path: str | Path, normalization: Sim3 | None = None) -> dict[str, np.ndarray]:
     """Read an INRIA splats.ply into GaussianModel.from_numpy() arrays (float32): world frame, or the
     training frame of `normalization` when given. The SH degree follows the number of f_rest fields."""
     from plyfile import PlyData

@@ -1,7 +1,7 @@
 """Optimising Gaussian splats on posed frames with the paper's RGB + depth + normal loss.
 
 `train(model, views, params, renderer)` works in whatever frame the model and the views share; the
-pipeline normalises both first (`SceneNormalization`, `normalize_views`) so that learning rates and the
+pipeline normalises both first (`model.normalization_from_cameras`, `normalize_views`) so that learning rates and the
 densification thresholds are scene-independent, and inverts it at export (`ply.write_ply`).
 
 Sky: pixels marked sky (or, with `sky_from_invalid_prior`, where the depth prior is invalid, e.g. +inf)
@@ -24,11 +24,12 @@ copied to the host, so reporting adds no wait either.
 from __future__ import annotations
 
 import copy
+import dataclasses
 import logging
 import time
-from collections.abc import Callable, Collection
+from collections.abc import Callable, Collection, Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -36,21 +37,28 @@ import torch
 from wonderverse.progress import ProgressFn, no_progress
 from wonderverse.splats.compiled import Compiled
 from wonderverse.splats.losses import masked_mean, total_loss
-from wonderverse.splats.model import GaussianModel, SceneNormalization
+from wonderverse.splats.model import GaussianModel
 from wonderverse.splats.params import LossParams, TrainParams
 from wonderverse.splats.renderer import Renderer
 from wonderverse.splats.strategy import DefaultStrategy, MCMCStrategy
+
+if TYPE_CHECKING:
+    from wonderverse.camera import Sim3
 
 log = logging.getLogger(__name__)
 _FLUSH_EVERY = 50  # steps between copies of the loss terms to the host (each copy waits for the device)
 
 
-@dataclass
+PER_FRAME = ("frames", "w2c", "prior_depth", "prior_normals", "masks", "sky")
+
+
+@dataclass(kw_only=True)
 class Views:
     """Posed frames in the training frame. frames (T,H,W,3) uint8 or float in [0,1]; w2c (T,4,4) W2C;
     K (3,3) or (T,3,3) pixels; prior_depth (T,H,W) camera z, any affine scale, +inf/NaN/<=0 invalid;
     prior_normals (T,H,W,3) camera-space unit normals facing the camera (zero = invalid);
-    masks (T,H,W) bool, pixels whose priors may be used; sky (T,H,W) bool, pixels of sky."""
+    masks (T,H,W) bool, pixels whose priors may be used; sky (T,H,W) bool, pixels of sky.
+    Built by keyword only; `subset` and `replace` give changed copies without dropping a field."""
 
     frames: np.ndarray
     w2c: np.ndarray
@@ -66,11 +74,22 @@ class Views:
     def K_of(self, i: int) -> np.ndarray:
         return self.K if self.K.ndim == 2 else self.K[i]
 
+    def subset(self, indices: Sequence[int] | slice | np.ndarray) -> Views:
+        """The views at `indices` (a list, an index array, a boolean mask or a slice), in that order: every
+        per-frame field sliced alike, K too when it is per frame (T,3,3)."""
+        idx = indices if isinstance(indices, slice) else np.asarray(indices, dtype=None if len(indices) else int)
+        fields = {name: None if getattr(self, name) is None else getattr(self, name)[idx] for name in PER_FRAME}
+        return Views(K=self.K if self.K.ndim == 2 else self.K[idx], **fields)
 
-def normalize_views(views: Views, norm: SceneNormalization) -> Views:
-    """The same views in the normalised frame (poses mapped; depth priors scaled by norm.scale)."""
-    depth = None if views.prior_depth is None else views.prior_depth * norm.scale
-    return Views(views.frames, norm.apply_w2c(views.w2c), views.K, depth, views.prior_normals, views.masks, views.sky)
+    def replace(self, **changes: Any) -> Views:
+        """A copy with the named fields replaced (the others shared, not copied)."""
+        return dataclasses.replace(self, **changes)
+
+
+def normalize_views(views: Views, norm: Sim3) -> Views:
+    """The same views in the normalised frame `norm` (poses mapped; depth priors scaled by norm.s)."""
+    depth = None if views.prior_depth is None else views.prior_depth * norm.s
+    return views.replace(w2c=norm.transform_w2c(views.w2c), prior_depth=depth)
 
 
 def split_views(n_views: int, holdout_every: int) -> tuple[list[int], list[int]]:
@@ -112,15 +131,18 @@ def _make_strategy(params: TrainParams) -> DefaultStrategy | MCMCStrategy | None
 
 
 def auto_scene_scale(w2c: np.ndarray, means: np.ndarray) -> float:
-    """The scene extent that learning rates and densification sizes are relative to: the larger of 3DGS's
-    camera extent (1.1 x the largest camera distance from the cameras' centroid) and the median distance
-    of the initial Gaussians from that centroid. The second term matters for videos whose camera moves
-    little compared with the distance to what it sees: relative to the camera extent alone, every
-    Gaussian of a distant scene would be "too big" and pruned, and means would barely move."""
+    """The length that learning rates and densification sizes are relative to: the larger of 3DGS's
+    camera extent (1.1 x `camera.camera_radius`, the largest camera distance from the cameras' centroid)
+    and the median distance of the initial Gaussians from that centroid. The second term matters for
+    videos whose camera moves little compared with the distance to what it sees: relative to the camera
+    extent alone, every Gaussian of a distant scene would be "too big" and pruned, and means would barely
+    move. (Not `camera.scene_extent`, the size that output paths and meshes follow: the two differ, and
+    the training schedule was tuned on this one.)"""
+    from wonderverse.camera import camera_centers, camera_radius
+
     w2c = np.asarray(w2c, dtype=np.float64).reshape(-1, 4, 4)
-    centres = -np.einsum("nji,nj->ni", w2c[:, :3, :3], w2c[:, :3, 3])
-    c = centres.mean(axis=0)
-    cam = 1.1 * float(np.max(np.linalg.norm(centres - c, axis=1))) if len(centres) else 0.0
+    c = camera_centers(w2c).mean(axis=0)
+    cam = 1.1 * camera_radius(w2c)
     means = np.asarray(means, dtype=np.float64).reshape(-1, 3)
     content = float(np.median(np.linalg.norm(means - c, axis=1))) if len(means) else 0.0
     scale = max(cam, content)

@@ -1,8 +1,9 @@
 """Rendering a trained splat scene from arbitrary world cameras (exports, fly-throughs, TSDF fusion).
 
-Input is what the `splats` step stores: the Gaussian arrays in the training frame and the
-`SceneNormalization` that maps the world into it. Cameras are given in the world frame (W2C, OpenCV
-axes); depths come back in world units, so callers never see the training frame.
+Input is what the `splats` step stores: the Gaussian arrays in the training frame and the normalisation
+(a `camera.Sim3`, `splats.model.normalization_from_cameras`) that maps the world into it. Cameras are
+given in the world frame (W2C, OpenCV axes); depths come back in world units, so callers never see the
+training frame.
 
 On the CPU, `workers` > 1 renders that many views at once, one torch thread each: the torch rasteriser
 is thousands of small ops per view, which one view's intra-op threads share poorly (2 cores, 24 views at
@@ -21,8 +22,9 @@ from typing import TypeVar
 import numpy as np
 import torch
 
+from wonderverse.camera import Sim3
 from wonderverse.progress import ProgressFn, no_progress
-from wonderverse.splats.model import GaussianModel, SceneNormalization
+from wonderverse.splats.model import GaussianModel
 from wonderverse.splats.renderer import Renderer
 
 T = TypeVar("T")
@@ -44,7 +46,7 @@ class RenderedView:
 
 def render_views(
     arrays: dict[str, np.ndarray],
-    norm: SceneNormalization,
+    norm: Sim3,
     w2c: np.ndarray,
     K: np.ndarray,
     width: int,
@@ -60,7 +62,7 @@ def render_views(
     (`workers` > 1 on the CPU: up to twice that many views ahead, see the module docstring).
     progress(views yielded, N, "") is called before the first view and as each one is yielded."""
     model = GaussianModel.from_numpy(arrays).to(renderer.device)
-    w2c_n = norm.apply_w2c(np.asarray(w2c, np.float64).reshape(-1, 4, 4))
+    w2c_n = norm.transform_w2c(np.asarray(w2c, np.float64).reshape(-1, 4, 4))
     Ks = np.broadcast_to(np.asarray(K, np.float64), (len(w2c_n), 3, 3)).copy()
     bg = None if background is None else torch.as_tensor(np.asarray(background, np.float32), device=renderer.device)
     dev = renderer.device
@@ -85,7 +87,7 @@ def render_views(
             )
         a = alpha[..., 0].cpu().numpy().astype(np.float32)
         with np.errstate(invalid="ignore", divide="ignore"):
-            z = depth[..., 0].cpu().numpy().astype(np.float32) / np.maximum(a, 1e-6) / norm.scale
+            z = depth[..., 0].cpu().numpy().astype(np.float32) / np.maximum(a, 1e-6) / norm.s
         z = np.where(a >= min_alpha, z, np.inf).astype(np.float32)
         n = normals.cpu().numpy().astype(np.float32)
         length = np.linalg.norm(n, axis=-1, keepdims=True)
