@@ -21,6 +21,7 @@ from tasks.progress import callback
 from tasks.segments import attempt_ids, intrinsics, segment_ids
 from wonderverse.config import RunConfig
 from wonderverse.errors import WonderError
+from wonderverse.schema import ATTEMPT, CHECK, SEGMENT
 from wonderverse.store import SceneStore, cache_key, write_array
 
 log = logging.getLogger("wonderverse.check")
@@ -41,15 +42,15 @@ def _judge(store: SceneStore, cfg: RunConfig, seg: str, k: int, key: str) -> dic
     from wonderverse.check import check_trajectory
     from wonderverse.sfm import reconstruct
 
-    ap = f"segments/{seg}/attempts/{k}"
-    if store.is_complete(f"{ap}/check", key):
-        return store.attrs(f"{ap}/check")
+    ap = ATTEMPT.at(seg=seg, attempt=k)
+    if store.is_complete(ap.check, key):
+        return store.attrs(ap.check)
     p = cfg.steps.check
     K, known = intrinsics(store, seg)
-    sfm = reconstruct(store.array(f"{ap}/frames"), p.sfm, K_prior=K, K_known=known)
+    sfm = reconstruct(store.array(ap.frames), p.sfm, K_prior=K, K_known=known)
     result = check_trajectory(sfm.poses, sfm.registered, p.rules, sfm.problems, points=sfm.points)
     with store.staged(
-        f"{ap}/sfm",
+        ap.sfm,
         key,
         mapper=sfm.mapper,
         reproj_error_px=sfm.reproj_error_px,
@@ -57,14 +58,14 @@ def _judge(store: SceneStore, cfg: RunConfig, seg: str, k: int, key: str) -> dic
         timings=sfm.timings,
         problems=sfm.problems,
     ) as g:
-        write_array(g, "poses", sfm.poses, chunks=sfm.poses.shape)
-        write_array(g, "registered", sfm.registered, chunks=sfm.registered.shape)
-        write_array(g, "K", sfm.K, chunks=(3, 3))
-        write_array(g, "points", sfm.points.reshape(-1, 3), chunks=(max(1, len(sfm.points)), 3))
-        write_array(g, "colors", sfm.colors.reshape(-1, 3), chunks=(max(1, len(sfm.points)), 3))
-    with store.staged(f"{ap}/check", key, **result.to_attrs(), sfm_seconds=sfm.timings.get("total", 0.0)):
+        write_array(g, ap.sfm.poses, sfm.poses)
+        write_array(g, ap.sfm.registered, sfm.registered)
+        write_array(g, ap.sfm.K, sfm.K)
+        write_array(g, ap.sfm.points, sfm.points.reshape(-1, 3))
+        write_array(g, ap.sfm.colors, sfm.colors.reshape(-1, 3))
+    with store.staged(ap.check, key, **result.to_attrs(), sfm_seconds=sfm.timings.get("total", 0.0)):
         pass
-    return store.attrs(f"{ap}/check")
+    return store.attrs(ap.check)
 
 
 def check_segment(seg: str, scene_dir: str, cfg: RunConfig) -> dict[str, Any]:
@@ -75,12 +76,13 @@ def check_segment(seg: str, scene_dir: str, cfg: RunConfig) -> dict[str, Any]:
     from wonderverse.check import least_bad
 
     store = SceneStore.open(scene_dir, mode="r+")
-    seg_key = store.cache_key_of(f"segments/{seg}")
+    seg_key = store.cache_key_of(SEGMENT.at(seg=seg))
     if seg_key is None:
         raise WonderError(f"segment {seg} is not complete; run generate_segments first")
     key = segment_key(cfg, seg_key)
-    if store.is_complete(f"segments/{seg}/accepted", key):
-        return store.attrs(f"segments/{seg}/accepted") | {THIS_RUN: {"cached": True, "regenerated": 0}}
+    accepted = SEGMENT.at(seg=seg).accepted
+    if store.is_complete(accepted, key):
+        return store.attrs(accepted) | {THIS_RUN: {"cached": True, "regenerated": 0}}
     p = cfg.steps.check
     model = None
     checks: dict[int, dict[str, Any]] = {}
@@ -93,10 +95,9 @@ def check_segment(seg: str, scene_dir: str, cfg: RunConfig) -> dict[str, Any]:
 
                 model = make_video_model(cfg.scene)
             video, seed = render_attempt(store, cfg, model, seg, k)
-            with store.staged(
-                f"segments/{seg}/attempts/{k}", cache_key("attempt", VERSION, {"seed": seed}, [seg_key])
-            ) as g:
-                write_attempt(g, video, seed, cfg.scene.video.backend)
+            at = ATTEMPT.at(seg=seg, attempt=k)
+            with store.staged(at, cache_key("attempt", VERSION, {"seed": seed}, [seg_key])) as g:
+                write_attempt(g, at, video, seed, cfg.scene.video.backend)
             rendered += 1
         checks[k] = _judge(store, cfg, seg, k, cache_key("attempt_check", VERSION, {"k": k}, [key]))
         if checks[k]["accepted"]:
@@ -116,7 +117,7 @@ def check_segment(seg: str, scene_dir: str, cfg: RunConfig) -> dict[str, Any]:
         else:
             summary |= {"attempt": best, "dropped": False, "reasons": reasons}
             log.warning("segment %s kept its best failing attempt %d: %s", seg, best, "; ".join(reasons))
-    with store.staged(f"segments/{seg}/accepted", key, **summary):
+    with store.staged(accepted, key, **summary):
         pass
     return summary | {THIS_RUN: {"cached": False, "regenerated": rendered}}
 
@@ -139,9 +140,8 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     extra = [s["extra_trials"] for s in summaries]
     dropped = [s["segment"] for s in summaries if s["dropped"]]
     failing = [s["segment"] for s in summaries if s["reasons"] and not s["dropped"]]
-    with store.staged(
-        "check", key, segments=summaries, mean_extra_trials=float(np.mean(extra)), dropped=dropped, kept_failing=failing
-    ):
+    summary = {"segments": summaries, "mean_extra_trials": float(np.mean(extra)), "dropped": dropped}
+    with store.staged(CHECK.path, key, **summary, kept_failing=failing):
         pass
     cached = sum(r["cached"] for r in this_run)
     msg = f"{len(segs)} segments" + (f" ({cached} cached)" if cached else "")
@@ -153,4 +153,6 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     )
 
 
-STEP = Step("check", 1, ("generate_segments",), _params, run, "SfM pose check, regenerate abnormal segments")
+STEP = Step(
+    "check", 1, ("generate_segments",), _params, run, "SfM pose check, regenerate abnormal segments", group=CHECK.path
+)

@@ -19,6 +19,7 @@ from tasks.progress import advance
 from tasks.segments import frames, stitched_frame_index
 from wonderverse.camera import intrinsics, move_path
 from wonderverse.config import RunConfig
+from wonderverse.schema import ATTEMPT, ATTEMPT_GT, SEGMENT, SEGMENTS, GroupPath
 from wonderverse.store import SceneStore, cache_key, write_array
 
 SEGMENT_VERSION = 1
@@ -83,10 +84,10 @@ def render_attempt(store: SceneStore, cfg: RunConfig, model: Any, seg: str, atte
     """Render attempt `attempt` of a segment whose plan (path, reference) is already in the store.
 
     The reference frame comes from the parent's accepted attempt; the seed is new for every attempt."""
-    a = store.attrs(f"segments/{seg}")
+    a = store.attrs(SEGMENT.at(seg=seg))
     parent = a.get("reference_segment")
     ref = frames(store, parent)[a["reference_frame"]] if parent else None
-    path = store.array(f"segments/{seg}/path")
+    path = store.array(SEGMENT.at(seg=seg).path)
     return _render(cfg, model, seg, attempt, a["role"], a.get("intent", ""), path, ref)
 
 
@@ -101,15 +102,15 @@ def _render(
     return model.generate(segment_prompt(cfg.scene.prompt, role, intent), path, seed, ref), seed
 
 
-def write_attempt(group: Any, video: Any, seed: int, source: str) -> None:
-    """Frames (and ground truth when the backend has it) of one attempt into `group`."""
+def write_attempt(group: Any, at: GroupPath, video: Any, seed: int, source: str) -> None:
+    """Frames (and ground truth when the backend has it) of the attempt `at` into `group`, its staged copy."""
     group.attrs.update({"seed": seed, "source": source})
-    write_array(group, "frames", video.frames)
+    write_array(group, at.frames, video.frames)
     if video.gt is not None:
-        gt = group.create_group("gt")
-        write_array(gt, "poses", video.gt.poses.astype(np.float64), chunks=video.gt.poses.shape)
-        write_array(gt, "depth", video.gt.depth.astype(np.float32))
-        write_array(gt, "normals", video.gt.normals.astype(np.float16))
+        gt = group.create_group(ATTEMPT_GT.name)
+        write_array(gt, at.gt.poses, video.gt.poses)
+        write_array(gt, at.gt.depth, video.gt.depth)
+        write_array(gt, at.gt.normals, video.gt.normals)
         gt.attrs["faults"] = video.gt.faults
 
 
@@ -129,10 +130,12 @@ def _generate_one(store: SceneStore, cfg: RunConfig, model: Any, seg: str, info:
         "repeats_reference": info["ref_idx"] is not None,  # a generated extension's frame 0 is its reference
         "k_is_guess": video.K is None or video.k_is_guess,  # the check's SfM holds a known K
     }
-    with store.staged(f"segments/{seg}", info["key"], **seg_attrs) as g:
-        write_array(g, "path", info["path"], chunks=info["path"].shape)
-        write_array(g, "K", np.asarray(K, np.float64), chunks=(3, 3))
-        write_attempt(g.create_group("attempts/0"), video, seed, v.backend)
+    at = SEGMENT.at(seg=seg)
+    with store.staged(at, info["key"], **seg_attrs) as g:
+        write_array(g, at.path, info["path"])
+        write_array(g, at.K, K)
+        first = ATTEMPT.at(seg=seg, attempt=0)
+        write_attempt(g.create_group(first.relative_to(at)), first, video, seed, v.backend)
 
 
 def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
@@ -143,7 +146,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     model = make_video_model(cfg.scene)
     clips = [len(c.frames) for c in model.clips] if cfg.scene.video.backend == "files" else None  # type: ignore[attr-defined]
     info = plan_paths(cfg, plan, initial_pose(model), clips)
-    todo = [seg for seg, i in info.items() if not store.is_complete(f"segments/{seg}", i["key"])]
+    todo = [seg for seg, i in info.items() if not store.is_complete(SEGMENT.at(seg=seg), i["key"])]
     done = 0
     for wave in sorted({i["wave"] for i in info.values()}):
         batch = [seg for seg in todo if info[seg]["wave"] == wave]
@@ -161,10 +164,10 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
             progress=rendered,
         )
         done += len(batch)
-    for stale in set(store.children("segments")) - set(info):
-        store.remove(f"segments/{stale}")
-    store.mark_complete("segments", key, order=stitched_order(plan.segments))
+    for stale in set(store.children(SEGMENTS.path)) - set(info):
+        store.remove(SEGMENT.at(seg=stale))
+    store.mark_complete(SEGMENTS.path, key, order=stitched_order(plan.segments))
     return f"{len(todo)} rendered, {len(info) - len(todo)} cached"
 
 
-STEP = Step("generate_segments", 1, ("plan",), _params, run, "render every planned segment", group="segments")
+STEP = Step("generate_segments", 1, ("plan",), _params, run, "render every planned segment", group=SEGMENTS.path)

@@ -24,6 +24,7 @@ import numpy as np
 from tasks.base import Step
 from tasks.progress import callback
 from wonderverse.config import RunConfig
+from wonderverse.schema import OUTPUTS, SFM, SPLATS
 from wonderverse.store import SceneStore
 
 log = logging.getLogger("wonderverse.outputs")
@@ -38,8 +39,8 @@ def posed_frames(store: SceneStore) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Stitched frames that have a global pose: frames (N,H,W,3) uint8, W2C (N,4,4), names `s000_0007`."""
     from tasks.segments import frames as segment_frames
 
-    segs = store.attrs("sfm")["segments"]
-    index, poses = store.array("sfm/frame_index"), store.array("sfm/poses")
+    segs = store.attrs(SFM.path)["segments"]
+    index, poses = store.array(SFM.frame_index), store.array(SFM.poses)
     keep = np.isfinite(poses).all(axis=(1, 2))
     cache: dict[str, np.ndarray] = {}
     out, names = [], []
@@ -66,12 +67,12 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
 
     p = cfg.steps.outputs
     out = Path(store.scene_dir)
-    splats = store.attrs("splats")
+    splats = store.attrs(SPLATS.path)
     norm = normalization_from_dict(splats["normalization"])
-    arrays = {name: store.array(f"splats/{name}") for name in GaussianModel.PARAM_NAMES}
+    arrays = {name: store.array(getattr(SPLATS, name)) for name in GaussianModel.PARAM_NAMES}
     background = splats.get("metrics", {}).get("background_rgb")
     frames, w2c, names = posed_frames(store)
-    K = store.array("sfm/K")
+    K = store.array(SFM.K)
     height, width = frames.shape[1:3]
     w, h, Kr = fit_intrinsics(width, height, K, p.render_max_side_px)
     renderer = make_renderer(cfg.steps.splats.renderer)
@@ -94,7 +95,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     files += [write_mesh(mesh, out / "mesh.ply"), write_mesh(mesh, out / "mesh.glb")]
 
     if p.colmap:
-        points, colors = store.array("sfm/points3d"), store.array("sfm/colors")
+        points, colors = store.array(SFM.points3d), store.array(SFM.colors)
         files.append(write_colmap_text(out / "colmap", K, w2c, width, height, names, points, colors))
     if p.nerfstudio:
         files.append(write_nerfstudio(out / "nerfstudio", frames, K, w2c, names).parent)
@@ -118,7 +119,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     listed = [{"path": f.name, "bytes": _size(f)} for f in files]
     stats = {"triangles": len(mesh.triangles), "vertices": len(mesh.vertices), "points": len(cloud.points)}
     with store.staged(
-        "outputs", key, files=listed, mesh=stats | {"extent": extent}, render_size=[w, h], quality=quality
+        OUTPUTS.path, key, files=listed, mesh=stats | {"extent": extent}, render_size=[w, h], quality=quality
     ):
         pass
     return f"{len(files)} files: mesh {stats['triangles']} triangles, {stats['points']} points, 2 videos"
@@ -133,4 +134,6 @@ def _size(path: Path) -> int:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() else path.stat().st_size
 
 
-STEP = Step("outputs", 2, ("splats",), _params, run, "mesh, point cloud, COLMAP/nerfstudio exports, videos")
+STEP = Step(
+    "outputs", 2, ("splats",), _params, run, "mesh, point cloud, COLMAP/nerfstudio exports, videos", group=OUTPUTS.path
+)

@@ -6,6 +6,7 @@ from typing import Any
 
 from tasks.base import Step
 from wonderverse.config import RunConfig
+from wonderverse.schema import PLAN
 from wonderverse.store import SceneStore
 
 
@@ -27,7 +28,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     if cfg.scene.video.backend == "files":
         plan = clip_plan(cfg.scene.video.clips)
         with store.staged(
-            "plan", key, plan=plan.model_dump(mode="json"), moves=[], intents=list(cfg.scene.video.clips)
+            PLAN.path, key, plan=plan.model_dump(mode="json"), moves=[], intents=list(cfg.scene.video.clips)
         ):
             pass
         return f"{len(plan.segments)} segments, one per clip"
@@ -37,7 +38,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     for words in s.extensions.added:  # each later extension continues the plan as it stood (interactive)
         plan = plan.extended(planner.plan_extension(s.prompt, words, plan, cfg.steps.plan, fov_deg=fov))
     with store.staged(
-        "plan",
+        PLAN.path,
         key,
         plan=plan.model_dump(mode="json"),
         moves=[s.move.to_paper() for s in plan.segments],
@@ -64,10 +65,10 @@ def load_plan(store: SceneStore) -> Any:
     """The stored Plan (raises KeyError when the plan step has not completed)."""
     from wonderverse.planning import Plan
 
-    attrs = store.attrs("plan")
+    attrs = store.attrs(PLAN.path)
     if attrs.get("complete") is not True:
         raise KeyError("plan")
     return Plan.model_validate(attrs["plan"])
 
 
-STEP = Step("plan", 1, (), _params, run, "camera moves from the prompt (LLM or rules)")
+STEP = Step("plan", 1, (), _params, run, "camera moves from the prompt (LLM or rules)", group=PLAN.path)

@@ -22,6 +22,7 @@ from tasks.progress import advance
 from tasks.segments import accepted_attempt, attempt_path, stitched
 from wonderverse.config import PosesParams, RunConfig
 from wonderverse.errors import WonderError
+from wonderverse.schema import SEGMENT, SEGMENTS, SFM, SFM_MODEL
 from wonderverse.store import SceneStore, cache_key, write_array
 
 if TYPE_CHECKING:
@@ -46,15 +47,15 @@ def image_names(store: SceneStore, keys: list[tuple[str, int]]) -> list[str]:
     with the segments' playback order and roles from the store."""
     from wonderverse.global_poses import image_names as names
 
-    order = store.attrs("segments").get("order") or sorted({seg for seg, _ in keys})
-    roles = {seg: store.attrs(f"segments/{seg}") for seg in order}
+    order = store.attrs(SEGMENTS.path).get("order") or sorted({seg for seg, _ in keys})
+    roles = {seg: store.attrs(SEGMENT.at(seg=seg)) for seg in order}
     left = {seg for seg, a in roles.items() if a.get("role") == "left"}
     return names(keys, order, left, {seg for seg, a in roles.items() if a.get("reversed")})
 
 
 def _sources(store: SceneStore, segs: list[str]) -> dict[str, dict[str, Any]]:
     """Per segment, what its frames are: the segment's cache key and its accepted attempt."""
-    return {s: {"key": store.cache_key_of(f"segments/{s}"), "attempt": accepted_attempt(store, s)} for s in segs}
+    return {s: {"key": store.cache_key_of(SEGMENT.at(seg=s)), "attempt": accepted_attempt(store, s)} for s in segs}
 
 
 def _previous(store: SceneStore) -> PreviousSolve | None:
@@ -62,15 +63,15 @@ def _previous(store: SceneStore) -> PreviousSolve | None:
     from wonderverse.camera import Sim3
     from wonderverse.global_poses import PreviousSolve
 
-    prev = store.attrs("sfm")
+    prev = store.attrs(SFM.path)
     if prev.get("complete") is not True or prev.get("source") != "sfm":
         return None
-    segs, index = prev["segments"], store.array("sfm/frame_index")
+    segs, index = prev["segments"], store.array(SFM.frame_index)
     keys = [(segs[a], int(i)) for a, i in index]
-    registered = {key for key, r in zip(keys, store.array("sfm/registered"), strict=True) if r}
-    stored = store.exists("sfm/colmap_model")
+    registered = {key for key, r in zip(keys, store.array(SFM.registered), strict=True) if r}
+    stored = store.exists(SFM.colmap_model)
     return PreviousSolve(
-        poses=dict(zip(keys, store.array("sfm/poses"), strict=True)),
+        poses=dict(zip(keys, store.array(SFM.poses), strict=True)),
         registered=registered,
         names=prev.get("sfm_names") or [],
         sources=prev.get("segment_sources") or {},
@@ -87,29 +88,25 @@ def _own_poses(store: SceneStore, segs: list[str]) -> dict[str, np.ndarray]:
     out = {}
     for seg in segs:
         ap = attempt_path(store, seg)
-        if store.exists(f"{ap}/sfm/poses") and store.attrs(f"{ap}/check").get("accepted") is True:
-            out[seg] = store.array(f"{ap}/sfm/poses")
+        if store.exists(ap.sfm.poses) and store.attrs(ap.check).get("accepted") is True:
+            out[seg] = store.array(ap.sfm.poses)
     return out
 
 
 def _load_workspace(store: SceneStore) -> SfmWorkspace:
     from wonderverse.sfm import SfmWorkspace
 
-    model = {f: store.array(f"sfm/colmap_model/{f}").tobytes() for f in store.children("sfm/colmap_model")}
-    return SfmWorkspace(database=store.array("sfm/colmap_database").tobytes(), model=model)
+    files = store.children(SFM.colmap_model)
+    model = {f: store.array(SFM.colmap_model.array(f)).tobytes() for f in files}
+    return SfmWorkspace(database=store.array(SFM.colmap_database).tobytes(), model=model)
 
 
 def _write_workspace(g: Any, ws: SfmWorkspace) -> None:
-    """The COLMAP database and model files as uint8 arrays (`colmap_database`, `colmap_model/<file>`)."""
-
-    def blob(group: Any, name: str, data: bytes) -> None:
-        a = np.frombuffer(data, np.uint8)
-        write_array(group, name, a, chunks=(max(1, min(len(a), 1 << 24)),))
-
-    blob(g, "colmap_database", ws.database)
-    model = g.create_group("colmap_model")
+    """The COLMAP database and model files as byte arrays (`colmap_database`, `colmap_model/<file>`)."""
+    write_array(g, SFM.colmap_database, np.frombuffer(ws.database, np.uint8))
+    model = g.create_group(SFM_MODEL.name)
     for name, data in ws.model.items():
-        blob(model, name, data)
+        write_array(model, SFM.colmap_model.array(name), np.frombuffer(data, np.uint8))
 
 
 def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
@@ -120,7 +117,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     if len(frames) == 0:
         raise WonderError("no accepted frames to pose (every segment was dropped)")
     segs = sorted({s for s, _ in index})
-    K = store.array(f"segments/{index[0][0]}/K")
+    K = store.array(SEGMENT.at(seg=index[0][0]).K)
     n = len(frames)
     frame_index = np.array([(segs.index(s), i) for s, i in index], dtype=np.int32)
     points = np.zeros((0, 3))
@@ -128,7 +125,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     attrs: dict[str, Any] = {"source": p.source, "segments": segs}
     workspace: SfmWorkspace | None = None
     if p.source == "conditioning":
-        paths = {s: store.array(f"segments/{s}/path") for s in segs}
+        paths = {s: store.array(SEGMENT.at(seg=s).path) for s in segs}
         poses = np.stack([paths[s][i] for s, i in index])
         registered = np.ones(n, bool)
     else:
@@ -147,13 +144,13 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
         poses, registered, points, colors = solved.poses, solved.registered, solved.points, solved.colors
         K, workspace = solved.K, solved.workspace
         attrs |= solved.attrs
-    with store.staged("sfm", key, **attrs) as g:
-        write_array(g, "poses", poses, chunks=poses.shape)
-        write_array(g, "registered", registered, chunks=registered.shape)
-        write_array(g, "K", np.asarray(K, np.float64), chunks=(3, 3))
-        write_array(g, "frame_index", frame_index, chunks=frame_index.shape)
-        write_array(g, "points3d", points.reshape(-1, 3), chunks=(max(1, len(points)), 3))
-        write_array(g, "colors", colors.reshape(-1, 3), chunks=(max(1, len(points)), 3))
+    with store.staged(SFM.path, key, **attrs) as g:
+        write_array(g, SFM.poses, poses)
+        write_array(g, SFM.registered, registered)
+        write_array(g, SFM.K, K)
+        write_array(g, SFM.frame_index, frame_index)
+        write_array(g, SFM.points3d, points.reshape(-1, 3))
+        write_array(g, SFM.colors, colors.reshape(-1, 3))
         if workspace is not None:
             _write_workspace(g, workspace)
     posed = int(np.isfinite(poses[:, 0, 0]).sum())
@@ -163,4 +160,4 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
 
 # 2: the group keeps the COLMAP workspace (extensions register only their new frames); frames selected per segment
 # 3: image names in stitched order; full solves checked against each segment's own SfM
-STEP = Step("poses", 3, ("check",), _params, run, "one camera path for the stitched video", group="sfm")
+STEP = Step("poses", 3, ("check",), _params, run, "one camera path for the stitched video", group=SFM.path)

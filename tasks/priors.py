@@ -17,6 +17,7 @@ from tasks.progress import callback
 from tasks.segments import accepted_attempt, attempt_path, segment_ids
 from wonderverse.config import RunConfig
 from wonderverse.errors import WonderError
+from wonderverse.schema import PRIORS, PRIORS_RAW, PRIORS_RAW_SEGMENT, PRIORS_SEGMENT, SEGMENT, SFM, GroupPath
 from wonderverse.store import SceneStore, cache_key, write_array
 
 VERSION = 1
@@ -26,45 +27,46 @@ def _params(cfg: RunConfig) -> dict[str, Any]:
     return {"priors": cfg.steps.priors.model_dump(exclude={"workers", "dask_address"})}
 
 
-def _ground_truth(store: SceneStore, ap: str) -> Any:
+def _ground_truth(store: SceneStore, ap: GroupPath) -> Any:
     from wonderverse.video import GroundTruth
 
-    if not store.exists(f"{ap}/gt"):
+    if not store.exists(ap.gt):
         return None
     return GroundTruth(
-        poses=store.array(f"{ap}/gt/poses"),
-        depth=store.array(f"{ap}/gt/depth"),
-        normals=store.array(f"{ap}/gt/normals"),
+        poses=store.array(ap.gt.poses),
+        depth=store.array(ap.gt.depth),
+        normals=store.array(ap.gt.normals),
     )
 
 
 def segment_poses(store: SceneStore, seg: str, n_frames: int) -> np.ndarray:
     """Global W2C poses (from `sfm/`) of a segment's frames in generation order; NaN where unknown."""
     out = np.full((n_frames, 4, 4), np.nan)
-    segs = store.attrs("sfm").get("segments", [])
+    segs = store.attrs(SFM.path).get("segments", [])
     if seg in segs:
-        fi = store.array("sfm/frame_index")
+        fi = store.array(SFM.frame_index)
         rows = np.flatnonzero(fi[:, 0] == segs.index(seg))
-        out[fi[rows, 1]] = store.array("sfm/poses")[rows]
+        out[fi[rows, 1]] = store.array(SFM.poses)[rows]
     return out
 
 
-def _raw_depth(store: SceneStore, seg: str, ap: str, p: Any, frames: np.ndarray, gt: Any) -> Any:
+def _raw_depth(store: SceneStore, seg: str, ap: GroupPath, p: Any, frames: np.ndarray, gt: Any) -> Any:
     """The depth network's output for a segment, computed once per attempt and model settings and kept in
     `priors_raw/<seg>`: poses change whenever the scene is extended, this does not (it is the costly part)."""
     from wonderverse.priors import make_depth_model
     from wonderverse.priors.base import DepthPrediction
 
-    key = cache_key("priors_raw", VERSION, {"attempt": ap, "models": p}, [store.cache_key_of(f"segments/{seg}") or ""])
-    group = f"priors_raw/{seg}"
+    seg_key = store.cache_key_of(SEGMENT.at(seg=seg)) or ""
+    key = cache_key("priors_raw", VERSION, {"attempt": ap, "models": p}, [seg_key])
+    group = PRIORS_RAW_SEGMENT.at(seg=seg)
     if store.is_complete(group, key):
-        conf = store.array(f"{group}/confidence").astype(np.float32) if store.exists(f"{group}/confidence") else None
-        return DepthPrediction(store.array(f"{group}/depth"), store.attrs(group)["kind"], conf)
+        conf = store.array(group.confidence).astype(np.float32) if store.exists(group.confidence) else None
+        return DepthPrediction(store.array(group.depth), store.attrs(group)["kind"], conf)
     pred = make_depth_model(p, gt).predict(frames)
     with store.staged(group, key, kind=pred.kind) as g:
-        write_array(g, "depth", np.asarray(pred.depth, np.float32))
+        write_array(g, group.depth, pred.depth)
         if pred.confidence is not None:
-            write_array(g, "confidence", np.asarray(pred.confidence, np.float16))
+            write_array(g, group.confidence, pred.confidence)
     return pred
 
 
@@ -74,16 +76,17 @@ def priors_segment(seg: str, scene_dir: str, cfg: RunConfig, step_key: str) -> d
     store = SceneStore.open(scene_dir, mode="r+")
     ap = attempt_path(store, seg)
     key = cache_key("priors_segment", VERSION, {"seg": seg, "attempt": ap}, [step_key])
-    if store.is_complete(f"priors/{seg}", key):
-        return store.attrs(f"priors/{seg}")
+    group = PRIORS_SEGMENT.at(seg=seg)
+    if store.is_complete(group, key):
+        return store.attrs(group)
     p = cfg.steps.priors.models
-    frames = store.array(f"{ap}/frames")
-    K = store.array("sfm/K") if store.exists("sfm") else store.array(f"segments/{seg}/K")
+    frames = store.array(ap.frames)
+    K = store.array(SFM.K) if store.exists(SFM.path) else store.array(SEGMENT.at(seg=seg).K)
     gt = _ground_truth(store, ap)
     if "oracle" in (p.depth_backend, p.normal_backend) and gt is None:
         raise WonderError(f"segment {seg}: the oracle prior needs procedural ground truth; use depth_anything")
     pred = _raw_depth(store, seg, ap, p, frames, gt)
-    points = store.array("sfm/points3d") if store.exists("sfm/points3d") else np.zeros((0, 3))
+    points = store.array(SFM.points3d) if store.exists(SFM.points3d) else np.zeros((0, 3))
     poses = segment_poses(store, seg, len(frames))
     sky_beyond_ref = cfg.steps.priors.sky_beyond_ref
     aligned = align_frames(pred.depth, pred.kind, poses, points, K, p.align, sky_beyond_ref)
@@ -95,13 +98,14 @@ def priors_segment(seg: str, scene_dir: str, cfg: RunConfig, step_key: str) -> d
         "frames": len(frames),
         "reasons": aligned.reasons[:20],
     }
-    with store.staged(f"priors/{seg}", key, **summary) as g:
-        write_array(g, "depth", aligned.depth)
-        write_array(g, "normals", normals.astype(np.float16))
-        for name, arr in (("scale", aligned.scale), ("shift", aligned.shift), ("aligned", aligned.ok)):
-            write_array(g, name, arr, chunks=arr.shape)
+    with store.staged(group, key, **summary) as g:
+        write_array(g, group.depth, aligned.depth)
+        write_array(g, group.normals, normals)
+        write_array(g, group.scale, aligned.scale)
+        write_array(g, group.shift, aligned.shift)
+        write_array(g, group.aligned, aligned.ok)
         if pred.confidence is not None:
-            write_array(g, "confidence", pred.confidence.astype(np.float16))
+            write_array(g, group.confidence, pred.confidence)
     return summary
 
 
@@ -118,13 +122,13 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
         step="priors",
         progress=callback("segments with priors"),
     )
-    for group in ("priors", "priors_raw"):
-        for stale in set(store.children(group)) - set(segs):
-            store.remove(f"{group}/{stale}")
-    store.mark_complete("priors", key)
+    for parent, child in ((PRIORS, PRIORS_SEGMENT), (PRIORS_RAW, PRIORS_RAW_SEGMENT)):
+        for stale in set(store.children(parent.path)) - set(segs):
+            store.remove(child.at(seg=stale))
+    store.mark_complete(PRIORS.path, key)
     aligned = sum(s["aligned_frames"] for s in out)
     total = sum(s["frames"] for s in out)
     return f"{len(segs)} segments, {aligned}/{total} frames aligned to SfM ({out[0]['kind'] if out else '-'})"
 
 
-STEP = Step("priors", 3, ("poses",), _params, run, "depth and normal priors, aligned to SfM")
+STEP = Step("priors", 3, ("poses",), _params, run, "depth and normal priors, aligned to SfM", group=PRIORS.path)

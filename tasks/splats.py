@@ -16,6 +16,7 @@ from tasks.base import Step
 from tasks.progress import callback
 from wonderverse.config import RunConfig
 from wonderverse.errors import WonderError
+from wonderverse.schema import PRIORS_SEGMENT, SFM, SPLATS, SPLATS_CHECKPOINT
 from wonderverse.store import SceneStore, cache_key, write_array
 
 if TYPE_CHECKING:
@@ -23,7 +24,7 @@ if TYPE_CHECKING:
     from wonderverse.splats.trainer import Views
 
 log = logging.getLogger("wonderverse.splats")
-CHECKPOINT = "splats_checkpoint"
+CHECKPOINT = SPLATS_CHECKPOINT.path
 
 
 def _params(cfg: RunConfig) -> dict[str, Any]:
@@ -36,9 +37,9 @@ def load_views(store: SceneStore) -> tuple[Views, list[str]]:
     from tasks.segments import attempt_path
     from wonderverse.splats.trainer import Views
 
-    segs = store.attrs("sfm")["segments"]
-    index = store.array("sfm/frame_index")
-    poses = store.array("sfm/poses")
+    segs = store.attrs(SFM.path)["segments"]
+    index = store.array(SFM.frame_index)
+    poses = store.array(SFM.poses)
     keep = np.isfinite(poses).all(axis=(1, 2))
     frames, depth, normals, names = [], [], [], []
     cache: dict[str, dict[str, np.ndarray]] = {}
@@ -50,9 +51,9 @@ def load_views(store: SceneStore) -> tuple[Views, list[str]]:
         if seg not in cache:
             ap = attempt_path(store, seg)
             cache[seg] = {
-                "frames": store.array(f"{ap}/frames"),
-                "depth": store.array(f"priors/{seg}/depth"),
-                "normals": store.array(f"priors/{seg}/normals"),
+                "frames": store.array(ap.frames),
+                "depth": store.array(PRIORS_SEGMENT.at(seg=seg).depth),
+                "normals": store.array(PRIORS_SEGMENT.at(seg=seg).normals),
             }
         frames.append(cache[seg]["frames"][i])
         depth.append(cache[seg]["depth"][i])
@@ -62,7 +63,7 @@ def load_views(store: SceneStore) -> tuple[Views, list[str]]:
     views = Views(
         frames=np.stack(frames),
         w2c=poses[keep],
-        K=store.array("sfm/K"),
+        K=store.array(SFM.K),
         prior_depth=np.stack(depth),
         prior_normals=np.stack(normals),
     )
@@ -81,13 +82,13 @@ def _previous(store: SceneStore, cfg: RunConfig, names: list[str]) -> PreviousSp
     from wonderverse.splats.model import GaussianModel, normalization_from_dict
     from wonderverse.splats.seeding import PreviousSplats
 
-    prev = store.attrs("splats")
+    prev = store.attrs(SPLATS.path)
     if prev.get("complete") is not True or prev.get("train_digest") != _train_digest(cfg):
         return None
     old = set(prev.get("frames", []))
     if not (old and old < set(names)):
         return None
-    arrays = {k: store.array(f"splats/{k}") for k in GaussianModel.PARAM_NAMES}
+    arrays = {k: store.array(getattr(SPLATS, k)) for k in GaussianModel.PARAM_NAMES}
     return PreviousSplats(arrays, normalization_from_dict(prev["normalization"]), prev["frames"])
 
 
@@ -97,7 +98,7 @@ def _save_checkpoint(store: SceneStore, key: str, step: int, state: dict[str, An
     buf = io.BytesIO()
     torch.save(state, buf)
     with store.staged(CHECKPOINT, cache_key("checkpoint", 1, {"step": step}, [key]), step=step, run_key=key) as g:
-        write_array(g, "state", np.frombuffer(buf.getvalue(), np.uint8), chunks=(1 << 24,))
+        write_array(g, CHECKPOINT.state, np.frombuffer(buf.getvalue(), np.uint8))
 
 
 def _load_checkpoint(store: SceneStore, key: str) -> dict[str, Any] | None:
@@ -106,7 +107,7 @@ def _load_checkpoint(store: SceneStore, key: str) -> dict[str, Any] | None:
     a = store.attrs(CHECKPOINT)
     if a.get("complete") is not True or a.get("run_key") != key:
         return None
-    state = torch.load(io.BytesIO(store.array(f"{CHECKPOINT}/state").tobytes()), weights_only=False)
+    state = torch.load(io.BytesIO(store.array(CHECKPOINT.state).tobytes()), weights_only=False)
     log.warning("resuming splat training from the checkpoint at step %d", a["step"])
     return state
 
@@ -121,7 +122,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     p = cfg.steps.splats
     views, names = load_views(store)
     views, names = views.subset(slice(None, None, p.frame_stride)), names[:: p.frame_stride]
-    points, colors = store.array("sfm/points3d"), store.array("sfm/colors")
+    points, colors = store.array(SFM.points3d), store.array(SFM.colors)
     previous = _previous(store, cfg, names)
     start = start_training(views, names, points, colors, p, previous)
     model, fixed, norm = start.model, start.fixed, start.normalization
@@ -150,7 +151,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     arrays = model.to_numpy()
     ply = write_ply(Path(store.scene_dir) / "splats.ply", arrays, norm)
     with store.staged(
-        "splats",
+        SPLATS.path,
         key,
         normalization=normalization_to_dict(norm),
         metrics=metrics,
@@ -161,10 +162,12 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
         curves={k: [float(x) for x in v] for k, v in curves.items()},
     ) as g:
         for name, arr in arrays.items():
-            write_array(g, name, np.asarray(arr, np.float32), chunks=(max(1, len(arr)), *np.shape(arr)[1:]))
+            write_array(g, getattr(SPLATS, name), arr)
     store.remove(CHECKPOINT)
     psnr = metrics.get("test_psnr", metrics.get("train_psnr", float("nan")))
     return f"{metrics['n_gaussians']} Gaussians, held-out PSNR {psnr:.2f} dB, {renderer.__class__.__name__}"
 
 
-STEP = Step("splats", 4, ("priors",), _params, run, "3D Gaussian splatting with depth and normal losses")
+STEP = Step(
+    "splats", 4, ("priors",), _params, run, "3D Gaussian splatting with depth and normal losses", group=SPLATS.path
+)

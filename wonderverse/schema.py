@@ -87,6 +87,12 @@ class GroupPath(str):
             raise AttributeError(f"group {self.group.template!r} declares no array or sub-group {name!r}")
         return GroupPath(f"{self}/{name}", child)
 
+    def relative_to(self, parent: GroupPath) -> str:
+        """This path below `parent` (to create it inside a staged copy of the parent)."""
+        if not self.startswith(f"{parent}/"):
+            raise ValueError(f"{self} is not below {parent}")
+        return self[len(parent) + 1 :]
+
     def array(self, name: str) -> ArrayPath:
         """An array by name (for groups whose arrays are named at run time, declared with `any_arrays`)."""
         spec = self.group.arrays.get(name) or self.group.any_arrays
@@ -123,6 +129,11 @@ class Group:
         if self.ids:
             raise AttributeError(f"group {self.template!r} needs ids {self.ids}: use .at(...).{name}")
         return getattr(GroupPath(self.template, self), name)
+
+    @property
+    def name(self) -> str:
+        """The last component of the path (to create the group inside a staged parent)."""
+        return self.template.rsplit("/", 1)[-1]
 
     @property
     def path(self) -> GroupPath:
@@ -193,7 +204,7 @@ ATTEMPT_SFM = Group(
         "poses": POSES,
         "registered": Array("bool", ("T",), "whole"),
         "K": K,
-        "points": Array("float32", ("N", 3), "whole", "sparse points"),
+        "points": Array("float64", ("N", 3), "whole", "sparse points"),
         "colors": Array("uint8", ("N", 3), "whole"),
     },
     attrs={
@@ -226,7 +237,7 @@ SFM = Group(
         "poses": POSES,
         "registered": Array("bool", ("T",), "whole"),
         "K": K,
-        "frame_index": Array("int64", ("T", 2), "whole", "per stitched frame: segment number, frame in segment"),
+        "frame_index": Array("int32", ("T", 2), "whole", "per stitched frame: segment number, frame in segment"),
         "points3d": Array("float64", ("N", 3), "whole", "global SfM points"),
         "colors": Array("uint8", ("N", 3), "whole"),
         "colmap_database": Array("uint8", ("N",), "blob", "COLMAP's database.db, bytes"),

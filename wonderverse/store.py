@@ -30,6 +30,7 @@ from zarr.errors import ContainsGroupError
 
 from wonderverse import STORE_FORMAT, __version__
 from wonderverse.errors import StoreError
+from wonderverse.schema import ArrayPath
 
 STORE_NAME = "scene.zarr"
 LOCK_NAME = ".wonderverse.lock"  # beside the store; see `scene_lock`
@@ -217,10 +218,13 @@ class SceneStore:
         return sum(f.stat().st_size for f in d.rglob("*") if f.is_file())
 
 
-def write_array(group: zarr.Group, name: str, data: np.ndarray, chunks: tuple[int, ...] | None = None) -> zarr.Array:
-    """Create `name` in `group` with an explicit dtype, shape and chunking and write `data`.
+def write_array(group: zarr.Group, array: str, data: np.ndarray, chunks: tuple[int, ...] | None = None) -> zarr.Array:
+    """Create `array` in `group` with an explicit dtype, shape and chunking and write `data`.
 
-    Default chunking is one leading index per chunk (one frame), which suits per-frame access.
+    `array` is a declared `schema.ArrayPath` (only its last component names the array in `group`, a staged
+    group): `data` is checked against the declaration (rank, fixed sizes, a dtype it casts to safely) and
+    stored with its dtype and chunking. A plain name (tests, ad-hoc stores) keeps `data`'s dtype and chunks
+    one leading index per chunk (one frame), which suits per-frame access, unless `chunks` is given.
     Zstd level 1: measured 1.6x faster to write than zarr's default level for 1.2x the size. Video
     frames (T,H,W,3) uint8 use Blosc LZ4 instead: half zstd-1's CPU time per frame (150 vs 76 MB/s
     written on 2 shared cores), for files 1.43x smaller than raw instead of 1.67x (textured renders
@@ -229,6 +233,10 @@ def write_array(group: zarr.Group, name: str, data: np.ndarray, chunks: tuple[in
     from zarr.codecs import BloscCodec, ZstdCodec
 
     data = np.asarray(data)
+    name = array.rsplit("/", 1)[-1]
+    if isinstance(array, ArrayPath):
+        data = array.spec.check(array, data)
+        chunks = array.spec.chunk_shape(data.shape)
     if chunks is None:
         chunks = (1, *data.shape[1:]) if data.ndim >= 3 else data.shape or (1,)
     if data.dtype == np.uint8 and data.ndim == 4 and data.shape[-1] == 3:  # video frames
