@@ -19,7 +19,7 @@ from rich.console import Console
 
 from flows.engine import check_engine
 from flows.serve import batch_command, serve_command
-from wonderverse.errors import WonderError
+from wonderverse.errors import WonderError, shown
 
 # Before torch loads: idle OpenMP threads sleep instead of spinning (measured 3-10x faster CPU splat
 # training on a shared 2-core machine).
@@ -36,9 +36,43 @@ console = Console(stderr=True, width=None if sys.stderr.isatty() else 140, soft_
 out = Console(width=None if sys.stdout.isatty() else 140, soft_wrap=not sys.stdout.isatty())
 
 
+MAX_FOLDER_TRIES = 1000
+
+
 def _default_out(prompt: str) -> Path:
     slug = "".join(c if c.isalnum() else "-" for c in prompt.lower()).strip("-")
     return Path("scenes") / ("-".join(filter(None, slug.split("-")))[:48] or "scene")
+
+
+def _default_scene_folder(prompt: str, name_from: str | None = None) -> tuple[Path, str]:
+    """(folder, note) for a run without --out: `scenes/<slug of name_from (default: prompt)>` unless that folder
+    holds something else than a scene of `prompt` (another prompt's scene, other files), then the first free
+    `<slug>-2`, `<slug>-3`, ...; `note` says why the name changed ("" when it did not). Many prompts share a slug
+    ("a house, decorated!" and "A HOUSE -- decorated"), and a default folder must never replace another scene."""
+    base = _default_out(name_from if name_from is not None else prompt)
+    wanted = " ".join(prompt.split())  # as SceneSpec stores it
+    for n in range(1, MAX_FOLDER_TRIES + 1):
+        folder = base if n == 1 else base.with_name(f"{base.name}-{n}")
+        if _fits_prompt(folder, wanted):
+            return folder, "" if n == 1 else f"{base} holds another scene"
+    raise WonderError(f"{base} and {MAX_FOLDER_TRIES - 1} numbered folders beside it are taken; choose one with --out")
+
+
+def _fits_prompt(folder: Path, prompt: str) -> bool:
+    """True when a run of `prompt` may use `folder`: absent, empty, or holding a scene made from `prompt`."""
+    from wonderverse.store import LOCK_NAME, STORE_NAME, SceneStore
+
+    if not folder.exists():
+        return True
+    if not folder.is_dir():
+        return False
+    if not (folder / STORE_NAME).exists():
+        return not any(p.name != LOCK_NAME for p in folder.iterdir())
+    try:
+        spec = SceneStore.open(folder).root.attrs.get("spec")
+    except WonderError:
+        return False
+    return isinstance(spec, dict) and spec.get("prompt") == prompt
 
 
 Engine = Annotated[
@@ -56,13 +90,14 @@ ReplaceSegments = Annotated[
 
 
 def _choose_preset(preset: str | None, config: Path | None, stored: Any) -> tuple[str, str]:
-    """(preset, why): the one named, else the config file's, else the scene's own, else this machine's default."""
+    """(preset, why): the one named, else the config file's, else the scene's own, else this machine's default.
+    A name given (even '') is checked when the config is built: a preset is a name, never a path."""
     from wonderverse.config import default_preset, read_yaml
 
     if preset is not None:
         return preset, "--preset"
     named = read_yaml(config).get("preset") if config else None
-    if named:
+    if named is not None:
         return named, f"from {config}"
     if stored is not None:
         return stored.preset, "the scene's"
@@ -85,7 +120,7 @@ def generate(
 ) -> None:
     """Plan, render and reconstruct a scene; cached steps are skipped, the scene's extensions are kept."""
     from flows.extend import with_extensions
-    from flows.pipeline import run_pipeline, steps_until, stored_config
+    from flows.pipeline import run_pipeline, segments_config, steps_until, stored_config
     from wonderverse.config import build_config, read_yaml
     from wonderverse.store import check_scene_dir
 
@@ -95,9 +130,12 @@ def generate(
     except KeyError:
         from tasks import STEP_NAMES
 
-        raise WonderError(f"unknown step {until!r}; steps are: {', '.join(STEP_NAMES)}") from None
-    file_prompt = (read_yaml(config).get("scene") or {}).get("prompt") if config else None
-    scene_dir = out_dir or _default_out(str(prompt if prompt is not None else file_prompt or ""))
+        raise WonderError(f"unknown step {shown(until)}; steps are: {', '.join(STEP_NAMES)}") from None
+    file_scene = read_yaml(config).get("scene") if config else None
+    file_prompt = file_scene.get("prompt") if isinstance(file_scene, dict) else None
+    scene_dir, folder_note = (
+        (out_dir, "") if out_dir else _default_scene_folder(str(prompt if prompt is not None else file_prompt or ""))
+    )
     check_scene_dir(scene_dir)  # a bad --out is refused before anything slow
     stored = stored_config(scene_dir)
     name, why = _choose_preset(preset, config, stored)
@@ -105,28 +143,37 @@ def generate(
     if dask is not None:  # where work runs is not part of any cache key
         overrides["steps"] = {"check": {"dask_address": dask}, "priors": {"dask_address": dask}}
     cfg = build_config(prompt=prompt, preset=name, config_file=config, overrides=overrides or None)
-    if stored is not None and not replace_segments and not cfg.scene.extensions.added:
-        cfg = with_extensions(cfg, stored.scene.extensions.added)  # extensions are part of the scene
+    made = segments_config(scene_dir)
+    if made is not None and not replace_segments and not cfg.scene.extensions.added:
+        cfg = with_extensions(cfg, made.scene.extensions.added)  # extensions are part of the scene
     _run_with_progress(
         scene_dir,
         engine,
         f"preset {name} ({why})",
         lambda eng: run_pipeline(scene_dir, cfg, until, engine=eng, replace_segments=replace_segments),
         len(steps),
+        folder_note,
     )
 
 
 def _run_with_progress(
-    scene_dir: Path, engine: str, preset_note: str, run: Callable[[str], list[Any]], n_steps: int | None = None
+    scene_dir: Path,
+    engine: str,
+    preset_note: str,
+    run: Callable[[str], list[Any]],
+    n_steps: int | None = None,
+    folder_note: str = "",
 ) -> None:
-    """The first line (preset, engine, scene), `run(engine)` with the progress display (`n_steps` steps, all
-    by default) and the closing table, then the derived files and the list of what the run wrote."""
+    """The first line (preset, engine, scene, and `folder_note`: why the scene folder is not the default one),
+    `run(engine)` with the progress display (`n_steps` steps, all by default) and the closing table, then the
+    derived files and the list of what the run wrote."""
     from flows import progress
     from flows.engine import quiet_prefect, resolve_engine
     from tasks import STEPS
 
     eng = resolve_engine(engine)
-    console.print(f"wonderverse: {preset_note}, engine {eng}, scene {scene_dir}", highlight=False)
+    where = f"{scene_dir} ({folder_note})" if folder_note else str(scene_dir)
+    console.print(f"wonderverse: {preset_note}, engine {eng}, scene {where}", highlight=False)
     if eng == "prefect":
         quiet_prefect()
     token = progress.current.set(progress.make_reporter(console, n_steps or len(STEPS)))
@@ -180,6 +227,7 @@ def reconstruct(
     """Reconstruct your own clips (any video generator or a phone): check, poses, priors, splats, outputs."""
     from flows.pipeline import run_pipeline, stored_config
     from wonderverse.config import build_config
+    from wonderverse.errors import ConfigError
     from wonderverse.store import check_scene_dir
     from wonderverse.video.files import group_sources
 
@@ -200,12 +248,22 @@ def reconstruct(
         "scene": {"video": {"backend": "files", "clips": paths, "options": options}},
         "steps": {"check": {"on_failure": on_failure}},
     }
-    scene_dir = out_dir or _default_out(Path(paths[0]).stem)
+    prompt = f"reconstruction of {', '.join(Path(p).name for p in paths)}"
+    scene_dir, folder_note = (out_dir, "") if out_dir else _default_scene_folder(prompt, Path(paths[0]).stem)
     check_scene_dir(scene_dir)
     name, why = _choose_preset(preset, None, stored_config(scene_dir))
-    cfg = build_config(
-        prompt=f"reconstruction of {', '.join(Path(p).name for p in paths)}", preset=name, overrides=overrides
-    )
+    try:
+        cfg = build_config(prompt=prompt, preset=name, overrides=overrides)
+    except ConfigError as e:
+        if (e.field or "").startswith("steps.priors.models."):
+            # The default priors are the oracle (the procedural world's ground truth); Depth Anything needs weights,
+            # and reconstruct has no option to name them yet.
+            raise WonderError(
+                "reconstruct cannot run yet: real clips need a depth prior that reads images, the only one (Depth "
+                "Anything) needs model weights that reconstruct has no option for, and the default prior (the "
+                "oracle) reads the procedural world's ground truth, which clips lack; nothing was written"
+            ) from None
+        raise
     _run_with_progress(
         scene_dir,
         engine,
@@ -213,6 +271,7 @@ def reconstruct(
         lambda eng: run_pipeline(
             scene_dir, cfg, engine=eng, flow_name="reconstruct", replace_segments=replace_segments
         ),
+        folder_note=folder_note,
     )
 
 

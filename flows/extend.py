@@ -38,10 +38,12 @@ def with_extensions(cfg: RunConfig, added: tuple[str, ...]) -> RunConfig:
 
 def extend(scene_dir: Path | str, words: str, engine: Engine = "auto") -> list[StepResult]:
     """Add one segment planned from `words` to the scene in `scene_dir` and bring every step up to date."""
-    from flows.pipeline import run_pipeline, stored_config
+    from flows.pipeline import run_pipeline, segments_config, stored_config
 
     cfg = stored_config(scene_dir)
     if cfg is None:
         SceneStore.open(scene_dir)  # no scene at all: its own one-line error
-        raise WonderError(f"{scene_dir} holds no run configuration; run `wonderverse generate` first")
+        raise WonderError(f"{scene_dir} holds no completed run; run `wonderverse generate` first")
+    made = segments_config(scene_dir)  # an extension whose run failed after its segment was made is kept
+    cfg = with_extensions(cfg, made.scene.extensions.added) if made is not None else cfg
     return run_pipeline(scene_dir, extended_config(cfg, words), engine=engine, flow_name="extend")

@@ -15,11 +15,19 @@ from typing import Any, Literal
 from flows.engine import Engine, resolve_engine
 from tasks import STEPS, Step, StepResult, progress, step_keys, steps_until
 from wonderverse.config import RunConfig
-from wonderverse.errors import WonderError
+from wonderverse.errors import WonderError, shown
 from wonderverse.store import SceneStore, scene_lock
 
 Call = Callable[[Step, str, RunConfig, str], str]
 OnCached = Callable[[Step, str], None]
+
+# Root attributes holding a RunConfig as JSON. CONFIG: the configuration of the last run that completed (every step
+# it ran finished); a failed or stopped run never replaces it. SEGMENTS_CONFIG: the configuration the scene's
+# segments were last generated under, written when the segments step starts, so it holds even after a run that
+# failed later (what `refuse_replacing_segments` compares with, and whose extensions a re-run continues).
+CONFIG = "config"
+SEGMENTS_CONFIG = "segments_config"
+SEGMENTS_STEP = "generate_segments"
 
 
 class StepFailed(WonderError):
@@ -58,14 +66,13 @@ def _steps(until: str | None) -> list[Step]:
     try:
         return steps_until(until)
     except KeyError:
-        raise WonderError(f"unknown step {until!r}; steps are: {', '.join(s.name for s in STEPS)}") from None
+        raise WonderError(f"unknown step {shown(until)}; steps are: {', '.join(s.name for s in STEPS)}") from None
 
 
 def _execute(
     scene_dir: Path | str, cfg: RunConfig, steps: list[Step], call: Call, on_cached: OnCached
 ) -> list[StepResult]:
     store = SceneStore.open_or_create(scene_dir, spec=cfg.scene.model_dump(mode="json"))
-    store.root.attrs["config"] = cfg.model_dump(mode="json")
     store.clean_staging()
     keys = step_keys(STEPS, cfg)
     reporter = progress.current.get()
@@ -76,6 +83,8 @@ def _execute(
             on_cached(step, key)
             result = StepResult(step.name, "cached", 0.0, key)
         else:
+            if step.name == SEGMENTS_STEP:
+                store.root.attrs[SEGMENTS_CONFIG] = cfg.model_dump(mode="json")
             reporter.started(step.name, step.description)
             t0 = time.perf_counter()
             try:
@@ -88,6 +97,7 @@ def _execute(
             store.group(step.group).attrs["seconds"] = result.seconds  # for inspect and the report
         reporter.finished(result)
         results.append(result)
+    store.root.attrs[CONFIG] = cfg.model_dump(mode="json")  # the run completed: its config is the scene's now
     return results
 
 
@@ -158,9 +168,20 @@ def run_pipeline(
 
 
 def stored_config(scene_dir: Path | str) -> RunConfig | None:
-    """The configuration the scene was last run with; None for a new scene (or one this version cannot read)."""
+    """The configuration of the scene's last completed run; None for a new scene, one whose runs all failed, or
+    one this version cannot read."""
+    return _config_attr(scene_dir, CONFIG)
+
+
+def segments_config(scene_dir: Path | str) -> RunConfig | None:
+    """The configuration the scene's segments were last generated under (a run that failed after generating them
+    included); else the stored config (scenes made before this was recorded); None when neither is readable."""
+    return _config_attr(scene_dir, SEGMENTS_CONFIG) or stored_config(scene_dir)
+
+
+def _config_attr(scene_dir: Path | str, name: str) -> RunConfig | None:
     try:
-        data = SceneStore.open(scene_dir).root.attrs.get("config")
+        data = SceneStore.open(scene_dir).root.attrs.get(name)
         return RunConfig.model_validate(data) if data is not None else None
     except (WonderError, ValueError):
         return None
@@ -169,10 +190,11 @@ def stored_config(scene_dir: Path | str) -> RunConfig | None:
 def refuse_replacing_segments(scene_dir: Path | str, cfg: RunConfig) -> None:
     """WonderError when running `cfg` would regenerate segments the scene already holds: what the segments
     are made from (the `plan` and `generate_segments` steps' parameters: prompt, seed, video settings,
-    planner, extensions) differs from the scene's. Extensions added since (`extend`) are fine."""
+    planner, extensions) differs from what they were made with (`segments_config`). Extensions added since
+    (`extend`) are fine."""
     from tasks.segments import segment_ids
 
-    old = stored_config(scene_dir)
+    old = segments_config(scene_dir)
     if old is None:
         return
     store = SceneStore.open(scene_dir)

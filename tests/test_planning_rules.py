@@ -7,14 +7,14 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
-from wonderverse.config import ExtensionSpec, PlannerSpec, PlanParams
+from wonderverse.config import ExtensionSpec, PlannerSpec, PlanParams, build_config
+from wonderverse.errors import ConfigError
 from wonderverse.planning import (
     CameraMove,
     ChatPlanner,
     Plan,
     PlanError,
     PlannedSegment,
-    PlanParseError,
     RulePlanner,
     interpret_intent,
     make_planner,
@@ -119,8 +119,11 @@ def test_more_intents_than_extensions_is_an_error() -> None:
 
 
 def test_bad_initial_move_names_the_setting() -> None:
-    with pytest.raises(PlanParseError, match="initial_move 'left 30, forward 2'"):
-        plan_scene("x", ExtensionSpec(), PlanParams(initial_move="left 30, forward 2"))
+    """Refused where the params are made (so a config holding it never reaches a store), naming the setting."""
+    with pytest.raises(ValidationError, match=r"initial_move\n.*expected 3 clauses .*got 2"):
+        PlanParams(initial_move="left 30, forward 2")
+    with pytest.raises(ConfigError, match=r"steps\.plan\.initial_move: expected 3 clauses .*got 2"):
+        build_config("x", overrides={"steps": {"plan": {"initial_move": "left 30, forward 2"}}})
 
 
 def test_initial_move_is_clamped_to_the_limits() -> None:

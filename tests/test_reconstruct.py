@@ -55,7 +55,14 @@ def scene(clips, tmp_path_factory) -> Path:
             "scene": {"video": {"backend": "files", "clips": [str(p) for p in paths], "options": {"fov_deg": 60.0}}},
             "steps": {
                 "check": {"on_failure": "drop", "workers": 1},
-                "priors": {"workers": 1, "models": {"depth_model": str(depth_model), "allow_download": False}},
+                "priors": {
+                    "workers": 1,
+                    "models": {
+                        "depth_backend": "depth_anything",
+                        "depth_model": str(depth_model),
+                        "allow_download": False,
+                    },
+                },
                 "splats": {"max_side_px": 96, "renderer": "torch", "train": {"iterations": 40, "holdout_every": 0}},
                 "outputs": {"video_frames": 6},
             },

@@ -113,12 +113,16 @@ def test_wan_family_t2v_and_i2v(tiny: dict[str, dict[str, Path]]) -> None:
     np.testing.assert_array_equal(i2v_a.frames, wan.generate(PROMPT, _path(), 5, _reference(0)).frames)
 
 
+# The oracle priors (the default) need the procedural world's ground truth: diffusion video takes a network's.
+PRIORS = {"steps": {"priors": {"models": {"depth_backend": "depth_anything"}}}}
+
+
 def test_make_video_model_from_run_config(tiny: dict[str, dict[str, Path]]) -> None:
     f = tiny["cogvideox"]
     opts = {"t2v_model": str(f["t2v"]), "i2v_model": str(f["i2v"]), "steps": 2, "device": "cpu"}
     video = {"backend": "diffusers", "frames_per_segment": T, "width": W, "height": H, "fov_deg": 70.0}
     cfg = build_config(
-        "a mountain village", preset="preview", overrides={"scene": {"video": {**video, "options": opts}}}
+        "a mountain village", preset="preview", overrides={"scene": {"video": {**video, "options": opts}}, **PRIORS}
     )
     model = make_video_model(cfg.scene)
     assert isinstance(model, DiffusionVideo) and model.params.family == "cogvideox" and model.device == "cpu"
@@ -126,26 +130,28 @@ def test_make_video_model_from_run_config(tiny: dict[str, dict[str, Path]]) -> N
     assert v.frames.shape == (T, H, W, 3)
     assert v.K[0, 0] == pytest.approx((W / 2) / np.tan(np.radians(35.0)))
     # the preview preset's own sizes (17 frames, 320x208) are valid for every family
-    preview = build_config("x", preset="preview", overrides={"scene": {"video": {"backend": "diffusers"}}})
+    preview = build_config("x", preset="preview", overrides={"scene": {"video": {"backend": "diffusers"}}, **PRIORS})
     assert isinstance(make_video_model(preview.scene), DiffusionVideo)
 
 
 def test_bad_options_and_sizes_are_one_line_errors(tiny: dict[str, dict[str, Path]]) -> None:
     def scene(video: dict[str, object]) -> object:
         return build_config(
-            "x", preset="preview", overrides={"scene": {"video": {"backend": "diffusers", **video}}}
+            "x", preset="preview", overrides={"scene": {"video": {"backend": "diffusers", **video}}, **PRIORS}
         ).scene
 
-    with pytest.raises(ConfigError, match=r"scene\.video\.options: steps_count: unknown setting"):
-        make_video_model(scene({"options": {"steps_count": 3}}))
+    # options and sizes are checked when the config is built, before any backend or store exists
+    with pytest.raises(ConfigError, match=r"scene\.video\.options\.steps_count: unknown setting"):
+        scene({"options": {"steps_count": 3}})
     with pytest.raises(
-        WonderError, match=r"frames_per_segment: cogvideox renders 8k\+1 .* 21 is not, nearest valid is 25"
+        ConfigError,
+        match=r"scene\.video\.frames_per_segment: cogvideox renders 8k\+1 .* 21 is not, nearest valid is 25",
     ):
-        make_video_model(scene({"frames_per_segment": 21}))
+        scene({"frames_per_segment": 21})
     with pytest.raises(
-        WonderError, match=r"scene\.video\.width: wan needs a multiple of 16 px; 330 is not, nearest valid is 336"
+        ConfigError, match=r"scene\.video\.width: wan needs a multiple of 16 px; 330 is not, nearest valid is 336"
     ):
-        make_video_model(scene({"width": 330, "options": {"family": "wan"}}))
+        scene({"width": 330, "options": {"family": "wan"}})
     cog = DiffusionVideo(W, H, T, FOV, _params(tiny))
     with pytest.raises(WonderError, match=r"frames_per_segment: .* 13 is not, nearest valid is 17"):
         cog.generate(PROMPT, _path(13), 0, None)

@@ -1,29 +1,51 @@
 """Configuration: the scene spec, every step's parameters, presets and YAML loading.
 
 Precedence, lowest first: model defaults < preset (`configs/presets/NAME.yaml`) < scene file < CLI
-arguments. Angles are degrees here (user-facing); the library converts to radians.
+arguments. Each layer is merged deeply into the one below it as data, and the result is validated once: a
+partial block changes only the settings it names. Every setting is typed and checked when the config is built
+(the video backend's own `options` included), so a run never starts on a config that would fail later.
+Angles are degrees here (user-facing); the library converts to radians.
 """
 
 from __future__ import annotations
 
+import copy
 import functools
 from pathlib import Path
 from typing import Any, Literal
 
 import yaml
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    ValidatorFunctionWrapHandler,
+    field_validator,
+    model_validator,
+)
+from pydantic_core import InitErrorDetails, PydanticCustomError
 
 from wonderverse.check import CheckParams
-from wonderverse.errors import ConfigError
+from wonderverse.errors import ConfigError, shown
 from wonderverse.mesh import MeshParams
 from wonderverse.priors.params import PriorsParams
 from wonderverse.quality.params import QualityParams
 from wonderverse.sfm import SfmParams
 from wonderverse.splats.params import TrainParams
+from wonderverse.video.diffusion import DiffusionParams, size_problem
+from wonderverse.video.files import ClipParams
+from wonderverse.video.procedural_options import ProceduralOptions
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 PRESET_DIR = CONFIG_DIR / "presets"
 MAX_PROMPT_CHARS = 2000
+# A config file holds settings, not data: bigger files, and aliases that expand to more values than this, are refused
+# before anything reads them further (a YAML alias bomb expands exponentially).
+MAX_CONFIG_BYTES = 1_000_000
+MAX_CONFIG_VALUES = 100_000
+MAX_ERRORS_SHOWN = 5
 
 Direction = Literal["left", "right", "up", "down", "forward", "back"]
 
@@ -32,6 +54,13 @@ class Model(BaseModel):
     """Base for every config model: unknown keys are errors, values are immutable."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+def field_error(loc: tuple[str, ...], message: str, value: Any) -> ValidationError:
+    """A validation error located at `loc` (relative to the model that raises it), for checks that span fields:
+    raised from a validator, it reports the field it names, not the model."""
+    error = InitErrorDetails(type=PydanticCustomError("config", message), loc=loc, input=value)
+    return ValidationError.from_exception_data("config", [error])
 
 
 class ExtensionSpec(Model):
@@ -59,7 +88,24 @@ class VideoSpec(Model):
     height: int = Field(320, ge=32, le=4096)
     fps: float = Field(8.0, gt=0, le=240)
     fov_deg: float = Field(60.0, gt=5, lt=170, description="horizontal field of view")
-    options: dict[str, Any] = Field(default_factory=dict, description="backend-specific, validated by it")
+    options: ProceduralOptions | ClipParams | DiffusionParams = Field(
+        default_factory=dict,
+        validate_default=True,
+        description="the backend's own settings, by `backend`: ProceduralOptions, ClipParams or DiffusionParams",
+        json_schema_extra={"defaults_by_backend": True},
+    )
+
+    @field_validator("options", mode="wrap")
+    @classmethod
+    def _options_of_the_backend(cls, v: Any, handler: ValidatorFunctionWrapHandler, info: ValidationInfo) -> Any:
+        model = VIDEO_OPTIONS.get(info.data.get("backend", ""))
+        if model is None:  # the backend itself is invalid, and reported so
+            return v
+        if isinstance(v, model):
+            return v
+        if isinstance(v, BaseModel):  # another backend's options
+            v = v.model_dump()
+        return model.model_validate(v)  # its errors keep their place: scene.video.options.<field>
 
     @model_validator(mode="after")
     def _clips_match_backend(self) -> VideoSpec:
@@ -68,6 +114,22 @@ class VideoSpec(Model):
         if self.backend != "files" and self.clips:
             raise ValueError(f"clips are only read by the files backend, not {self.backend!r}")
         return self
+
+    @model_validator(mode="after")
+    def _size_fits_the_diffusion_model(self) -> VideoSpec:
+        if self.backend == "diffusers" and isinstance(self.options, DiffusionParams):
+            problem = size_problem(self.options.family, self.frames_per_segment, self.width, self.height)
+            if problem is not None:
+                name, why = problem
+                raise field_error((name,), why, getattr(self, name))
+        return self
+
+
+VIDEO_OPTIONS: dict[str, type[BaseModel]] = {
+    "procedural": ProceduralOptions,
+    "files": ClipParams,
+    "diffusers": DiffusionParams,
+}
 
 
 class PlannerSpec(Model):
@@ -104,7 +166,9 @@ class SceneSpec(Model):
 class PlanParams(Model):
     """Step `plan`: the initial camera move and the sizes of rule-planned extension moves."""
 
-    initial_move: str = Field("up 0, right 30, forward 2", description="paper format, for the initial video")
+    initial_move: str = Field(
+        "up 0, right 30, forward 2", max_length=200, description="paper format, for the initial video"
+    )
     yaw_step_deg: float = Field(35.0, gt=0, le=180)
     pitch_step_deg: float = Field(15.0, gt=0, le=89)
     forward_step_m: float = Field(2.0, gt=0, le=100)
@@ -115,6 +179,17 @@ class PlanParams(Model):
     strafe_m_per_deg: float = Field(
         0.04, ge=0, le=1, description="sideways travel per degree of yaw, so turns keep parallax for SfM"
     )
+
+    @field_validator("initial_move")
+    @classmethod
+    def _paper_format(cls, v: str) -> str:
+        from wonderverse.planning.moves import PlanParseError, parse_move  # wonderverse.planning imports this module
+
+        try:
+            parse_move(v, any_order=True)
+        except PlanParseError as e:
+            raise ValueError(str(e)) from None
+        return v
 
 
 class GenerateParams(Model):
@@ -227,27 +302,109 @@ class RunConfig(Model):
     def _poses_known(self) -> RunConfig:
         if self.steps.poses.source != "conditioning":
             return self
+        where = ("steps", "poses", "source")
         if self.scene.video.backend == "files":
-            raise ValueError("user clips have no conditioning path: use steps.poses.source sfm")
+            raise field_error(where, "user clips have no conditioning path: use steps.poses.source sfm", "conditioning")
         if self.scene.video.backend == "diffusers":  # the path reaches these models only as words
-            raise ValueError("diffusers video models take no camera input: use steps.poses.source sfm")
+            raise field_error(
+                where, "diffusers video models take no camera input: use steps.poses.source sfm", "conditioning"
+            )
+        return self
+
+    @model_validator(mode="after")
+    def _priors_fit_the_video(self) -> RunConfig:
+        """The oracle priors read the procedural world's ground truth; no other video backend has any."""
+        video = self.scene.video.backend
+        if video == "procedural":
+            return self
+        models = self.steps.priors.models
+        instead = {"depth_backend": "depth_anything", "normal_backend": "from_depth"}
+        for name, other in instead.items():
+            if getattr(models, name) == "oracle":
+                raise field_error(
+                    ("steps", "priors", "models", name),
+                    f"the oracle prior needs the procedural world's ground truth, which {video} video has none of: "
+                    f"use {other}",
+                    "oracle",
+                )
         return self
 
 
-def deep_merge(base: dict[str, Any], over: dict[str, Any]) -> dict[str, Any]:
-    """Recursively merge `over` into a copy of `base` (dicts merge, everything else replaces)."""
-    out = dict(base)
-    for k, v in over.items():
-        out[k] = deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+def default_data(model: type[BaseModel]) -> dict[str, Any]:
+    """Every default of `model` as plain data, nested models as their own defaults' dicts (a field whose default
+    is `SfmParams(max_image_size_px=480)` gives that 480, not the class's); required fields are left out, except
+    models whose other fields have defaults (`RunConfig.scene` without its prompt)."""
+    out: dict[str, Any] = {}
+    for name, field in model.model_fields.items():
+        if _defaults_by_backend(field):
+            out[name] = {}
+        elif not field.is_required():
+            out[name] = _as_data(field.get_default(call_default_factory=True))
+        elif isinstance(field.annotation, type) and issubclass(field.annotation, BaseModel):
+            out[name] = default_data(field.annotation)
     return out
 
 
+def _defaults_by_backend(field: Any) -> bool:
+    """True for a field whose model (hence whose defaults) depends on another field's value: `VideoSpec.options`."""
+    return bool((field.json_schema_extra or {}).get("defaults_by_backend"))
+
+
+def _as_data(value: Any) -> Any:
+    """`value` as plain data: a model as the dict of its fields' values (a backend-keyed field as {})."""
+    if not isinstance(value, BaseModel):
+        return copy.deepcopy(value)
+    fields = type(value).model_fields
+    return {name: {} if _defaults_by_backend(f) else _as_data(getattr(value, name)) for name, f in fields.items()}
+
+
+def deep_merge(base: dict[str, Any], over: dict[str, Any], where: str = "") -> dict[str, Any]:
+    """`over` merged into a copy of `base`: mappings merge key by key, anything else replaces. A value that is not
+    a mapping where `base` holds one (a block of settings) is a ConfigError naming the block; an empty block
+    (None) changes nothing. `where`: the dotted path of `base`, for messages."""
+    out = dict(base)
+    for k, v in over.items():
+        path = f"{where}.{k}" if where else str(k)
+        if isinstance(v, BaseModel):  # a whole model given in code: all of its values
+            v = v.model_dump()
+        if isinstance(out.get(k), dict):
+            if v is None:
+                continue
+            if not isinstance(v, dict):
+                raise ConfigError(
+                    f"invalid config: {_shown_path(path)}: must be a mapping of settings (got {shown(v)})", field=path
+                )
+            out[k] = deep_merge(out[k], v, path)
+        else:
+            out[k] = v
+    return out
+
+
+def _shown_path(path: str, part_chars: int = 40) -> str:
+    """A dotted settings path for a message, each part cut to `part_chars` characters."""
+    parts = path.split(".")
+    return ".".join(p if len(p) <= part_chars else p[: part_chars - 3] + "..." for p in parts)
+
+
 def read_yaml(path: Path) -> dict[str, Any]:
-    """A YAML mapping from `path`; a missing, malformed or non-mapping file is a ConfigError."""
+    """A YAML mapping from `path`; a missing, unreadable, oversized, non-UTF-8, malformed or non-mapping file, or
+    one whose aliases expand beyond MAX_CONFIG_VALUES values, is a ConfigError."""
     try:
-        text = Path(path).read_text()
+        with open(path, "rb") as f:
+            raw = f.read(MAX_CONFIG_BYTES + 1)  # bounded: /dev/zero or a huge file is refused, not read
     except OSError as e:
         raise ConfigError(f"cannot read config file {path}: {e.strerror or e}") from None
+    if len(raw) > MAX_CONFIG_BYTES:
+        raise ConfigError(f"config file {path} is larger than {MAX_CONFIG_BYTES // 1_000_000} MB: is it a config?")
+    try:
+        text = raw.decode("utf-8-sig")
+    except UnicodeDecodeError as e:
+        raise ConfigError(
+            f"config file {path} is not UTF-8 text (byte 0x{raw[e.start]:02x} at offset {e.start}); "
+            "a config is YAML saved as UTF-8"
+        ) from None
+    if "\x00" in text:
+        raise ConfigError(f"config file {path} is binary (it holds NUL bytes), not YAML text")
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as e:
@@ -255,11 +412,34 @@ def read_yaml(path: Path) -> dict[str, Any]:
         where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
         problem = getattr(e, "problem", None) or str(e).splitlines()[0]
         raise ConfigError(f"malformed YAML in {path}{where}: {problem}") from None
+    except RecursionError:
+        raise ConfigError(f"malformed YAML in {path}: nested too deeply") from None
+    except ValueError as e:  # e.g. an integer beyond Python's digit limit
+        raise ConfigError(f"malformed YAML in {path}: {shown(str(e), 120)}") from None
     if data is None:
         return {}
     if not isinstance(data, dict):
         raise ConfigError(f"{path} must hold a mapping of settings, not a {type(data).__name__}")
+    _refuse_expansion(data, path)
     return data
+
+
+def _refuse_expansion(data: Any, path: Path) -> None:
+    """ConfigError when `data`, its aliases expanded, holds more than MAX_CONFIG_VALUES values (YAML aliases are
+    shared references: a small file can stand for billions of values, or for a cycle)."""
+    stack, count = [data], 0
+    while stack:
+        x = stack.pop()
+        count += 1
+        if count > MAX_CONFIG_VALUES:
+            raise ConfigError(
+                f"config file {path} expands to more than {MAX_CONFIG_VALUES} values through its aliases "
+                "(&anchor / *alias); a config needs far fewer"
+            )
+        if isinstance(x, dict):
+            stack += [*x.keys(), *x.values()]
+        elif isinstance(x, list | tuple | set):
+            stack += list(x)
 
 
 def preset_names() -> list[str]:
@@ -280,26 +460,32 @@ def default_preset() -> tuple[str, str]:
 
 
 def load_preset(name: str) -> dict[str, Any]:
-    path = PRESET_DIR / f"{name}.yaml"
-    if not path.is_file():
-        raise ConfigError(f"unknown preset {name!r}; choose one of: {', '.join(preset_names())}")
-    return read_yaml(path)
+    """The settings of the preset `name`, one of `preset_names()` (a name, never a path: a file of settings is a
+    config file); ConfigError listing the names otherwise."""
+    names = preset_names()
+    if not isinstance(name, str) or name not in names:
+        raise ConfigError(
+            f"unknown preset {shown(name)}; choose one of: {', '.join(names)} (a file of settings is a --config)"
+        )
+    return read_yaml(PRESET_DIR / f"{name}.yaml")
 
 
 def format_validation_error(err: ValidationError) -> str:
-    """One line per problem: `field.path: message (got VALUE)`."""
+    """One line per problem (the first MAX_ERRORS_SHOWN): `field.path: message (got VALUE)`, VALUE cut short."""
     lines = []
-    for e in err.errors():
-        loc = ".".join(str(p) for p in e["loc"]) or "config"
+    errors = err.errors()
+    for e in errors[:MAX_ERRORS_SHOWN]:
+        loc = _shown_path(".".join(str(p) for p in e["loc"])) or "config"
         msg = e["msg"].removeprefix("Value error, ")
         if e["type"] == "extra_forbidden":
             lines.append(f"{loc}: unknown setting")
         elif e["type"] == "missing":
             lines.append(f"{loc}: required setting is missing")
         else:
-            got = repr(e.get("input"))
-            got = got if len(got) <= 60 else got[:57] + "..."
-            lines.append(f"{loc}: {msg} (got {got})")
+            msg = msg if len(msg) <= 200 else msg[:197] + "..."
+            lines.append(f"{loc}: {msg} (got {shown(e.get('input'))})")
+    if len(errors) > MAX_ERRORS_SHOWN:
+        lines.append(f"and {len(errors) - MAX_ERRORS_SHOWN} more")
     return "; ".join(lines)
 
 
@@ -310,23 +496,38 @@ def build_config(
     overrides: dict[str, Any] | None = None,
 ) -> RunConfig:
     """Compose defaults, a preset, a scene file and explicit overrides into a validated RunConfig. The preset is
-    `preset`, else the file's, else this machine's default (`default_preset`)."""
+    `preset`, else the file's, else this machine's default (`default_preset`). Every layer is merged deeply into
+    the full defaults as data (`deep_merge`), then the whole is validated once; ConfigError names the field."""
     file_data = read_yaml(config_file) if config_file else {}
-    name = preset or file_data.get("preset") or default_preset()[0]
-    if not isinstance(name, str):
-        raise ConfigError(f"preset: must be a preset name (got {name!r})")
-    merged = deep_merge(load_preset(name), file_data)
+    name = preset if preset is not None else file_data.get("preset")
+    if name is None:
+        name = default_preset()[0]
+    merged = deep_merge(default_data(RunConfig), load_preset(name))
+    merged = deep_merge(merged, file_data)
     merged["preset"] = name
     if prompt is not None:
         merged = deep_merge(merged, {"scene": {"prompt": prompt}})
     merged = deep_merge(merged, overrides or {})
-    if "prompt" not in merged.get("scene", {}):
+    merged = _with_video_option_defaults(merged)
+    if "prompt" not in merged["scene"]:
         raise ConfigError("scene.prompt: no prompt given (pass PROMPT or set scene.prompt in the config file)")
     return validate_config(merged)
+
+
+def _with_video_option_defaults(data: dict[str, Any]) -> dict[str, Any]:
+    """`data` with `scene.video.options` merged into the defaults of its backend's options model (which model
+    holds the options is known only once every layer has named the backend)."""
+    video = data["scene"]["video"]
+    model = VIDEO_OPTIONS.get(video.get("backend")) if isinstance(video.get("backend"), str) else None
+    if model is None or not isinstance(video.get("options"), dict):
+        return data  # validation reports the bad backend or options
+    options = deep_merge(default_data(model), video["options"], "scene.video.options")
+    return deep_merge(data, {"scene": {"video": {"options": options}}})
 
 
 def validate_config(data: dict[str, Any]) -> RunConfig:
     try:
         return RunConfig.model_validate(data)
     except ValidationError as e:
-        raise ConfigError(f"invalid config: {format_validation_error(e)}") from None
+        first = ".".join(str(p) for p in e.errors()[0]["loc"]) if e.errors() else None
+        raise ConfigError(f"invalid config: {format_validation_error(e)}", field=first) from None

@@ -15,28 +15,21 @@ __all__ = ["GroundTruth", "Video", "VideoModel", "initial_pose", "make_video_mod
 
 
 def make_video_model(scene: SceneSpec) -> VideoModel:
-    """The backend named in `scene.video`, built for this scene (its world, size and options)."""
+    """The backend named in `scene.video`, built for this scene (its world, size and options; the options are
+    already the backend's own model, validated when the config was built)."""
     v = scene.video
     if v.backend == "procedural":
         from wonderverse.video.procedural import ProceduralVideo
 
         return ProceduralVideo(scene.prompt, scene.seed, v.width, v.height, v.fov_deg, v.options)
     if v.backend == "files":
-        from wonderverse.video.files import ClipParams, FilesVideo
+        from wonderverse.video.files import FilesVideo
 
-        return FilesVideo(list(v.clips), ClipParams(**v.options))
+        return FilesVideo(list(v.clips), v.options)
     if v.backend == "diffusers":
-        from pydantic import ValidationError
+        from wonderverse.video.diffusion import DiffusionVideo
 
-        from wonderverse.config import format_validation_error
-        from wonderverse.errors import ConfigError
-        from wonderverse.video.diffusion import DiffusionParams, DiffusionVideo
-
-        try:
-            params = DiffusionParams(**v.options)
-        except ValidationError as e:
-            raise ConfigError(f"scene.video.options: {format_validation_error(e)}") from None
-        return DiffusionVideo(v.width, v.height, v.frames_per_segment, v.fov_deg, params)
+        return DiffusionVideo(v.width, v.height, v.frames_per_segment, v.fov_deg, v.options)
     raise ValueError(f"unknown video backend {v.backend!r}")
 
 

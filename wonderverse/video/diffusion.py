@@ -113,22 +113,29 @@ def nearest_side(px: int, multiple: int) -> int:
     return multiple * max(1, int(np.floor(px / multiple + 0.5)))
 
 
-def check_size(family: str, frames: int, width: int, height: int, where: str = "scene.video") -> None:
-    """Raise WonderError naming the first setting the family cannot render, and its nearest valid value."""
+def size_problem(family: str, frames: int, width: int, height: int) -> tuple[str, str] | None:
+    """(setting, why) for the first of frames_per_segment, width, height that the family cannot render, with its
+    nearest valid value; None when the family renders this size."""
     spec = FAMILIES[family]
     f = spec.frame_step
     if frames < f + 1 or (frames - 1) % f:
-        raise WonderError(
-            f"{where}.frames_per_segment: {family} renders {f}k+1 frames (k >= 1); {frames} is not, "
-            f"nearest valid is {nearest_frame_count(frames, f)}"
+        nearest = nearest_frame_count(frames, f)
+        return (
+            "frames_per_segment",
+            f"{family} renders {f}k+1 frames (k >= 1); {frames} is not, nearest valid is {nearest}",
         )
     m = spec.side_multiple_px
     for name, px in (("width", width), ("height", height)):
         if px % m:
-            raise WonderError(
-                f"{where}.{name}: {family} needs a multiple of {m} px; {px} is not, "
-                f"nearest valid is {nearest_side(px, m)}"
-            )
+            return name, f"{family} needs a multiple of {m} px; {px} is not, nearest valid is {nearest_side(px, m)}"
+    return None
+
+
+def check_size(family: str, frames: int, width: int, height: int, where: str = "scene.video") -> None:
+    """Raise WonderError naming the first setting the family cannot render, and its nearest valid value."""
+    problem = size_problem(family, frames, width, height)
+    if problem is not None:
+        raise WonderError(f"{where}.{problem[0]}: {problem[1]}")
 
 
 _CACHE: dict[tuple[Any, ...], Any] = {}

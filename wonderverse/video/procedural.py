@@ -15,17 +15,16 @@ from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from functools import lru_cache
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from wonderverse.camera import camera_centers, intrinsics, look_at
 from wonderverse.video.base import GroundTruth, Video
+from wonderverse.video.procedural_options import FaultType, ProceduralOptions
 from wonderverse.video.shadows import build_cascades
 from wonderverse.video.texture import (
     Noise,
-    PatternParams,
     Sunlight,
     part_tables,
     rotate,
@@ -33,87 +32,11 @@ from wonderverse.video.texture import (
     sky_colour,
     surface_colour,
 )
-from wonderverse.video.world import World, WorldParams, build_world, make_scene
+from wonderverse.video.world import World, build_world, make_scene
 
-FaultType = Literal["teleport", "rotation", "morph", "freeze"]
-Range = tuple[float, float]
 # Separates the fault stream from any other use of (scene_seed, seed).
 FAULT_STREAM = 0xFA017
 DEMO_PROMPT = "a quiet village with houses and trees"
-
-
-class ProceduralOptions(BaseModel):
-    """Everything the procedural video model can be told (`VideoSpec.options`)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    world: Literal["auto", "outdoor", "indoor"] = "auto"
-    layout: WorldParams = WorldParams()
-    scene_scale: float = Field(
-        1.0,
-        gt=0,
-        allow_inf_nan=False,
-        description="presents the same world with every distance times this factor (1e-3: a 40 m village spans "
-        "0.04 units): paths consumed, poses, depth, start pose and fault distances reported; frames are identical "
-        "at any scale (layout and fault ranges stay in native metres)",
-    )
-    patterns: PatternParams = PatternParams()
-    # faults (per generation attempt)
-    fault_probability: float = Field(0.2, ge=0, le=1)
-    fault_types: tuple[FaultType, ...] = Field(("teleport", "rotation", "morph", "freeze"), min_length=1)
-    force_fault: FaultType | None = Field(None, description="always inject this fault (tests, benchmarks)")
-    fault_window: Range = Field((0.25, 0.75), description="the fault starts in this fraction of the segment")
-    teleport_m: Range = (0.8, 2.5)
-    teleport_vertical_share: float = Field(0.3, ge=0, le=1, description="vertical part of a jump, relative")
-    sudden_rotation_deg: Range = (10.0, 25.0)
-    morph_m: Range = (0.8, 2.0)
-    morph_scale: Range = (0.7, 1.4)
-    morph_objects: int = Field(3, ge=1)
-    morph_probe_stride_px: int = Field(4, ge=1, description="pixel stride of the pass finding visible objects")
-    freeze_frames: int = Field(5, ge=2)
-    # texture
-    texture_detail: float = Field(1.0, ge=0, description="contrast of the surface texture; 0 = flat colours")
-    texture_octaves: int = Field(4, ge=1, le=8)
-    octave_gain: float = Field(0.7, gt=0, lt=1, description="amplitude ratio of successive octaves")
-    octave_lacunarity: float = Field(2.5, gt=1, description="frequency ratio of octaves; not 2, so they do not line up")
-    noise_contrast: float = Field(2.0, gt=0, description="maps the noise sum onto the colour ramp")
-    brightness_variation: float = Field(0.3, ge=0, lt=1, description="texture-driven brightness swing")
-    lod_fade_px: Range = Field((1.5, 3.0), description="an octave fades out as its wavelength drops to these px")
-    min_cos_incidence: float = Field(0.15, gt=0, le=1, description="caps texture blur at grazing angles")
-    noise_seed: int = Field(7, ge=0)
-    chunk_px: int = Field(16384, ge=256, description="pixels shaded at once; small chunks stay in cache")
-    shading_threads: int = Field(2, ge=1, le=64, description="threads shading pixel chunks")
-    # lighting and atmosphere
-    shadows: bool = Field(True, description="sun shadows outdoors")
-    shadow_method: Literal["map", "rays"] = Field(
-        "map", description="shadow-map lookup (fast) or one shadow ray per pixel (exact reference)"
-    )
-    shadow_bias_m: float = Field(0.02, gt=0, description="shadow rays start this far off the surface")
-    shadow_map_px: int = Field(1024, ge=64, le=8192, description="texels per side of each cascade")
-    shadow_near_m: float = Field(20.0, gt=0, description="half-size of the fine cascade around the origin")
-    shadow_bias_texels: float = Field(1.5, ge=0)
-    fog_distance_m: float = Field(220.0, ge=0, description="e-folding distance of the haze; 0 = none")
-    cloud_height_m: float = Field(800.0, gt=0)
-    cloud_scale_m: float = Field(500.0, gt=0)
-    cloud_octaves: int = Field(4, ge=1, le=8)
-    sun_disc_cos: float = Field(0.9995, gt=0.9, lt=1)
-
-    @model_validator(mode="after")
-    def _ranges_ok(self) -> ProceduralOptions:
-        for name in (
-            "fault_window",
-            "teleport_m",
-            "sudden_rotation_deg",
-            "morph_m",
-            "morph_scale",
-            "lod_fade_px",
-        ):
-            lo, hi = getattr(self, name)
-            if not lo <= hi:
-                raise ValueError(f"{name}: lower bound {lo} exceeds upper bound {hi}")
-        if not 0 <= self.fault_window[0] < self.fault_window[1] <= 1:
-            raise ValueError("fault_window must lie within [0, 1]")
-        return self
 
 
 # ---------------------------------------------------------------- faults

@@ -12,40 +12,11 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
-from typing import TYPE_CHECKING
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
+from wonderverse.video.procedural_options import ProceduralOptions
 from wonderverse.video.world import MATERIALS, Pattern, World
-
-if TYPE_CHECKING:
-    from wonderverse.video.procedural import ProceduralOptions
-
-Range = tuple[float, float]
-
-
-class PatternParams(BaseModel):
-    """Sizes of the per-material surface patterns (metres, or fractions of a cell)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    brick_m: Range = (0.25, 0.085)
-    mortar_frac: float = Field(0.12, ge=0, lt=0.5)
-    plank_width_m: float = Field(0.16, gt=0)
-    plank_length_m: float = Field(1.8, gt=0)
-    shingle_m: Range = (0.32, 0.22)
-    tile_m: float = Field(0.4, gt=0)
-    grout_frac: float = Field(0.06, ge=0, lt=0.5)
-    stripe_m: float = Field(0.11, gt=0)
-    motif_m: float = Field(0.3, gt=0, description="wallpaper diamonds")
-    check_m: float = Field(0.15, gt=0)
-    window_cell_m: Range = (2.2, 3.2)
-    window_frac: Range = (0.55, 0.5)
-    lit_window_share: float = Field(0.6, ge=0, le=1, description="at night")
-    bark_groove_m: float = Field(0.06, gt=0)
-    bark_stretch: float = Field(6.0, gt=1, description="bark streaks are this many times longer than wide")
-
 
 # int32 multipliers of the lattice hash (odd, large, unrelated)
 _HX, _HY, _HZ, _HMIX = (

@@ -18,49 +18,12 @@ from functools import cache
 from typing import TYPE_CHECKING, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field
 
 from wonderverse.camera import look_at
+from wonderverse.video.procedural_options import WorldParams
 
 if TYPE_CHECKING:
     import open3d as o3d
-
-Range = tuple[float, float]
-
-
-class WorldParams(BaseModel):
-    """Sizes and counts of the procedural worlds (metres, degrees)."""
-
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-    terrain_radius_m: float = Field(60.0, gt=10, description="half-size of the square terrain")
-    terrain_cell_m: float = Field(1.0, gt=0.1, le=5)
-    hill_height_m: float = Field(1.5, ge=0, description="amplitude of the gentle hills")
-    hill_wavelength_m: Range = (18.0, 45.0)
-    flat_radius_m: float = Field(10.0, ge=0, description="hills fade in from the origin out to here")
-    rim_height_m: float = Field(9.0, ge=0, description="skyline hills rising at the terrain's edge")
-    rim_start_m: float = Field(42.0, gt=0)
-    clear_radius_m: float = Field(4.0, ge=0, description="no object intrudes on this disc (camera zone)")
-    object_radius_m: Range = (5.0, 40.0)
-    object_gap_m: float = Field(0.6, ge=0, description="free space between object footprints")
-    outdoor_objects: int = Field(60, ge=0, le=400, description="objects of a meadow; themes scale it")
-    placement_tries: int = Field(60, ge=1, description="rejection-sampling tries per object")
-    camera_height_m: float = Field(3.0, gt=0)
-    camera_pitch_deg: float = Field(10.0, ge=-60, le=60, description="downwards pitch of the start pose")
-    shore_distance_m: float = Field(14.0, gt=0, description="beach: the sea begins this far out")
-    shore_drop_m: float = Field(3.5, gt=0)
-    room_size_m: tuple[float, float, float] = Field(
-        (10.0, 12.0, 3.0), description="x, y, z; the camera starts looking along y, the long side"
-    )
-    wall_thickness_m: float = Field(0.2, gt=0)
-    indoor_camera_height_m: float = Field(1.6, gt=0)
-    indoor_camera_pitch_deg: float = Field(8.0, ge=-60, le=60)
-    indoor_clear_radius_m: float = Field(1.5, ge=0)
-    indoor_objects: int = Field(30, ge=0, le=200)
-    sun_elevation_deg: Range = (30.0, 60.0)
-    sun_azimuth_deg: Range = (100.0, 260.0)
-    indoor_light_elevation_deg: float = Field(65.0, gt=0, le=90)
-    cylinder_segments: int = Field(12, ge=3, le=64)
 
 
 class Pattern(IntEnum):
