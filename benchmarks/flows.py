@@ -58,11 +58,11 @@ def _config(width: int, height: int, frames: int, rounds: int, directions: list[
                 "extensions": {"rounds": rounds, "directions": directions},
             },
             "steps": {
-                "check": {"workers": 1, "sfm": {"num_threads": 1}},
-                "priors": {"workers": 1},
-                "splats": {"renderer": "torch", "train": {"iterations": iterations}},
+                "check": {"sfm": {"num_threads": 1}},
+                "splats": {"train": {"iterations": iterations}},
                 "outputs": {"video_frames": 24},
             },
+            "execution": {"segment_workers": 1, "renderer": "torch"},
         },
     )
 
@@ -80,8 +80,7 @@ def dask_rows(tmp: Path, cfg: RunConfig) -> tuple[list[dict], float]:
     for workers in (1, 2):
         d = tmp / f"dask_{workers}"
         shutil.copytree(base, d)
-        steps = cfg.steps.model_copy(update={"check": cfg.steps.check.model_copy(update={"workers": workers})})
-        c = cfg.model_copy(update={"steps": steps})
+        c = cfg.model_copy(update={"execution": cfg.execution.model_copy(update={"segment_workers": workers})})
         seconds[workers] = _timed(lambda d=d, c=c: execute(d, c, until="check"))
     rows = [{"what": f"check step, 6 segments, {w} worker(s)", "seconds": s} for w, s in seconds.items()]
     return rows, seconds[1] / seconds[2]

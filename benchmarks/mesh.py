@@ -61,7 +61,8 @@ def build_scene(scene_dir: Path, quick: bool) -> tuple[Any, float]:
         splats = {"max_side_px": 128}
     overrides = {
         "scene": {"video": video},
-        "steps": {"check": {"max_attempts": 1, "workers": 1}, "priors": {"workers": 1}, "splats": splats},
+        "steps": {"check": {"max_attempts": 1}, "splats": splats},
+        "execution": {"segment_workers": 1},
     }
     cfg = build_config(PROMPT, preset="preview", overrides=overrides)
     t0 = time.perf_counter()
@@ -207,7 +208,7 @@ def measure(cfg: Any, scene: dict[str, Any]) -> tuple[list[dict[str, Any]], tupl
     from wonderverse.camera import Sim3, camera_centers, fit_intrinsics, scene_extent, umeyama
     from wonderverse.video import make_video_model
 
-    video = make_video_model(cfg.scene)
+    video = make_video_model(cfg.scene.video_source)
     world, true_K = video.world, video.K
     vw, vh = cfg.scene.video.width, cfg.scene.video.height
     # render at the training resolution (frames were downscaled to max_side_px on the longer side)

@@ -28,7 +28,7 @@ def main() -> None:
         preset="standard",
         overrides={"scene": {"video": {"options": {"fault_probability": 0.0}}}},
     )
-    model = make_video_model(cfg.scene)
+    model = make_video_model(cfg.scene.video_source)
     from wonderverse.camera import move_path
 
     path = move_path(initial_pose(model), np.radians(-30), 0.0, 2.0, -1.2, n)

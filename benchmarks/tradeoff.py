@@ -159,7 +159,7 @@ def score(scene_dir: Path, cfg: Any) -> dict[str, Any]:
         absrel.append(depth_errors(view.depth * to_world.s, f["gt_depth"][i], mask)["absrel"])
 
     # the exported mesh in the world, against the true surfaces the cameras see within the fusion's reach
-    video = make_video_model(cfg.scene)  # builds the world: once
+    video = make_video_model(cfg.scene.video_source)  # builds the world: once
     mesh = trimesh.load(scene_dir / "mesh.ply", force="mesh")
     pred = to_world.apply(sample_mesh_points(np.asarray(mesh.vertices), np.asarray(mesh.faces), 300_000, seed=1))
     reach = cfg.steps.outputs.mesh.max_depth_frac * store.attrs("outputs")["mesh"]["extent"] * to_world.s

@@ -141,7 +141,7 @@ def generate(
     name, why = _choose_preset(preset, config, stored)
     overrides: dict = {"scene": {"seed": seed}} if seed is not None else {}
     if dask is not None:  # where work runs is not part of any cache key
-        overrides["steps"] = {"check": {"dask_address": dask}, "priors": {"dask_address": dask}}
+        overrides["execution"] = {"dask_address": dask}
     cfg = build_config(prompt=prompt, preset=name, config_file=config, overrides=overrides or None)
     made = segments_config(scene_dir)
     if made is not None and not replace_segments and not cfg.scene.extensions.added:
@@ -204,11 +204,13 @@ def _finish(scene_dir: Path, results: list[Any]) -> None:
 
 def _output_files(scene_dir: Path, steps: set[str]) -> list[Path]:
     """The files that `steps` of this run wrote or found current: splats.ply, then the outputs step's."""
+    from wonderverse.schema import OUTPUTS
     from wonderverse.store import SceneStore
 
     files = [Path(scene_dir) / "splats.ply"] if "splats" in steps else []
     if "outputs" in steps:
-        files += [Path(scene_dir) / f["path"] for f in SceneStore.open(scene_dir).attrs("outputs").get("files", [])]
+        written = SceneStore.open(scene_dir).attrs(OUTPUTS.path).get("files", [])
+        files += [Path(scene_dir) / f["path"] for f in written]
     return files
 
 

@@ -14,11 +14,13 @@ from typing import Any, Literal
 
 from flows.engine import Engine, resolve_engine
 from tasks import STEPS, Step, StepResult, progress, step_keys, steps_until
+from tasks.base import StepContext
 from wonderverse.config import RunConfig
 from wonderverse.errors import WonderError, shown
+from wonderverse.schema import SEGMENT
 from wonderverse.store import SceneStore, scene_lock
 
-Call = Callable[[Step, str, RunConfig, str], str]
+Call = Callable[[Step, str, Any, StepContext], str]
 OnCached = Callable[[Step, str], None]
 
 # Root attributes holding a RunConfig as JSON. CONFIG: the configuration of the last run that completed (every step
@@ -38,8 +40,8 @@ class StepFailed(WonderError):
         self.step, self.cause, self.results = step, cause, results
 
 
-def _direct(step: Step, scene_dir: str, cfg: RunConfig, key: str) -> str:
-    return step.run_in(scene_dir, cfg, key)
+def _direct(step: Step, scene_dir: str, params: Any, ctx: StepContext) -> str:
+    return step.run_in(scene_dir, params, ctx)
 
 
 def _nothing(step: Step, key: str) -> None:
@@ -88,7 +90,7 @@ def _execute(
             reporter.started(step.name, step.description)
             t0 = time.perf_counter()
             try:
-                detail = call(step, str(scene_dir), cfg, key)
+                detail = call(step, str(scene_dir), step.params(cfg), StepContext(key, cfg.execution))
             except Exception as e:
                 result = StepResult(step.name, "failed", time.perf_counter() - t0, key, str(e))
                 reporter.finished(result)
@@ -101,8 +103,8 @@ def _execute(
     return results
 
 
-def _prefect_call(step: Step, scene_dir: str, cfg: RunConfig, key: str) -> str:
-    return step.task(scene_dir, cfg, key)
+def _prefect_call(step: Step, scene_dir: str, params: Any, ctx: StepContext) -> str:
+    return step.task(scene_dir, params, ctx)
 
 
 def _cached_state(step: str, cache_key: str) -> Any:
@@ -198,7 +200,7 @@ def refuse_replacing_segments(scene_dir: Path | str, cfg: RunConfig) -> None:
     if old is None:
         return
     store = SceneStore.open(scene_dir)
-    made = [s for s in segment_ids(store) if store.cache_key_of(f"segments/{s}") is not None]
+    made = [s for s in segment_ids(store) if store.cache_key_of(SEGMENT.at(seg=s)) is not None]
     if not made:
         return
     added_old, added_new = old.scene.extensions.added, cfg.scene.extensions.added

@@ -44,7 +44,7 @@ def load_spec(spec_file: Path | str, dask_address: str | None = None) -> Any:
 
     overrides = None
     if dask_address:  # where work runs is not part of any cache key (as `generate --dask`)
-        overrides = {"steps": {"check": {"dask_address": dask_address}, "priors": {"dask_address": dask_address}}}
+        overrides = {"execution": {"dask_address": dask_address}}
     return build_config(config_file=Path(spec_file), overrides=overrides)
 
 

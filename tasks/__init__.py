@@ -1,4 +1,4 @@
-"""Pipeline steps, in dependency order. Each module holds `run(store, cfg, key)` and its `STEP`."""
+"""Pipeline steps, in dependency order. Each module holds `Params`, `params(cfg)`, `run(store, params, ctx)`, `STEP`."""
 
 from __future__ import annotations
 

@@ -1,8 +1,15 @@
 """What every pipeline step is: a plain function over the store plus a thin Prefect task.
 
-A step reads its inputs from the store, writes only its own group(s) through `SceneStore.staged`,
-and is skipped when its group is complete under the same cache key. Keys are a Merkle chain
-computed from the config alone (`step_keys`), so they are known before anything runs.
+The step contract: `run(store, params, ctx) -> one-line summary`. `params` is the step's own pydantic model,
+built from the configuration by `Step.params`; that one object is both what the step's cache key hashes and
+all of the configuration the step is given, so a step cannot read a setting its key ignores. `ctx` carries
+the step's key (its group is marked complete under it) and the execution settings (workers, Dask, renderer:
+where and how fast, never hashed). A step reads its inputs from the store through `wonderverse.schema`,
+writes only its own group(s) through `SceneStore.staged`, and is skipped when its group is complete under the
+same key. Keys are a Merkle chain computed from the config alone (`step_keys`), known before anything runs.
+
+Adding a step: declare its group in `wonderverse/schema.py`, write `tasks/<name>.py` with its params model,
+`params(cfg)`, `run` and `STEP`, and list it in `tasks/__init__.py` in dependency order.
 """
 
 from __future__ import annotations
@@ -10,13 +17,24 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Any, Literal
+from typing import Any, Generic, Literal, TypeVar
 
-from wonderverse.config import RunConfig
+from pydantic import BaseModel
+
+from wonderverse.config import ExecutionParams, RunConfig
 from wonderverse.errors import WonderError
 from wonderverse.store import SceneStore, cache_key
 
-RunFn = Callable[[SceneStore, RunConfig, str], str]
+P = TypeVar("P", bound=BaseModel)
+
+
+@dataclass(frozen=True)
+class StepContext:
+    """What a step gets beside its params: its own cache key and the (unhashed) execution settings."""
+
+    key: str
+    execution: ExecutionParams = field(default_factory=ExecutionParams)
+
 
 # Failures worth a retry: a lost connection to a Dask scheduler, a network timeout of a remote model or
 # planner. Matched by class name so that this module imports neither distributed nor httpx.
@@ -49,22 +67,18 @@ class StepResult:
 
 
 @dataclass(frozen=True)
-class Step:
-    """params: what of the config the step reads (hashed);
-    run(store, cfg, key) -> one-line summary; it must end with the group marked complete."""
+class Step(Generic[P]):
+    """name, version (bumped when the step's results change for the same params), the steps it depends on,
+    `params(cfg)` (the step's model: hashed and passed), `run(store, params, ctx)`, and the group it owns."""
 
     name: str
     version: int
     depends: tuple[str, ...]
-    params: Callable[[RunConfig], Any]
-    run: RunFn = field(repr=False)
-    description: str = ""
-    group: str = ""  # the store group it owns; defaults to the step's name
+    params: Callable[[RunConfig], P]
+    run: Callable[[SceneStore, P, StepContext], str] = field(repr=False)
+    description: str
+    group: str
     retries: int = 2  # Prefect task retries, on transient failures only (a retry resumes from the store)
-
-    def __post_init__(self) -> None:
-        if not self.group:
-            object.__setattr__(self, "group", self.name)
 
     @cached_property
     def task(self) -> Any:
@@ -81,10 +95,10 @@ class Step:
             retry_condition_fn=retry_if_transient,
         )(self.run_in)
 
-    def run_in(self, scene_dir: str, cfg: RunConfig, key: str) -> str:
-        """Open the store at `scene_dir` and run (what the Prefect task and Dask workers call)."""
+    def run_in(self, scene_dir: str, params: P, ctx: StepContext) -> str:
+        """Open the store at `scene_dir` and run (what the Prefect task calls)."""
         store = SceneStore.open(scene_dir, mode="r+")
-        return self.run(store, cfg, key)
+        return self.run(store, params, ctx)
 
 
 def step_keys(steps: list[Step], cfg: RunConfig) -> dict[str, str]:

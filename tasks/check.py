@@ -14,30 +14,37 @@ from typing import Any
 
 import numpy as np
 
-from tasks.base import Step
+from tasks.base import Step, StepContext
 from tasks.generate_segments import render_attempt, write_attempt
 from tasks.parallel import map_segments
 from tasks.progress import callback
 from tasks.segments import attempt_ids, intrinsics, segment_ids
-from wonderverse.config import RunConfig
+from wonderverse.config import CheckStepParams, Model, RunConfig, VideoSource
 from wonderverse.errors import WonderError
 from wonderverse.schema import ATTEMPT, CHECK, SEGMENT
 from wonderverse.store import SceneStore, cache_key, write_array
 
 log = logging.getLogger("wonderverse.check")
-VERSION = 1
+VERSION = 2  # 2: keyed by the step's params model
 THIS_RUN = "this_run"  # the key of what `check_segment` did in this run (returned, never stored)
 
 
-def _params(cfg: RunConfig) -> dict[str, Any]:
-    return {"check": cfg.steps.check.model_dump(exclude={"workers", "dask_address"})}
+class Params(Model):
+    """The check's settings, and the video source it regenerates failed segments with."""
+
+    check: CheckStepParams
+    source: VideoSource
 
 
-def segment_key(cfg: RunConfig, seg_key: str) -> str:
-    return cache_key("check_segment", VERSION, _params(cfg), [seg_key])
+def params(cfg: RunConfig) -> Params:
+    return Params(check=cfg.steps.check, source=cfg.scene.video_source)
 
 
-def _judge(store: SceneStore, cfg: RunConfig, seg: str, k: int, key: str) -> dict[str, Any]:
+def segment_key(p: Params, seg_key: str) -> str:
+    return cache_key("check_segment", VERSION, p, [seg_key])
+
+
+def _judge(store: SceneStore, p: CheckStepParams, seg: str, k: int, key: str) -> dict[str, Any]:
     """SfM + check of one attempt (cached in its `sfm` and `check` groups); returns the check attrs."""
     from wonderverse.check import check_trajectory
     from wonderverse.sfm import reconstruct
@@ -45,7 +52,6 @@ def _judge(store: SceneStore, cfg: RunConfig, seg: str, k: int, key: str) -> dic
     ap = ATTEMPT.at(seg=seg, attempt=k)
     if store.is_complete(ap.check, key):
         return store.attrs(ap.check)
-    p = cfg.steps.check
     K, known = intrinsics(store, seg)
     sfm = reconstruct(store.array(ap.frames), p.sfm, K_prior=K, K_known=known)
     result = check_trajectory(sfm.poses, sfm.registered, p.rules, sfm.problems, points=sfm.points)
@@ -68,7 +74,7 @@ def _judge(store: SceneStore, cfg: RunConfig, seg: str, k: int, key: str) -> dic
     return store.attrs(ap.check)
 
 
-def check_segment(seg: str, scene_dir: str, cfg: RunConfig) -> dict[str, Any]:
+def check_segment(seg: str, scene_dir: str, p: Params) -> dict[str, Any]:
     """Check (and regenerate) one segment until an attempt passes; writes `segments/<seg>/accepted`.
 
     Returns that summary plus THIS_RUN: {"cached": the segment was already checked under this key,
@@ -79,27 +85,26 @@ def check_segment(seg: str, scene_dir: str, cfg: RunConfig) -> dict[str, Any]:
     seg_key = store.cache_key_of(SEGMENT.at(seg=seg))
     if seg_key is None:
         raise WonderError(f"segment {seg} is not complete; run generate_segments first")
-    key = segment_key(cfg, seg_key)
+    key = segment_key(p, seg_key)
     accepted = SEGMENT.at(seg=seg).accepted
     if store.is_complete(accepted, key):
         return store.attrs(accepted) | {THIS_RUN: {"cached": True, "regenerated": 0}}
-    p = cfg.steps.check
     model = None
     checks: dict[int, dict[str, Any]] = {}
     rendered = 0  # attempts a run before this one left (killed mid-check) are reused, not counted
-    clips = cfg.scene.video.backend == "files"  # a user's clip cannot be regenerated
-    for k in range(1 if clips else p.max_attempts):
+    clips = p.source.video.backend == "files"  # a user's clip cannot be regenerated
+    for k in range(1 if clips else p.check.max_attempts):
         if k not in attempt_ids(store, seg):
             if model is None:
                 from wonderverse.video import make_video_model
 
-                model = make_video_model(cfg.scene)
-            video, seed = render_attempt(store, cfg, model, seg, k)
+                model = make_video_model(p.source)
+            video, seed = render_attempt(store, p.source, model, seg, k)
             at = ATTEMPT.at(seg=seg, attempt=k)
             with store.staged(at, cache_key("attempt", VERSION, {"seed": seed}, [seg_key])) as g:
-                write_attempt(g, at, video, seed, cfg.scene.video.backend)
+                write_attempt(g, at, video, seed, p.source.video.backend)
             rendered += 1
-        checks[k] = _judge(store, cfg, seg, k, cache_key("attempt_check", VERSION, {"k": k}, [key]))
+        checks[k] = _judge(store, p.check, seg, k, cache_key("attempt_check", VERSION, {"k": k}, [key]))
         if checks[k]["accepted"]:
             break
     passed = [k for k, c in checks.items() if c["accepted"]]
@@ -109,9 +114,9 @@ def check_segment(seg: str, scene_dir: str, cfg: RunConfig) -> dict[str, Any]:
     else:
         best = least_bad(checks)
         reasons = checks[best]["reasons"]
-        if p.on_failure == "fail":
+        if p.check.on_failure == "fail":
             raise WonderError(f"segment {seg} failed all {len(checks)} attempts; last reasons: {'; '.join(reasons)}")
-        if p.on_failure == "drop":
+        if p.check.on_failure == "drop":
             summary |= {"attempt": None, "dropped": True, "reasons": reasons}
             log.warning("segment %s dropped after %d attempts: %s", seg, len(checks), "; ".join(reasons))
         else:
@@ -122,16 +127,15 @@ def check_segment(seg: str, scene_dir: str, cfg: RunConfig) -> dict[str, Any]:
     return summary | {THIS_RUN: {"cached": False, "regenerated": rendered}}
 
 
-def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
-    p = cfg.steps.check
+def run(store: SceneStore, p: Params, ctx: StepContext) -> str:
     segs = segment_ids(store)
     results = map_segments(
         check_segment,
         segs,
         str(store.scene_dir),
-        cfg,
-        workers=p.workers,
-        address=p.dask_address,
+        p,
+        workers=ctx.execution.segment_workers,
+        address=ctx.execution.dask_address,
         step="check",
         progress=callback("segments checked"),
     )
@@ -141,7 +145,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     dropped = [s["segment"] for s in summaries if s["dropped"]]
     failing = [s["segment"] for s in summaries if s["reasons"] and not s["dropped"]]
     summary = {"segments": summaries, "mean_extra_trials": float(np.mean(extra)), "dropped": dropped}
-    with store.staged(CHECK.path, key, **summary, kept_failing=failing):
+    with store.staged(CHECK.path, ctx.key, **summary, kept_failing=failing):
         pass
     cached = sum(r["cached"] for r in this_run)
     msg = f"{len(segs)} segments" + (f" ({cached} cached)" if cached else "")
@@ -154,5 +158,5 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
 
 
 STEP = Step(
-    "check", 1, ("generate_segments",), _params, run, "SfM pose check, regenerate abnormal segments", group=CHECK.path
+    "check", 2, ("generate_segments",), params, run, "SfM pose check, regenerate abnormal segments", group=CHECK.path
 )

@@ -12,21 +12,28 @@ from typing import Any
 
 import numpy as np
 
-from tasks.base import Step
+from tasks.base import Step, StepContext
 from tasks.parallel import fan_out
 from tasks.plan import load_plan
 from tasks.progress import advance
 from tasks.segments import frames, stitched_frame_index
 from wonderverse.camera import intrinsics, move_path
-from wonderverse.config import RunConfig
+from wonderverse.config import Model, RunConfig, VideoSource
 from wonderverse.schema import ATTEMPT, ATTEMPT_GT, SEGMENT, SEGMENTS, GroupPath
 from wonderverse.store import SceneStore, cache_key, write_array
 
-SEGMENT_VERSION = 1
+SEGMENT_VERSION = 2  # 2: keyed by the step's params model
 
 
-def _params(cfg: RunConfig) -> dict[str, Any]:
-    return {"video": cfg.scene.video, "prompt": cfg.scene.prompt, "seed": cfg.scene.seed}
+class Params(Model):
+    """What segments are rendered from: the video source, and the sideways travel per degree of a planned turn."""
+
+    source: VideoSource
+    strafe_m_per_deg: float
+
+
+def params(cfg: RunConfig) -> Params:
+    return Params(source=cfg.scene.video_source, strafe_m_per_deg=cfg.steps.plan.strafe_m_per_deg)
 
 
 def attempt_seed(scene_seed: int, seg: str, attempt: int) -> int:
@@ -43,13 +50,12 @@ def segment_prompt(scene_prompt: str, role: str, intent: str) -> str:
 
 
 def plan_paths(
-    cfg: RunConfig, plan: Any, start_w2c: np.ndarray, clip_lengths: list[int] | None = None
+    p: Params, plan: Any, start_w2c: np.ndarray, clip_lengths: list[int] | None = None
 ) -> dict[str, dict[str, Any]]:
     """Per segment: conditioning path (T,4,4) W2C, parent, reference index, cache key; generation order.
     User clips (`clip_lengths` frames each) have no conditioning path (NaN) and no reference frame."""
-    T = cfg.scene.video.frames_per_segment
-    strafe = cfg.steps.plan.strafe_m_per_deg
-    base = _params(cfg)
+    T = p.source.video.frames_per_segment
+    strafe = p.strafe_m_per_deg
     out: dict[str, dict[str, Any]] = {}
     for s in plan.segments:
         parent = out.get(s.reference_segment) if s.reference_segment else None
@@ -62,12 +68,7 @@ def plan_paths(
             start = parent["path"][ref_idx] if parent else start_w2c
             m = s.move
             path = move_path(start, np.radians(m.yaw_deg), np.radians(m.pitch_deg), m.forward_m, strafe * m.yaw_deg, T)
-        key = cache_key(
-            "segment",
-            SEGMENT_VERSION,
-            {**base, "segment": s, "strafe_m_per_deg": strafe},
-            [parent["key"]] if parent else [],
-        )
+        key = cache_key("segment", SEGMENT_VERSION, {"params": p, "segment": s}, [parent["key"]] if parent else [])
         out[s.id] = {
             "plan": s,
             "path": path,
@@ -80,7 +81,7 @@ def plan_paths(
     return out
 
 
-def render_attempt(store: SceneStore, cfg: RunConfig, model: Any, seg: str, attempt: int) -> tuple[Any, int]:
+def render_attempt(store: SceneStore, source: VideoSource, model: Any, seg: str, attempt: int) -> tuple[Any, int]:
     """Render attempt `attempt` of a segment whose plan (path, reference) is already in the store.
 
     The reference frame comes from the parent's accepted attempt; the seed is new for every attempt."""
@@ -88,18 +89,18 @@ def render_attempt(store: SceneStore, cfg: RunConfig, model: Any, seg: str, atte
     parent = a.get("reference_segment")
     ref = frames(store, parent)[a["reference_frame"]] if parent else None
     path = store.array(SEGMENT.at(seg=seg).path)
-    return _render(cfg, model, seg, attempt, a["role"], a.get("intent", ""), path, ref)
+    return _render(source, model, seg, attempt, a["role"], a.get("intent", ""), path, ref)
 
 
 def _render(
-    cfg: RunConfig, model: Any, seg: str, attempt: int, role: str, intent: str, path: np.ndarray, ref: np.ndarray | None
+    source: VideoSource, model: Any, seg: str, attempt: int, role: str, intent: str, path: np.ndarray, ref: Any
 ) -> tuple[Any, int]:
     """One generation: the paper's prompt for the segment, a seed of its own for this attempt (a user clip is
     read, not generated)."""
-    if cfg.scene.video.backend == "files":
+    if source.video.backend == "files":
         return model.segment(int(seg.lstrip("s"))), 0
-    seed = attempt_seed(cfg.scene.seed, seg, attempt)
-    return model.generate(segment_prompt(cfg.scene.prompt, role, intent), path, seed, ref), seed
+    seed = attempt_seed(source.seed, seg, attempt)
+    return model.generate(segment_prompt(source.prompt, role, intent), path, seed, ref), seed
 
 
 def write_attempt(group: Any, at: GroupPath, video: Any, seed: int, source: str) -> None:
@@ -114,11 +115,11 @@ def write_attempt(group: Any, at: GroupPath, video: Any, seed: int, source: str)
         gt.attrs["faults"] = video.gt.faults
 
 
-def _generate_one(store: SceneStore, cfg: RunConfig, model: Any, seg: str, info: dict[str, Any]) -> None:
+def _generate_one(store: SceneStore, source: VideoSource, model: Any, seg: str, info: dict[str, Any]) -> None:
     s = info["plan"]
     ref = frames(store, info["parent"])[info["ref_idx"]] if info["ref_idx"] is not None else None
-    video, seed = _render(cfg, model, seg, 0, s.role, s.intent, info["path"], ref)
-    v = cfg.scene.video
+    video, seed = _render(source, model, seg, 0, s.role, s.intent, info["path"], ref)
+    v = source.video
     K = video.K if video.K is not None else intrinsics(v.width, v.height, v.fov_deg)
     seg_attrs = {
         "role": s.role,
@@ -138,14 +139,14 @@ def _generate_one(store: SceneStore, cfg: RunConfig, model: Any, seg: str, info:
         write_attempt(g.create_group(first.relative_to(at)), first, video, seed, v.backend)
 
 
-def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
+def run(store: SceneStore, p: Params, ctx: StepContext) -> str:
     from wonderverse.planning import stitched_order
     from wonderverse.video import initial_pose, make_video_model
 
     plan = load_plan(store)
-    model = make_video_model(cfg.scene)
-    clips = [len(c.frames) for c in model.clips] if cfg.scene.video.backend == "files" else None  # type: ignore[attr-defined]
-    info = plan_paths(cfg, plan, initial_pose(model), clips)
+    model = make_video_model(p.source)
+    clips = [len(c.frames) for c in model.clips] if p.source.video.backend == "files" else None  # type: ignore[attr-defined]
+    info = plan_paths(p, plan, initial_pose(model), clips)
     todo = [seg for seg, i in info.items() if not store.is_complete(SEGMENT.at(seg=seg), i["key"])]
     done = 0
     for wave in sorted({i["wave"] for i in info.values()}):
@@ -159,15 +160,15 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
         fan_out(
             "generate_segments",
             batch,
-            lambda seg: _generate_one(store, cfg, model, seg, info[seg]),
-            cfg.steps.generate.max_workers,
+            lambda seg: _generate_one(store, p.source, model, seg, info[seg]),
+            ctx.execution.generate_workers,
             progress=rendered,
         )
         done += len(batch)
     for stale in set(store.children(SEGMENTS.path)) - set(info):
         store.remove(SEGMENT.at(seg=stale))
-    store.mark_complete(SEGMENTS.path, key, order=stitched_order(plan.segments))
+    store.mark_complete(SEGMENTS.path, ctx.key, order=stitched_order(plan.segments))
     return f"{len(todo)} rendered, {len(info) - len(todo)} cached"
 
 
-STEP = Step("generate_segments", 1, ("plan",), _params, run, "render every planned segment", group=SEGMENTS.path)
+STEP = Step("generate_segments", 2, ("plan",), params, run, "render every planned segment", group=SEGMENTS.path)

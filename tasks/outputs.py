@@ -21,18 +21,24 @@ from typing import Any
 
 import numpy as np
 
-from tasks.base import Step
+from tasks.base import Step, StepContext
 from tasks.progress import callback
-from wonderverse.config import RunConfig
+from wonderverse.config import Model, OutputsParams, RunConfig
 from wonderverse.schema import OUTPUTS, SFM, SPLATS
 from wonderverse.store import SceneStore
 
 log = logging.getLogger("wonderverse.outputs")
 
 
-def _params(cfg: RunConfig) -> dict[str, Any]:
-    outputs = cfg.steps.outputs.model_dump(exclude={"render_workers"})  # how fast, not what
-    return {"outputs": outputs, "renderer": cfg.steps.splats.renderer}
+class Params(Model):
+    """The outputs' settings, and the prompt the novel views are scored against (CLIP-S)."""
+
+    outputs: OutputsParams
+    prompt: str
+
+
+def params(cfg: RunConfig) -> Params:
+    return Params(outputs=cfg.steps.outputs, prompt=cfg.scene.prompt)
 
 
 def posed_frames(store: SceneStore) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -54,7 +60,7 @@ def posed_frames(store: SceneStore) -> tuple[np.ndarray, np.ndarray, list[str]]:
     return np.stack(out), poses[keep], names
 
 
-def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
+def run(store: SceneStore, params: Params, ctx: StepContext) -> str:
     from wonderverse.camera import fit_intrinsics
     from wonderverse.exports import write_camera_path, write_colmap_text, write_nerfstudio
     from wonderverse.media import write_mp4
@@ -65,7 +71,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     from wonderverse.splats.renderer import make_renderer
     from wonderverse.splats.views import render_views
 
-    p = cfg.steps.outputs
+    p = params.outputs
     out = Path(store.scene_dir)
     splats = store.attrs(SPLATS.path)
     norm = normalization_from_dict(splats["normalization"])
@@ -75,8 +81,8 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     K = store.array(SFM.K)
     height, width = frames.shape[1:3]
     w, h, Kr = fit_intrinsics(width, height, K, p.render_max_side_px)
-    renderer = make_renderer(cfg.steps.splats.renderer)
-    workers = p.render_workers or _usable_cores()
+    renderer = make_renderer(ctx.execution.renderer)
+    workers = ctx.execution.render_workers or _usable_cores()
     files: list[Path] = []
 
     def render(poses: np.ndarray, unit: str) -> list[Any]:
@@ -114,12 +120,12 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     novel = video(novel_view_path(w2c, p.video_frames, p.novel_offset_frac, look), "novel.mp4", "novel-view frames")
     picks = np.linspace(0, len(novel) - 1, min(p.quality_frames, len(novel))).round().astype(int)
     metrics = callback("quality metrics", eta=False)  # unequal: NIQE is quick, a CLIP model loads first
-    quality = score_views(list(novel[picks]), cfg.scene.prompt, p.quality, metrics)  # of the novel views, as the paper
+    quality = score_views(list(novel[picks]), params.prompt, p.quality, metrics)  # of the novel views, as the paper
 
     listed = [{"path": f.name, "bytes": _size(f)} for f in files]
     stats = {"triangles": len(mesh.triangles), "vertices": len(mesh.vertices), "points": len(cloud.points)}
     with store.staged(
-        OUTPUTS.path, key, files=listed, mesh=stats | {"extent": extent}, render_size=[w, h], quality=quality
+        OUTPUTS.path, ctx.key, files=listed, mesh=stats | {"extent": extent}, render_size=[w, h], quality=quality
     ):
         pass
     return f"{len(files)} files: mesh {stats['triangles']} triangles, {stats['points']} points, 2 videos"
@@ -134,6 +140,7 @@ def _size(path: Path) -> int:
     return sum(f.stat().st_size for f in path.rglob("*") if f.is_file()) if path.is_dir() else path.stat().st_size
 
 
+# 3: the step contract
 STEP = Step(
-    "outputs", 2, ("splats",), _params, run, "mesh, point cloud, COLMAP/nerfstudio exports, videos", group=OUTPUTS.path
+    "outputs", 3, ("splats",), params, run, "mesh, point cloud, COLMAP/nerfstudio exports, videos", group=OUTPUTS.path
 )

@@ -2,63 +2,59 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import Any, Literal
 
-from tasks.base import Step
-from wonderverse.config import RunConfig
+from tasks.base import Step, StepContext
+from wonderverse.config import ExtensionSpec, Model, PlannerSpec, PlanParams, RunConfig
 from wonderverse.schema import PLAN
 from wonderverse.store import SceneStore
 
 
-def _params(cfg: RunConfig) -> dict[str, Any]:
+class Params(Model):
+    """What the plan is made from. The API key itself is never part of the config; only its variable's name."""
+
+    prompt: str
+    extensions: ExtensionSpec
+    planner: PlannerSpec
+    plan: PlanParams
+    video_backend: Literal["procedural", "files", "diffusers"]
+    clips: tuple[str, ...]
+    fov_deg: float
+
+
+def params(cfg: RunConfig) -> Params:
     s = cfg.scene
-    # The API key itself is never part of the config; only the variable's name is.
-    return {
-        "prompt": s.prompt,
-        "extensions": s.extensions,
-        "planner": s.planner,
-        "plan": cfg.steps.plan,
-        "fov_deg": s.video.fov_deg,
-    }
+    return Params(
+        prompt=s.prompt,
+        extensions=s.extensions,
+        planner=s.planner,
+        plan=cfg.steps.plan,
+        video_backend=s.video.backend,
+        clips=s.video.clips,
+        fov_deg=s.video.fov_deg,
+    )
 
 
-def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
+def run(store: SceneStore, p: Params, ctx: StepContext) -> str:
     from wonderverse.planning import make_planner
+    from wonderverse.planning.segments import clip_plan
 
-    if cfg.scene.video.backend == "files":
-        plan = clip_plan(cfg.scene.video.clips)
-        with store.staged(
-            PLAN.path, key, plan=plan.model_dump(mode="json"), moves=[], intents=list(cfg.scene.video.clips)
-        ):
+    if p.video_backend == "files":
+        plan = clip_plan(p.clips)
+        with store.staged(PLAN.path, ctx.key, plan=plan.model_dump(mode="json"), moves=[], intents=list(p.clips)):
             pass
         return f"{len(plan.segments)} segments, one per clip"
-    planner = make_planner(cfg.scene.planner)
-    s, fov = cfg.scene, cfg.scene.video.fov_deg
-    plan = planner.plan_scene(s.prompt, s.extensions.model_copy(update={"added": ()}), cfg.steps.plan, fov_deg=fov)
-    for words in s.extensions.added:  # each later extension continues the plan as it stood (interactive)
-        plan = plan.extended(planner.plan_extension(s.prompt, words, plan, cfg.steps.plan, fov_deg=fov))
-    with store.staged(
-        PLAN.path,
-        key,
-        plan=plan.model_dump(mode="json"),
-        moves=[s.move.to_paper() for s in plan.segments],
-        intents=[s.intent for s in plan.segments],
-    ):
+    planner = make_planner(p.planner)
+    first = p.extensions.model_copy(update={"added": ()})
+    plan = planner.plan_scene(p.prompt, first, p.plan, fov_deg=p.fov_deg)
+    for words in p.extensions.added:  # each later extension continues the plan as it stood (interactive)
+        plan = plan.extended(planner.plan_extension(p.prompt, words, plan, p.plan, fov_deg=p.fov_deg))
+    moves = [s.move.to_paper() for s in plan.segments]
+    intents = [s.intent for s in plan.segments]
+    with store.staged(PLAN.path, ctx.key, plan=plan.model_dump(mode="json"), moves=moves, intents=intents):
         pass
     note = f" ({plan.fallback_reason})" if plan.fallback_reason else ""
     return f"{len(plan.segments)} segments by {plan.planner}{note}"
-
-
-def clip_plan(clips: tuple[str, ...]) -> Any:
-    """The user's clips as segments in the given order: the first as `init`, the rest as `right` ones (played
-    forward, after the previous); no camera moves are planned, none are generated."""
-    from wonderverse.planning import CameraMove, Plan
-    from wonderverse.planning.segments import next_segment
-
-    segments: list[Any] = []
-    for i, clip in enumerate(clips):
-        segments.append(next_segment(tuple(segments), "init" if i == 0 else "right", CameraMove(), clip))
-    return Plan(segments=tuple(segments), planner="clips")
 
 
 def load_plan(store: SceneStore) -> Any:
@@ -71,4 +67,5 @@ def load_plan(store: SceneStore) -> Any:
     return Plan.model_validate(attrs["plan"])
 
 
-STEP = Step("plan", 1, (), _params, run, "camera moves from the prompt (LLM or rules)", group=PLAN.path)
+# 2: the step contract (hashes the video backend and clips it branches on)
+STEP = Step("plan", 2, (), params, run, "camera moves from the prompt (LLM or rules)", group=PLAN.path)

@@ -17,7 +17,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from tasks.base import Step
+from tasks.base import Step, StepContext
 from tasks.progress import advance
 from tasks.segments import accepted_attempt, attempt_path, stitched
 from wonderverse.config import PosesParams, RunConfig
@@ -32,8 +32,11 @@ if TYPE_CHECKING:
 UNIT = "SfM stages"
 
 
-def _params(cfg: RunConfig) -> dict[str, Any]:
-    return {"poses": cfg.steps.poses}
+Params = PosesParams  # the step reads its own settings only
+
+
+def params(cfg: RunConfig) -> PosesParams:
+    return cfg.steps.poses
 
 
 def _workspace_key(p: PosesParams) -> str:
@@ -109,10 +112,9 @@ def _write_workspace(g: Any, ws: SfmWorkspace) -> None:
         write_array(model, SFM.colmap_model.array(name), np.frombuffer(data, np.uint8))
 
 
-def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
+def run(store: SceneStore, p: PosesParams, ctx: StepContext) -> str:
     from wonderverse.global_poses import select_frames, solve_global_poses
 
-    p = cfg.steps.poses
     frames, index = stitched(store)
     if len(frames) == 0:
         raise WonderError("no accepted frames to pose (every segment was dropped)")
@@ -144,7 +146,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
         poses, registered, points, colors = solved.poses, solved.registered, solved.points, solved.colors
         K, workspace = solved.K, solved.workspace
         attrs |= solved.attrs
-    with store.staged(SFM.path, key, **attrs) as g:
+    with store.staged(SFM.path, ctx.key, **attrs) as g:
         write_array(g, SFM.poses, poses)
         write_array(g, SFM.registered, registered)
         write_array(g, SFM.K, K)
@@ -160,4 +162,5 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
 
 # 2: the group keeps the COLMAP workspace (extensions register only their new frames); frames selected per segment
 # 3: image names in stitched order; full solves checked against each segment's own SfM
-STEP = Step("poses", 3, ("check",), _params, run, "one camera path for the stitched video", group=SFM.path)
+# 4: the step contract
+STEP = Step("poses", 4, ("check",), params, run, "one camera path for the stitched video", group=SFM.path)

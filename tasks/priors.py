@@ -11,20 +11,21 @@ from typing import Any
 
 import numpy as np
 
-from tasks.base import Step
+from tasks.base import Step, StepContext
 from tasks.parallel import map_segments
 from tasks.progress import callback
 from tasks.segments import accepted_attempt, attempt_path, segment_ids
-from wonderverse.config import RunConfig
+from wonderverse.config import PriorsStepParams, RunConfig
 from wonderverse.errors import WonderError
 from wonderverse.schema import PRIORS, PRIORS_RAW, PRIORS_RAW_SEGMENT, PRIORS_SEGMENT, SEGMENT, SFM, GroupPath
 from wonderverse.store import SceneStore, cache_key, write_array
 
 VERSION = 1
+Params = PriorsStepParams  # the step reads its own settings only
 
 
-def _params(cfg: RunConfig) -> dict[str, Any]:
-    return {"priors": cfg.steps.priors.model_dump(exclude={"workers", "dask_address"})}
+def params(cfg: RunConfig) -> PriorsStepParams:
+    return cfg.steps.priors
 
 
 def _ground_truth(store: SceneStore, ap: GroupPath) -> Any:
@@ -70,7 +71,7 @@ def _raw_depth(store: SceneStore, seg: str, ap: GroupPath, p: Any, frames: np.nd
     return pred
 
 
-def priors_segment(seg: str, scene_dir: str, cfg: RunConfig, step_key: str) -> dict[str, Any]:
+def priors_segment(seg: str, scene_dir: str, settings: PriorsStepParams, step_key: str) -> dict[str, Any]:
     from wonderverse.priors import align_frames, make_normal_model
 
     store = SceneStore.open(scene_dir, mode="r+")
@@ -79,7 +80,7 @@ def priors_segment(seg: str, scene_dir: str, cfg: RunConfig, step_key: str) -> d
     group = PRIORS_SEGMENT.at(seg=seg)
     if store.is_complete(group, key):
         return store.attrs(group)
-    p = cfg.steps.priors.models
+    p = settings.models
     frames = store.array(ap.frames)
     K = store.array(SFM.K) if store.exists(SFM.path) else store.array(SEGMENT.at(seg=seg).K)
     gt = _ground_truth(store, ap)
@@ -88,7 +89,7 @@ def priors_segment(seg: str, scene_dir: str, cfg: RunConfig, step_key: str) -> d
     pred = _raw_depth(store, seg, ap, p, frames, gt)
     points = store.array(SFM.points3d) if store.exists(SFM.points3d) else np.zeros((0, 3))
     poses = segment_poses(store, seg, len(frames))
-    sky_beyond_ref = cfg.steps.priors.sky_beyond_ref
+    sky_beyond_ref = settings.sky_beyond_ref
     aligned = align_frames(pred.depth, pred.kind, poses, points, K, p.align, sky_beyond_ref)
     normals = make_normal_model(p, gt).predict(frames, K=K, depth=aligned.depth).normals
     summary = {
@@ -109,26 +110,27 @@ def priors_segment(seg: str, scene_dir: str, cfg: RunConfig, step_key: str) -> d
     return summary
 
 
-def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
+def run(store: SceneStore, p: PriorsStepParams, ctx: StepContext) -> str:
     segs = [s for s in segment_ids(store) if accepted_attempt(store, s) is not None]
     out = map_segments(
         priors_segment,
         segs,
         str(store.scene_dir),
-        cfg,
-        key,
-        workers=cfg.steps.priors.workers,
-        address=cfg.steps.priors.dask_address,
+        p,
+        ctx.key,
+        workers=ctx.execution.segment_workers,
+        address=ctx.execution.dask_address,
         step="priors",
         progress=callback("segments with priors"),
     )
     for parent, child in ((PRIORS, PRIORS_SEGMENT), (PRIORS_RAW, PRIORS_RAW_SEGMENT)):
         for stale in set(store.children(parent.path)) - set(segs):
             store.remove(child.at(seg=stale))
-    store.mark_complete(PRIORS.path, key)
+    store.mark_complete(PRIORS.path, ctx.key)
     aligned = sum(s["aligned_frames"] for s in out)
     total = sum(s["frames"] for s in out)
     return f"{len(segs)} segments, {aligned}/{total} frames aligned to SfM ({out[0]['kind'] if out else '-'})"
 
 
-STEP = Step("priors", 3, ("poses",), _params, run, "depth and normal priors, aligned to SfM", group=PRIORS.path)
+# 4: the step contract
+STEP = Step("priors", 4, ("poses",), params, run, "depth and normal priors, aligned to SfM", group=PRIORS.path)

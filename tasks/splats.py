@@ -12,9 +12,9 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from tasks.base import Step
+from tasks.base import Step, StepContext
 from tasks.progress import callback
-from wonderverse.config import RunConfig
+from wonderverse.config import RunConfig, SplatsStepParams
 from wonderverse.errors import WonderError
 from wonderverse.schema import PRIORS_SEGMENT, SFM, SPLATS, SPLATS_CHECKPOINT
 from wonderverse.store import SceneStore, cache_key, write_array
@@ -27,8 +27,11 @@ log = logging.getLogger("wonderverse.splats")
 CHECKPOINT = SPLATS_CHECKPOINT.path
 
 
-def _params(cfg: RunConfig) -> dict[str, Any]:
-    return {"splats": cfg.steps.splats.model_dump(exclude={"renderer"})}
+Params = SplatsStepParams  # the step reads its own settings only
+
+
+def params(cfg: RunConfig) -> SplatsStepParams:
+    return cfg.steps.splats
 
 
 def load_views(store: SceneStore) -> tuple[Views, list[str]]:
@@ -70,20 +73,20 @@ def load_views(store: SceneStore) -> tuple[Views, list[str]]:
     return views, names
 
 
-def _train_digest(cfg: RunConfig) -> str:
+def _train_digest(p: SplatsStepParams) -> str:
     """What must not change for an extension to continue the previous optimisation instead of restarting."""
-    p = cfg.steps.splats.model_dump(exclude={"renderer", "extend_iterations_frac", "extend_new_view_share"})
-    return cache_key("splats_train", 2, {"splats": p})
+    kept = p.model_dump(exclude={"extend_iterations_frac", "extend_new_view_share"})
+    return cache_key("splats_train", 2, {"splats": kept})
 
 
-def _previous(store: SceneStore, cfg: RunConfig, names: list[str]) -> PreviousSplats | None:
+def _previous(store: SceneStore, p: SplatsStepParams, names: list[str]) -> PreviousSplats | None:
     """The previous splats when this run only adds frames to them (same training settings, every previous
     frame still there, something new): the scene was extended; else None (train from scratch)."""
     from wonderverse.splats.model import GaussianModel, normalization_from_dict
     from wonderverse.splats.seeding import PreviousSplats
 
     prev = store.attrs(SPLATS.path)
-    if prev.get("complete") is not True or prev.get("train_digest") != _train_digest(cfg):
+    if prev.get("complete") is not True or prev.get("train_digest") != _train_digest(p):
         return None
     old = set(prev.get("frames", []))
     if not (old and old < set(names)):
@@ -112,18 +115,17 @@ def _load_checkpoint(store: SceneStore, key: str) -> dict[str, Any] | None:
     return state
 
 
-def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
+def run(store: SceneStore, p: SplatsStepParams, ctx: StepContext) -> str:
     from wonderverse.splats.model import normalization_to_dict
     from wonderverse.splats.ply import write_ply
     from wonderverse.splats.renderer import make_renderer
     from wonderverse.splats.seeding import start_training
     from wonderverse.splats.trainer import train
 
-    p = cfg.steps.splats
     views, names = load_views(store)
     views, names = views.subset(slice(None, None, p.frame_stride)), names[:: p.frame_stride]
     points, colors = store.array(SFM.points3d), store.array(SFM.colors)
-    previous = _previous(store, cfg, names)
+    previous = _previous(store, p, names)
     start = start_training(views, names, points, colors, p, previous)
     model, fixed, norm = start.model, start.fixed, start.normalization
     if previous is not None:
@@ -135,14 +137,14 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
             100 * p.extend_new_view_share,
             len(start.new_views),
         )
-    renderer = make_renderer(p.renderer)
+    renderer = make_renderer(ctx.execution.renderer)
     model, curves, metrics = train(
         model,
         start.views,
         start.train,
         renderer,
-        checkpoint_cb=lambda step, state: _save_checkpoint(store, key, step, state),
-        resume_state=_load_checkpoint(store, key),
+        checkpoint_cb=lambda step, state: _save_checkpoint(store, ctx.key, step, state),
+        resume_state=_load_checkpoint(store, ctx.key),
         fixed_gaussians=fixed,
         focus_views=start.new_views,
         focus_share=p.extend_new_view_share,
@@ -152,12 +154,12 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     ply = write_ply(Path(store.scene_dir) / "splats.ply", arrays, norm)
     with store.staged(
         SPLATS.path,
-        key,
+        ctx.key,
         normalization=normalization_to_dict(norm),
         metrics=metrics,
         files=[ply.name],
         frames=names,
-        train_digest=_train_digest(cfg),
+        train_digest=_train_digest(p),
         extended_from=None if previous is None else {"frames": len(previous.frames), "kept_gaussians": fixed},
         curves={k: [float(x) for x in v] for k, v in curves.items()},
     ) as g:
@@ -168,6 +170,7 @@ def run(store: SceneStore, cfg: RunConfig, key: str) -> str:
     return f"{metrics['n_gaussians']} Gaussians, held-out PSNR {psnr:.2f} dB, {renderer.__class__.__name__}"
 
 
+# 5: the step contract
 STEP = Step(
-    "splats", 4, ("priors",), _params, run, "3D Gaussian splatting with depth and normal losses", group=SPLATS.path
+    "splats", 5, ("priors",), params, run, "3D Gaussian splatting with depth and normal losses", group=SPLATS.path
 )

@@ -88,13 +88,7 @@ def test_segments_are_checked_and_their_priors_written_on_the_cluster_workers(cl
     from dask.distributed import Client, get_task_stream
 
     cfg = tiny_config(extensions={"rounds": 1}, seed=3)
-    steps = cfg.steps.model_copy(
-        update={
-            "check": cfg.steps.check.model_copy(update={"dask_address": cluster}),
-            "priors": cfg.steps.priors.model_copy(update={"dask_address": cluster}),
-        }
-    )
-    cfg = cfg.model_copy(update={"steps": steps})
+    cfg = cfg.model_copy(update={"execution": cfg.execution.model_copy(update={"dask_address": cluster})})
     scene = tmp_path / "scene"
     with Client(cluster) as client:
         workers = client.run(os.getpid)  # worker address -> its process id

@@ -22,12 +22,11 @@ WORDS = "a frozen lake beyond the trees on the left"
 def _config():
     cfg = tiny_config(video=VIDEO, extensions={"rounds": 1, "directions": ["right"]})
     steps = cfg.steps.model_dump()
-    steps["check"] |= {"workers": 1}
-    steps["priors"] |= {"workers": 1}
-    steps["splats"] |= {"max_side_px": 96, "renderer": "torch"}
+    steps["splats"] |= {"max_side_px": 96}
     steps["splats"]["train"] |= {"iterations": 60, "holdout_every": 0}
     steps["outputs"] |= {"video_frames": 6}
-    return cfg.model_validate({**cfg.model_dump(), "steps": steps})
+    execution = {"segment_workers": 1, "renderer": "torch"}
+    return cfg.model_validate({**cfg.model_dump(), "steps": steps, "execution": execution})
 
 
 def _poses_by_frame(store: SceneStore) -> dict[tuple[str, int], object]:
@@ -115,12 +114,7 @@ def test_bad_requests_are_refused() -> None:
 def test_the_extension_settings_do_not_stop_a_continuation() -> None:
     from tasks.splats import _train_digest
 
-    cfg = _config()
-
-    def with_splats(**update: object):
-        steps = cfg.steps.model_copy(update={"splats": cfg.steps.splats.model_copy(update=update)})
-        return cfg.model_copy(update={"steps": steps})
-
-    base = _train_digest(cfg)
-    assert _train_digest(with_splats(extend_iterations_frac=0.5, extend_new_view_share=0.9)) == base
-    assert _train_digest(with_splats(init_opacity=0.2)) != base  # the optimisation itself changed
+    p = _config().steps.splats
+    base = _train_digest(p)
+    assert _train_digest(p.model_copy(update={"extend_iterations_frac": 0.5, "extend_new_view_share": 0.9})) == base
+    assert _train_digest(p.model_copy(update={"init_opacity": 0.2})) != base  # the optimisation itself changed

@@ -687,16 +687,16 @@ def scaled_config(scale: float):
     steps = cfg.steps.model_dump()
     over = {
         "plan": {"initial_move": f"up 0, right 30, forward {forward}", "strafe_m_per_deg": 0.0},
-        "check": {"max_attempts": 1, "workers": 1},
+        "check": {"max_attempts": 1},
         "poses": {"source": "conditioning"},
-        "priors": {"workers": 1},
-        "splats": {"max_side_px": 96, "renderer": "torch", "train": {"iterations": 80, "holdout_every": 4}},
+        "splats": {"max_side_px": 96, "train": {"iterations": 80, "holdout_every": 4}},
         "outputs": {"video_frames": 2, "render_max_side_px": 128},
     }
     for step, values in over.items():
         for k, v in values.items():
             steps[step][k] = {**steps[step][k], **v} if isinstance(v, dict) else v
-    return cfg.model_copy(update={"steps": cfg.steps.model_validate(steps)})
+    execution = cfg.execution.model_copy(update={"segment_workers": 1, "renderer": "torch"})
+    return cfg.model_copy(update={"steps": cfg.steps.model_validate(steps), "execution": execution})
 
 
 def _ply_xyz(path: Path) -> np.ndarray:

@@ -28,13 +28,13 @@ def scene(tmp_path_factory) -> Path:
     overrides = {
         # the planned path as the world frame, so the mesh can be compared with the world's own surface
         "poses": {"source": "conditioning"},
-        "splats": {"max_side_px": 112, "renderer": "torch", "train": {"iterations": 150, "holdout_every": 0}},
+        "splats": {"max_side_px": 112, "train": {"iterations": 150, "holdout_every": 0}},
         "outputs": {"video_frames": FRAMES},
     }
     steps = cfg.steps.model_validate(
         cfg.steps.model_dump() | {k: cfg.steps.model_dump()[k] | v for k, v in overrides.items()}
     )
-    cfg = cfg.model_copy(update={"steps": steps})
+    cfg = cfg.model_copy(update={"steps": steps, "execution": cfg.execution.model_copy(update={"renderer": "torch"})})
     d = tmp_path_factory.mktemp("outputs") / "scene"
     results = execute(d, cfg)
     assert results[-1].step == "outputs" and results[-1].status == "ran"
@@ -55,8 +55,7 @@ def test_files_are_listed_and_a_rerun_is_cached(scene: Path) -> None:
     again = RunConfig.model_validate(cfg_dump)
     assert [r.status for r in execute(scene, again)] == ["cached"] * 7
     # how many views render at once changes the speed, not the files: still cached
-    outputs = again.steps.outputs.model_copy(update={"render_workers": 3})
-    faster = again.model_copy(update={"steps": again.steps.model_copy(update={"outputs": outputs})})
+    faster = again.model_copy(update={"execution": again.execution.model_copy(update={"render_workers": 3})})
     assert [r.status for r in execute(scene, faster)] == ["cached"] * 7
 
 
@@ -94,7 +93,7 @@ def test_point_cloud_and_mesh_load_and_lie_on_the_world(scene: Path) -> None:
     store = SceneStore.open(scene)
     from wonderverse.config import RunConfig
 
-    world = make_video_model(RunConfig.model_validate(store.root.attrs["config"]).scene).world
+    world = make_video_model(RunConfig.model_validate(store.root.attrs["config"]).scene.video_source).world
     extent = store.attrs("outputs")["mesh"]["extent"]
     v = np.asarray(mesh.vertices, np.float32)
     dist = world.scene.compute_distance(o3d.core.Tensor(v)).numpy()

@@ -55,11 +55,11 @@ class Recording(PlainReporter):
 def _config(**check: Any) -> RunConfig:
     cfg = tiny_config()
     steps = cfg.steps.model_dump()
-    steps["check"] |= {"workers": 1, **check}  # in-process: no Dask cluster to start
-    steps["priors"] |= {"workers": 1}
+    steps["check"] |= check
     steps["splats"]["train"] |= {"iterations": ITERATIONS}
     steps["outputs"] |= {"video_frames": VIDEO_FRAMES}
-    return RunConfig.model_validate({**cfg.model_dump(), "steps": steps})
+    execution = {"segment_workers": 1}  # in-process: no Dask cluster to start
+    return RunConfig.model_validate({**cfg.model_dump(), "steps": steps, "execution": execution})
 
 
 def attempts(scene: Path) -> dict[str, int]:

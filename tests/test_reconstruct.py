@@ -54,18 +54,18 @@ def scene(clips, tmp_path_factory) -> Path:
         overrides={
             "scene": {"video": {"backend": "files", "clips": [str(p) for p in paths], "options": {"fov_deg": 60.0}}},
             "steps": {
-                "check": {"on_failure": "drop", "workers": 1},
+                "check": {"on_failure": "drop"},
                 "priors": {
-                    "workers": 1,
                     "models": {
                         "depth_backend": "depth_anything",
                         "depth_model": str(depth_model),
                         "allow_download": False,
                     },
                 },
-                "splats": {"max_side_px": 96, "renderer": "torch", "train": {"iterations": 40, "holdout_every": 0}},
+                "splats": {"max_side_px": 96, "train": {"iterations": 40, "holdout_every": 0}},
                 "outputs": {"video_frames": 6},
             },
+            "execution": {"segment_workers": 1, "renderer": "torch"},
         },
     )
     d = tmp_path_factory.mktemp("reconstruct") / "scene"

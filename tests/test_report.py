@@ -106,10 +106,10 @@ def full_scene(tmp_path_factory) -> Path:
             "scene": {"seed": seed, "video": {**TINY_VIDEO, "options": FAULTS}},
             "steps": {
                 # in-process (no Dask cluster start-up); tiny frames give fewer SfM points than the default gate
-                "check": {"workers": 1, "max_attempts": 2, "sfm": {"min_points": 40}},
-                "priors": {"workers": 1},
-                "splats": {"max_side_px": 48, "renderer": "torch", "train": {"iterations": 10, "holdout_every": 4}},
+                "check": {"max_attempts": 2, "sfm": {"min_points": 40}},
+                "splats": {"max_side_px": 48, "train": {"iterations": 10, "holdout_every": 4}},
             },
+            "execution": {"segment_workers": 1, "renderer": "torch"},
         },
     )
     scene = tmp_path_factory.mktemp("report") / "scene"

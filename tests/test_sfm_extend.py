@@ -172,6 +172,7 @@ def test_poses_step_registers_an_extension_into_the_stored_reconstruction(world:
     from conftest import tiny_config
 
     from tasks import poses
+    from tasks.base import StepContext
     from wonderverse.global_poses import can_extend
     from wonderverse.store import SceneStore
 
@@ -180,7 +181,8 @@ def test_poses_step_registers_an_extension_into_the_stored_reconstruction(world:
     _put_segment(store, world, "s000", "init")
     _put_segment(store, world, "s001", "right")
     store.mark_complete("segments", "k1", order=["s000", "s001"])
-    poses.run(store, cfg, "key1")
+    p = poses.params(cfg)
+    poses.run(store, p, StepContext("key1"))
     first = store.attrs("sfm")
     assert first["solve"] == "full" and first["sfm_names"][0] == "50000000_s000_0000.png"
     assert first["sfm_names"] == sorted(first["sfm_names"])  # COLMAP numbers images in this order
@@ -189,7 +191,7 @@ def test_poses_step_registers_an_extension_into_the_stored_reconstruction(world:
 
     _put_segment(store, world, "s003", "left")  # prepended, reversed: every old stitched position shifts
     store.mark_complete("segments", "k2", order=["s003", "s000", "s001"])
-    summary = poses.run(store, cfg, "key2")
+    summary = poses.run(store, p, StepContext("key2"))
     a = store.attrs("sfm")
     assert a["solve"] == "incremental" and "incremental solve" in summary, a.get("incremental_problems")
     assert a["segments"] == ["s000", "s001", "s003"] and a["new_frames"] == T - 1 and not a["problems"]
@@ -206,7 +208,7 @@ def test_poses_step_registers_an_extension_into_the_stored_reconstruction(world:
     # new frames that do not register: the step says why and re-solves every frame
     _put_segment(store, world, "s004", "right", np.full((T, H, W, 3), 128, np.uint8))
     store.mark_complete("segments", "k3", order=["s003", "s000", "s001", "s004"])
-    poses.run(store, cfg, "key3")
+    poses.run(store, p, StepContext("key3"))
     a3 = store.attrs("sfm")
     assert a3["solve"] == "full" and f"only 0 of {T - 1} new frames registered" in a3["incremental_problems"]
     assert a3["kept_frame"]["shared_frames"] >= 3 * (T - 1)  # mapped into the previous world frame

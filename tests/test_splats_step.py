@@ -21,8 +21,9 @@ def splat_config(iterations: int = 40):
     train = cfg.steps.splats.train.model_copy(
         update={"iterations": iterations, "checkpoint_every_iters": 20, "holdout_every": 4}
     )
-    splats = cfg.steps.splats.model_copy(update={"train": train, "max_side_px": 96, "renderer": "torch"})
-    return cfg.model_copy(update={"steps": cfg.steps.model_copy(update={"splats": splats})})
+    splats = cfg.steps.splats.model_copy(update={"train": train, "max_side_px": 96})
+    execution = cfg.execution.model_copy(update={"renderer": "torch"})
+    return cfg.model_copy(update={"steps": cfg.steps.model_copy(update={"splats": splats}), "execution": execution})
 
 
 @pytest.fixture(scope="module")

@@ -124,14 +124,14 @@ def test_make_video_model_from_run_config(tiny: dict[str, dict[str, Path]]) -> N
     cfg = build_config(
         "a mountain village", preset="preview", overrides={"scene": {"video": {**video, "options": opts}}, **PRIORS}
     )
-    model = make_video_model(cfg.scene)
+    model = make_video_model(cfg.scene.video_source)
     assert isinstance(model, DiffusionVideo) and model.params.family == "cogvideox" and model.device == "cpu"
     v = model.generate(PROMPT, _path(), 0, None)
     assert v.frames.shape == (T, H, W, 3)
     assert v.K[0, 0] == pytest.approx((W / 2) / np.tan(np.radians(35.0)))
     # the preview preset's own sizes (17 frames, 320x208) are valid for every family
     preview = build_config("x", preset="preview", overrides={"scene": {"video": {"backend": "diffusers"}}, **PRIORS})
-    assert isinstance(make_video_model(preview.scene), DiffusionVideo)
+    assert isinstance(make_video_model(preview.scene.video_source), DiffusionVideo)
 
 
 def test_bad_options_and_sizes_are_one_line_errors(tiny: dict[str, dict[str, Path]]) -> None:

@@ -143,6 +143,14 @@ class PlannerSpec(Model):
     max_retries: int = Field(1, ge=0, le=5)
 
 
+class VideoSource(Model):
+    """What renders a scene's segments: the video settings, the scene's prompt and its seed."""
+
+    video: VideoSpec
+    prompt: str
+    seed: int
+
+
 class SceneSpec(Model):
     """What the user asks for: everything that defines the scene's content."""
 
@@ -151,6 +159,10 @@ class SceneSpec(Model):
     extensions: ExtensionSpec = ExtensionSpec()
     video: VideoSpec = VideoSpec()
     planner: PlannerSpec = PlannerSpec()
+
+    @property
+    def video_source(self) -> VideoSource:
+        return VideoSource(video=self.video, prompt=self.prompt, seed=self.seed)
 
     @field_validator("prompt")
     @classmethod
@@ -192,12 +204,6 @@ class PlanParams(Model):
         return v
 
 
-class GenerateParams(Model):
-    """Step `generate_segments`."""
-
-    max_workers: int = Field(1, ge=1, le=64, description="segments rendered concurrently")
-
-
 class CheckStepParams(Model):
     """Step `check`: per-segment SfM, the abnormal-sequence decision, and regeneration."""
 
@@ -207,8 +213,6 @@ class CheckStepParams(Model):
     on_failure: Literal["fail", "drop", "keep_best"] = Field(
         "keep_best", description="when every attempt fails: stop the run, drop the segment, or keep the best"
     )
-    workers: int = Field(2, ge=1, le=256, description="segments checked at once (Dask LocalCluster workers)")
-    dask_address: str | None = Field(None, description="existing Dask scheduler, e.g. tcp://host:8786")
 
 
 class PosesParams(Model):
@@ -233,15 +237,12 @@ class PriorsStepParams(Model):
     sky_beyond_ref: float = Field(
         4.0, gt=1, description="aligned depth beyond this many times the farthest SfM point seen in the frame is sky"
     )
-    workers: int = Field(2, ge=1, le=256, description="segments processed at once (Dask)")
-    dask_address: str | None = Field(None, description="existing Dask scheduler, e.g. tcp://host:8786")
 
 
 class SplatsStepParams(Model):
     """Step `splats`: geometry-aware 3D Gaussian splatting (RGB + depth + normal losses)."""
 
     train: TrainParams = TrainParams()
-    renderer: Literal["auto", "torch", "gsplat"] = Field("auto", description="auto: gsplat whenever CUDA is there")
     max_side_px: int = Field(480, ge=16, le=8192, description="frames are downscaled to this longer side")
     frame_stride: int = Field(1, ge=1, description="train on every Nth stitched frame")
     init_from_depth: bool = Field(True, description="add back-projected aligned prior depth to the SfM points")
@@ -265,9 +266,6 @@ class OutputsParams(Model):
 
     mesh: MeshParams = MeshParams()
     render_max_side_px: int = Field(480, ge=16, le=8192, description="renders for TSDF and videos: longer side")
-    render_workers: int = Field(
-        0, ge=0, le=256, description="CPU renderer: views rendered at once (0 = one per core); no effect on results"
-    )
     video_frames: int = Field(120, ge=2, le=10_000, description="frames of the fly-through and novel-view videos")
     video_fps: float = Field(24.0, gt=0, le=240)
     novel_offset_frac: float = Field(
@@ -281,9 +279,25 @@ class OutputsParams(Model):
     quality_frames: int = Field(8, ge=1, le=1000, description="novel-view frames scored, evenly spaced")
 
 
+class ExecutionParams(Model):
+    """Where and how fast the steps run: never part of a cache key, since results do not depend on it (a scene
+    made on a GPU with gsplat is complete on a CPU machine too)."""
+
+    generate_workers: int = Field(1, ge=1, le=64, description="segments rendered at once")
+    segment_workers: int = Field(
+        2, ge=1, le=256, description="segments checked / given priors at once (Dask LocalCluster worker processes)"
+    )
+    dask_address: str | None = Field(
+        None, description="an existing Dask scheduler for per-segment work, tcp://host:8786"
+    )
+    renderer: Literal["auto", "torch", "gsplat"] = Field("auto", description="auto: gsplat whenever CUDA is there")
+    render_workers: int = Field(
+        0, ge=0, le=256, description="CPU renderer: views rendered at once in outputs (0 = one per core)"
+    )
+
+
 class StepsConfig(Model):
     plan: PlanParams = PlanParams()
-    generate: GenerateParams = GenerateParams()
     check: CheckStepParams = CheckStepParams()
     poses: PosesParams = PosesParams()
     priors: PriorsStepParams = PriorsStepParams()
@@ -297,6 +311,7 @@ class RunConfig(Model):
     preset: str = "standard"
     scene: SceneSpec
     steps: StepsConfig = StepsConfig()
+    execution: ExecutionParams = ExecutionParams()
 
     @model_validator(mode="after")
     def _poses_known(self) -> RunConfig:

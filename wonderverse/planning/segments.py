@@ -97,3 +97,12 @@ def stitched_order(segments: Sequence[PlannedSegment]) -> list[str]:
     """Segment ids in playback order: left segments newest first (each reversed), then the rest in order."""
     lefts = [s.id for s in segments if s.role == "left"]
     return lefts[::-1] + [s.id for s in segments if s.role != "left"]
+
+
+def clip_plan(clips: Sequence[str]) -> Plan:
+    """The user's clips as segments in the given order: the first as `init`, the rest as `right` ones (played
+    forward, after the previous); no camera moves are planned, none are generated."""
+    segments: list[PlannedSegment] = []
+    for i, clip in enumerate(clips):
+        segments.append(next_segment(tuple(segments), "init" if i == 0 else "right", CameraMove(), clip))
+    return Plan(segments=tuple(segments), planner="clips")

@@ -9,19 +9,19 @@ import numpy as np
 from wonderverse.video.base import GroundTruth, Video, VideoModel
 
 if TYPE_CHECKING:  # the config pulls in YAML and every step's params; backends import only what they use
-    from wonderverse.config import SceneSpec
+    from wonderverse.config import VideoSource
 
 __all__ = ["GroundTruth", "Video", "VideoModel", "initial_pose", "make_video_model"]
 
 
-def make_video_model(scene: SceneSpec) -> VideoModel:
-    """The backend named in `scene.video`, built for this scene (its world, size and options; the options are
+def make_video_model(source: VideoSource) -> VideoModel:
+    """The backend named in `source.video`, built for this scene (its world, size and options; the options are
     already the backend's own model, validated when the config was built)."""
-    v = scene.video
+    v = source.video
     if v.backend == "procedural":
         from wonderverse.video.procedural import ProceduralVideo
 
-        return ProceduralVideo(scene.prompt, scene.seed, v.width, v.height, v.fov_deg, v.options)
+        return ProceduralVideo(source.prompt, source.seed, v.width, v.height, v.fov_deg, v.options)
     if v.backend == "files":
         from wonderverse.video.files import FilesVideo
 
