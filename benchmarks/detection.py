@@ -24,6 +24,7 @@ from benchmarks.common import parse_args, report
 from wonderverse.camera import move_path
 from wonderverse.check import CheckParams, check_trajectory
 from wonderverse.config import build_config
+from wonderverse.schema import CHECK
 from wonderverse.sfm import SfmParams, reconstruct
 from wonderverse.video import Video, initial_pose
 from wonderverse.video.procedural import ProceduralVideo
@@ -70,7 +71,7 @@ def mean_extra_trials(n_scenes: int, width: int, height: int, frames: int) -> fl
                 },
             )
             execute(Path(tmp) / f"s{s}", cfg, until="check")
-            extra += [x["extra_trials"] for x in SceneStore.open(Path(tmp) / f"s{s}").attrs("check")["segments"]]
+            extra += [x["extra_trials"] for x in SceneStore.open(Path(tmp) / f"s{s}").attrs(CHECK.path)["segments"]]
     return float(np.mean(extra))
 
 

@@ -45,6 +45,7 @@ from tasks import StepResult
 from tasks.segments import attempt_path
 from wonderverse.config import RunConfig, build_config
 from wonderverse.metrics import ate
+from wonderverse.schema import SFM, SPLATS
 from wonderverse.store import SceneStore
 
 
@@ -148,14 +149,14 @@ def prefect_rows(tmp: Path, cfg: RunConfig, reps: int, api: str | None = None) -
 def pose_error(scene: Path) -> float:
     """ATE of a scene's global poses against the procedural world's true path, as a share of its length."""
     store = SceneStore.open(scene)
-    segs = store.attrs("sfm")["segments"]
+    segs = store.attrs(SFM.path)["segments"]
     true = {seg: store.array(f"{attempt_path(store, seg)}/gt/poses") for seg in segs}
-    gt = np.stack([true[segs[a]][i] for a, i in store.array("sfm/frame_index")])
-    return float(ate(store.array("sfm/poses"), gt)["rmse_frac"])
+    gt = np.stack([true[segs[a]][i] for a, i in store.array(SFM.frame_index)])
+    return float(ate(store.array(SFM.poses), gt)["rmse_frac"])
 
 
 def _quality(scene: Path, pose_ate: float) -> str:
-    psnr = SceneStore.open(scene).attrs("splats")["metrics"]["test_psnr"]
+    psnr = SceneStore.open(scene).attrs(SPLATS.path)["metrics"]["test_psnr"]
     return f"{100 * pose_ate:.2f} % / {psnr:.2f} dB"
 
 

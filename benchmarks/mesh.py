@@ -36,6 +36,7 @@ import numpy as np
 
 from benchmarks.common import parse_args, report
 from wonderverse.mesh import MeshParams
+from wonderverse.schema import SFM, SPLATS
 
 PROMPT = "a small house decorated for Christmas"
 # Recommended mesh parameters per preset (what the benchmark compares; the config wiring is the lead's)
@@ -79,16 +80,14 @@ def load_trained(scene_dir: Path) -> dict[str, Any]:
 
     store = SceneStore.open(scene_dir)
     names = ("means", "quats", "log_scales", "logit_opacities", "sh0", "shN")
-    arrays = {n: store.array(f"splats/{n}") for n in names}
-    norm = normalization_from_dict(store.attrs("splats")["normalization"])
-    poses, K = store.array("sfm/poses"), store.array("sfm/K")
-    segs, index = store.attrs("sfm")["segments"], store.array("sfm/frame_index")
+    arrays = {n: store.array(getattr(SPLATS, n)) for n in names}
+    norm = normalization_from_dict(store.attrs(SPLATS.path)["normalization"])
+    poses, K = store.array(SFM.poses), store.array(SFM.K)
+    segs, index = store.attrs(SFM.path)["segments"], store.array(SFM.frame_index)
     attempts = {a: attempt_path(store, segs[a]) for a in np.unique(index[:, 0])}
-    per_seg = {
-        name: {a: store.array(f"{ap}/{name}") for a, ap in attempts.items()}
-        for name in ("gt/poses", "gt/depth", "frames")
-    }
-    gt, depth, frames = (np.stack([per_seg[n][a][i] for a, i in index]) for n in ("gt/poses", "gt/depth", "frames"))
+    arrays_of = {"poses": lambda ap: ap.gt.poses, "depth": lambda ap: ap.gt.depth, "frames": lambda ap: ap.frames}
+    per_seg = {name: {a: store.array(get(ap)) for a, ap in attempts.items()} for name, get in arrays_of.items()}
+    gt, depth, frames = (np.stack([per_seg[n][a][i] for a, i in index]) for n in ("poses", "depth", "frames"))
     ok = np.isfinite(poses).all(axis=(1, 2))
     return {
         "arrays": arrays,

@@ -29,6 +29,7 @@ from tasks.parallel import map_segments
 from wonderverse.check import CheckParams, check_trajectory
 from wonderverse.config import build_config
 from wonderverse.metrics import ate
+from wonderverse.schema import ATTEMPT, SFM
 from wonderverse.sfm import SfmParams, reconstruct
 from wonderverse.store import SceneStore
 
@@ -105,11 +106,11 @@ def main() -> None:
         t = time.perf_counter()
         execute(Path(tmp) / "g", cfg, until="poses")
         store = SceneStore.open(Path(tmp) / "g")
-        segs = store.attrs("sfm")["segments"]
+        segs = store.attrs(SFM.path)["segments"]
         gt = np.stack(
-            [store.array(f"segments/{segs[a]}/attempts/0/gt/poses")[b] for a, b in store.array("sfm/frame_index")]
+            [store.array(ATTEMPT.at(seg=segs[a], attempt=0).gt.poses)[b] for a, b in store.array(SFM.frame_index)]
         )
-        g_ate = ate(store.array("sfm/poses"), gt)["rmse_frac"]
+        g_ate = ate(store.array(SFM.poses), gt)["rmse_frac"]
         rows.append(
             {
                 "what": "global poses, stitched scene",

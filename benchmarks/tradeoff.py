@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.common import machine, report
+from wonderverse.schema import CHECK, OUTPUTS, SFM, SPLATS
 
 SCENES = {
     "outdoor": "a small house decorated for Christmas",
@@ -112,10 +113,10 @@ def _scored_frames(store: Any) -> dict[str, Any]:
     """SfM and true poses, true depth and names of the posed frames (the splat step's order)."""
     from tasks.segments import attempt_path
 
-    segs, index, poses = store.attrs("sfm")["segments"], store.array("sfm/frame_index"), store.array("sfm/poses")
+    segs, index, poses = store.attrs(SFM.path)["segments"], store.array(SFM.frame_index), store.array(SFM.poses)
     ok = np.isfinite(poses).all(axis=(1, 2))
     paths = {a: attempt_path(store, segs[a]) for a in np.unique(index[:, 0])}
-    gt = {a: (store.array(f"{p}/gt/poses"), store.array(f"{p}/gt/depth")) for a, p in paths.items()}
+    gt = {a: (store.array(p.gt.poses), store.array(p.gt.depth)) for a, p in paths.items()}
     rows = [(a, int(i)) for (a, i), keep in zip(index, ok, strict=True) if keep]
     return {
         "names": [f"{segs[a]}_{i:04d}" for a, i in rows],
@@ -144,16 +145,16 @@ def score(scene_dir: Path, cfg: Any) -> dict[str, Any]:
     store = SceneStore.open(scene_dir)
     f = _scored_frames(store)
     to_world = umeyama(camera_centers(f["w2c"]), camera_centers(f["gt_w2c"]), with_scale=True)
-    splats = store.attrs("splats")
+    splats = store.attrs(SPLATS.path)
     metrics = splats["metrics"]
     test = [f["names"].index(splats["frames"][j]) for j in metrics.get("test_views", [])]
 
     # rendered depth at the held-out frames, in metres, against the truth
-    arrays = {n: store.array(f"splats/{n}") for n in GaussianModel.PARAM_NAMES}
+    arrays = {n: store.array(getattr(SPLATS, n)) for n in GaussianModel.PARAM_NAMES}
     norm = normalization_from_dict(splats["normalization"])
     v = cfg.scene.video
     absrel = []
-    views = render_views(arrays, norm, f["w2c"][test], store.array("sfm/K"), v.width, v.height, make_renderer("auto"))
+    views = render_views(arrays, norm, f["w2c"][test], store.array(SFM.K), v.width, v.height, make_renderer("auto"))
     for i, view in zip(test, views, strict=True):
         mask = np.isfinite(view.depth) & np.isfinite(f["gt_depth"][i])
         absrel.append(depth_errors(view.depth * to_world.s, f["gt_depth"][i], mask)["absrel"])
@@ -162,7 +163,7 @@ def score(scene_dir: Path, cfg: Any) -> dict[str, Any]:
     video = make_video_model(cfg.scene.video_source)  # builds the world: once
     mesh = trimesh.load(scene_dir / "mesh.ply", force="mesh")
     pred = to_world.apply(sample_mesh_points(np.asarray(mesh.vertices), np.asarray(mesh.faces), 300_000, seed=1))
-    reach = cfg.steps.outputs.mesh.max_depth_frac * store.attrs("outputs")["mesh"]["extent"] * to_world.s
+    reach = cfg.steps.outputs.mesh.max_depth_frac * store.attrs(OUTPUTS.path)["mesh"]["extent"] * to_world.s
     extent = scene_extent(f["gt_w2c"], f["gt_depth"])
     gt_pts = visible_gt_points(video.world, video.K, f["gt_w2c"], f["gt_depth"], reach)
     fs = chamfer_fscore(pred, gt_pts, [0.01 * extent])
@@ -170,7 +171,7 @@ def score(scene_dir: Path, cfg: Any) -> dict[str, Any]:
     novel = iio.imread(scene_dir / "novel.mp4")
     picks = novel[np.linspace(0, len(novel) - 1, NIQE_FRAMES).round().astype(int)]
     return {
-        "extra_trials": float(store.attrs("check")["mean_extra_trials"]),
+        "extra_trials": float(store.attrs(CHECK.path)["mean_extra_trials"]),
         "ate_frac": ate(f["all_w2c"], f["all_gt_w2c"])["rmse_frac"],
         "depth_absrel": float(np.mean(absrel)),
         "psnr": float(metrics["test_psnr"]),

@@ -43,21 +43,10 @@ def params(cfg: RunConfig) -> Params:
 
 def posed_frames(store: SceneStore) -> tuple[np.ndarray, np.ndarray, list[str]]:
     """Stitched frames that have a global pose: frames (N,H,W,3) uint8, W2C (N,4,4), names `s000_0007`."""
-    from tasks.segments import frames as segment_frames
+    from tasks.segments import attempt_path, posed_stitched
 
-    segs = store.attrs(SFM.path)["segments"]
-    index, poses = store.array(SFM.frame_index), store.array(SFM.poses)
-    keep = np.isfinite(poses).all(axis=(1, 2))
-    cache: dict[str, np.ndarray] = {}
-    out, names = [], []
-    for (a, i), ok in zip(index, keep, strict=True):
-        if ok:
-            seg = segs[a]
-            if seg not in cache:
-                cache[seg] = segment_frames(store, seg)
-            out.append(cache[seg][i])
-            names.append(f"{seg}_{int(i):04d}")
-    return np.stack(out), poses[keep], names
+    rows, w2c, names = posed_stitched(store, {"frames": lambda seg: attempt_path(store, seg).frames})
+    return rows["frames"], w2c, names
 
 
 def run(store: SceneStore, params: Params, ctx: StepContext) -> str:

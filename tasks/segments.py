@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
-from wonderverse.schema import ATTEMPT, ATTEMPTS, SEGMENT, SEGMENTS, GroupPath
+from wonderverse.schema import ATTEMPT, ATTEMPTS, SEGMENT, SEGMENTS, SFM, GroupPath
 from wonderverse.store import SceneStore
 
 
@@ -71,3 +73,26 @@ def stitched(store: SceneStore) -> tuple[np.ndarray, list[tuple[str, int]]]:
         out.append(f[idx])
         index += [(seg, int(i)) for i in idx]
     return np.concatenate(out) if out else np.zeros((0, 1, 1, 3), np.uint8), index
+
+
+def posed_stitched(
+    store: SceneStore, arrays: dict[str, Callable[[str], str]]
+) -> tuple[dict[str, np.ndarray], np.ndarray, list[str]]:
+    """The stitched frames with a global pose (`sfm/`), in stitched order: {name: per-frame rows stacked} for each
+    `arrays[name](seg)` (the path of a (T, ...) array of the segment), W2C poses (N,4,4) and frame names
+    (`s000_0007`: segment, generation-order index). Each segment's arrays are read once."""
+    segs = store.attrs(SFM.path)["segments"]
+    index, poses = store.array(SFM.frame_index), store.array(SFM.poses)
+    keep = np.isfinite(poses).all(axis=(1, 2))
+    read: dict[str, dict[str, np.ndarray]] = {}
+    rows: dict[str, list[np.ndarray]] = {name: [] for name in arrays}
+    names = []
+    for (a, i), ok in zip(index, keep, strict=True):
+        if ok:
+            seg = segs[a]
+            if seg not in read:
+                read[seg] = {name: store.array(path(seg)) for name, path in arrays.items()}
+            for name in arrays:
+                rows[name].append(read[seg][name][i])
+            names.append(f"{seg}_{int(i):04d}")
+    return {name: np.stack(r) if r else np.zeros((0,)) for name, r in rows.items()}, poses[keep], names

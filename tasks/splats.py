@@ -37,38 +37,23 @@ def params(cfg: RunConfig) -> SplatsStepParams:
 def load_views(store: SceneStore) -> tuple[Views, list[str]]:
     """Every posed stitched frame with its priors, in SfM world units (frames without a pose skipped), and
     the frames' names (`s000_0007`: segment, generation-order index)."""
-    from tasks.segments import attempt_path
+    from tasks.segments import attempt_path, posed_stitched
     from wonderverse.splats.trainer import Views
 
-    segs = store.attrs(SFM.path)["segments"]
-    index = store.array(SFM.frame_index)
-    poses = store.array(SFM.poses)
-    keep = np.isfinite(poses).all(axis=(1, 2))
-    frames, depth, normals, names = [], [], [], []
-    cache: dict[str, dict[str, np.ndarray]] = {}
-    for (a, i), ok in zip(index, keep, strict=True):
-        if not ok:
-            continue
-        seg = segs[a]
-        names.append(f"{seg}_{int(i):04d}")
-        if seg not in cache:
-            ap = attempt_path(store, seg)
-            cache[seg] = {
-                "frames": store.array(ap.frames),
-                "depth": store.array(PRIORS_SEGMENT.at(seg=seg).depth),
-                "normals": store.array(PRIORS_SEGMENT.at(seg=seg).normals),
-            }
-        frames.append(cache[seg]["frames"][i])
-        depth.append(cache[seg]["depth"][i])
-        normals.append(cache[seg]["normals"][i].astype(np.float32))
-    if not frames:
+    arrays = {
+        "frames": lambda seg: attempt_path(store, seg).frames,
+        "depth": lambda seg: PRIORS_SEGMENT.at(seg=seg).depth,
+        "normals": lambda seg: PRIORS_SEGMENT.at(seg=seg).normals,
+    }
+    rows, w2c, names = posed_stitched(store, arrays)
+    if not names:
         raise WonderError("no posed frames to train on")
     views = Views(
-        frames=np.stack(frames),
-        w2c=poses[keep],
+        frames=rows["frames"],
+        w2c=w2c,
         K=store.array(SFM.K),
-        prior_depth=np.stack(depth),
-        prior_normals=np.stack(normals),
+        prior_depth=rows["depth"],
+        prior_normals=rows["normals"].astype(np.float32),
     )
     return views, names
 

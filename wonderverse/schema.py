@@ -148,6 +148,14 @@ def _frames(doc: str) -> Array:
 POSES = Array("float64", ("T", 4, 4), "whole", "world-to-camera 4x4, OpenCV axes; NaN where unknown")
 K = Array("float64", (3, 3), "whole", "pinhole intrinsics in pixels, pixel centres at +0.5")
 
+ROOT_ATTRS = {  # the root group's attributes (the store itself writes format and version; flows.pipeline the rest)
+    "format": "store format number; a store of a newer format is refused",
+    "wonderverse_version": "the version that created the store",
+    "spec": "the SceneSpec (JSON) of the latest run",
+    "config": "the RunConfig (JSON) of the last run that completed; a failed run never replaces it",
+    "segments_config": "the RunConfig the segments were last generated under (what a re-run must not discard)",
+}
+
 PLAN = Group(
     "plan",
     "step plan: one camera move per segment",
