@@ -367,7 +367,13 @@ app.command("batch")(batch_command)
 
 
 def main() -> None:
-    """Entry point: user errors become one line on stderr and exit code 2."""
+    """`wonderverse ...`: run the command in a supervised child (Ctrl-C, SIGTERM: see flows.supervise); in the
+    child, run it, user errors becoming one line on stderr and exit code 2."""
+    from flows.supervise import CHILD_ENV, run_supervised, start_reaper
+
+    if os.environ.get(CHILD_ENV) != "1":
+        sys.exit(run_supervised(sys.argv[1:]))
+    start_reaper()
     try:
         app(standalone_mode=False)
     except WonderError as e:  # StepFailed included
@@ -387,11 +393,5 @@ def main() -> None:
         raise
 
 
-if __name__ == "__main__":  # `python -m flows.cli ...`, as `wonderverse ...` (supervised: see flows.supervise)
-    from flows.supervise import CHILD_ENV, run_supervised, start_reaper
-
-    if os.environ.get(CHILD_ENV) == "1":
-        start_reaper()
-        main()
-    else:
-        sys.exit(run_supervised(sys.argv[1:]))
+if __name__ == "__main__":  # `python -m flows.cli ...`, as `wonderverse ...`
+    main()

@@ -1,6 +1,6 @@
-"""The `wonderverse` command's entry point: Ctrl-C and SIGTERM stop a run at once and cleanly.
+"""Ctrl-C and SIGTERM stop a `wonderverse` command at once and cleanly (`flows.cli.main` calls `run_supervised`).
 
-The command runs in a child process of its own session, and this small parent only waits for it. A
+The command runs in a child process of its own session, and the parent only waits for it. A
 terminal's Ctrl-C (SIGINT), SIGTERM and SIGHUP therefore reach the parent alone: it kills the child's whole
 process group (the run, its Dask workers, Prefect's ephemeral server) with SIGKILL, says so in one line and
 exits 128 + the signal's number (130 for Ctrl-C, 143 for SIGTERM). Should the parent itself be killed
@@ -99,18 +99,3 @@ def start_reaper() -> None:
         return
     subprocess.Popen([sys.executable, "-c", _REAPER], stdin=int(fd))
     os.close(int(fd))
-
-
-def main() -> None:
-    """`wonderverse ...`: supervise the command, or (in the child) run it."""
-    if os.environ.get(CHILD_ENV) == "1":
-        from flows.cli import main as run_command
-
-        start_reaper()
-        run_command()
-        return
-    sys.exit(run_supervised(sys.argv[1:]))
-
-
-if __name__ == "__main__":
-    main()

@@ -14,6 +14,8 @@ from typing import Any
 
 import numpy as np
 
+DEFAULT_FOV_DEG = 60.0  # horizontal field of view of a video whose camera nobody stated
+
 WORLD_UP = np.array([0.0, 0.0, 1.0])
 
 # Relative size of the second singular value below which a point set counts as collinear (or coincident).

@@ -27,9 +27,11 @@ from pydantic import (
 )
 from pydantic_core import InitErrorDetails, PydanticCustomError
 
+from wonderverse.camera import DEFAULT_FOV_DEG
 from wonderverse.check import CheckParams
 from wonderverse.errors import ConfigError, shown
 from wonderverse.mesh import MeshParams
+from wonderverse.planning.params import ExtensionSpec, PlannerSpec, PlanParams
 from wonderverse.priors.params import PriorsParams
 from wonderverse.quality.params import QualityParams
 from wonderverse.sfm import SfmParams
@@ -47,8 +49,6 @@ MAX_CONFIG_BYTES = 1_000_000
 MAX_CONFIG_VALUES = 100_000
 MAX_ERRORS_SHOWN = 5
 
-Direction = Literal["left", "right", "up", "down", "forward", "back"]
-
 
 class Model(BaseModel):
     """Base for every config model: unknown keys are errors, values are immutable."""
@@ -61,17 +61,6 @@ def field_error(loc: tuple[str, ...], message: str, value: Any) -> ValidationErr
     raised from a validator, it reports the field it names, not the model."""
     error = InitErrorDetails(type=PydanticCustomError("config", message), loc=loc, input=value)
     return ValidationError.from_exception_data("config", [error])
-
-
-class ExtensionSpec(Model):
-    """How the scene grows beyond the initial video (the paper repeats left+right `rounds` times)."""
-
-    rounds: int = Field(1, ge=0, le=16, description="extension iterations n; each adds one segment per direction")
-    directions: tuple[Direction, ...] = Field(("left", "right"), min_length=1)
-    intents: tuple[str, ...] = Field((), description="the user's words for each extension, in order")
-    added: tuple[str, ...] = Field(
-        (), description="extensions added later (`wonderverse extend`), the user's words, oldest first"
-    )
 
 
 class VideoSpec(Model):
@@ -87,7 +76,7 @@ class VideoSpec(Model):
     width: int = Field(480, ge=32, le=4096)
     height: int = Field(320, ge=32, le=4096)
     fps: float = Field(8.0, gt=0, le=240)
-    fov_deg: float = Field(60.0, gt=5, lt=170, description="horizontal field of view")
+    fov_deg: float = Field(DEFAULT_FOV_DEG, gt=5, lt=170, description="horizontal field of view")
     options: ProceduralOptions | ClipParams | DiffusionParams = Field(
         default_factory=dict,
         validate_default=True,
@@ -132,17 +121,6 @@ VIDEO_OPTIONS: dict[str, type[BaseModel]] = {
 }
 
 
-class PlannerSpec(Model):
-    """Which planner turns the description and the user's words into camera moves."""
-
-    backend: Literal["rules", "chat"] = "rules"
-    base_url: str = Field("http://127.0.0.1:8000/v1", description="OpenAI-compatible endpoint (chat backend)")
-    model: str = "gpt-4o-mini"
-    api_key_env: str = Field("OPENAI_API_KEY", description="name of the environment variable holding the key")
-    timeout_s: float = Field(30.0, gt=0, le=600)
-    max_retries: int = Field(1, ge=0, le=5)
-
-
 class VideoSource(Model):
     """What renders a scene's segments: the video settings, the scene's prompt and its seed."""
 
@@ -172,35 +150,6 @@ class SceneSpec(Model):
             raise ValueError("prompt is empty")
         if len(v) > MAX_PROMPT_CHARS:
             raise ValueError(f"prompt has {len(v)} characters; at most {MAX_PROMPT_CHARS} are allowed")
-        return v
-
-
-class PlanParams(Model):
-    """Step `plan`: the initial camera move and the sizes of rule-planned extension moves."""
-
-    initial_move: str = Field(
-        "up 0, right 30, forward 2", max_length=200, description="paper format, for the initial video"
-    )
-    yaw_step_deg: float = Field(35.0, gt=0, le=180)
-    pitch_step_deg: float = Field(15.0, gt=0, le=89)
-    forward_step_m: float = Field(2.0, gt=0, le=100)
-    yaw_forward_m: float = Field(0.5, gt=0, le=100, description="forward travel added to each turn")
-    step_variation_ratio: float = Field(0.15, ge=0, lt=1, description="shrink of a repeated move on one side")
-    max_pitch_deg: float = Field(60.0, gt=0, le=89, description="pitch limit of each extension chain")
-    min_turn_deg: float = Field(1.0, gt=0, description="less room than this: the direction is exhausted")
-    strafe_m_per_deg: float = Field(
-        0.04, ge=0, le=1, description="sideways travel per degree of yaw, so turns keep parallax for SfM"
-    )
-
-    @field_validator("initial_move")
-    @classmethod
-    def _paper_format(cls, v: str) -> str:
-        from wonderverse.planning.moves import PlanParseError, parse_move  # wonderverse.planning imports this module
-
-        try:
-            parse_move(v, any_order=True)
-        except PlanParseError as e:
-            raise ValueError(str(e)) from None
         return v
 
 

@@ -8,10 +8,10 @@ from __future__ import annotations
 
 from typing import Protocol
 
-from wonderverse.config import Direction, ExtensionSpec, PlannerSpec, PlanParams
 from wonderverse.planning.chat import PAPER_PROMPT, ChatPlanner
 from wonderverse.planning.intents import intent_direction, interpret_intent
 from wonderverse.planning.moves import CameraMove, PlanError, PlanParseError, parse_move, parse_moves
+from wonderverse.planning.params import Direction, ExtensionSpec, PlannerSpec, PlanParams
 from wonderverse.planning.rules import DEFAULT_FOV_DEG, RulePlanner, plan_extension, plan_scene
 from wonderverse.planning.segments import Plan, PlannedSegment, stitched_order
 

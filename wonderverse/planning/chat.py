@@ -13,11 +13,11 @@ import os
 from collections.abc import Sequence
 from typing import TYPE_CHECKING, Any
 
-from wonderverse.config import Direction, ExtensionSpec, PlannerSpec, PlanParams
-from wonderverse.planning import rules
+import wonderverse.planning.rules as rules
 from wonderverse.planning.intents import intent_direction
 from wonderverse.planning.limits import move_problem
 from wonderverse.planning.moves import CameraMove, PlanParseError, parse_moves
+from wonderverse.planning.params import Direction, ExtensionSpec, PlannerSpec, PlanParams
 from wonderverse.planning.segments import Plan, PlannedSegment, Role, next_segment
 
 if TYPE_CHECKING:

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import re
 
-from wonderverse.config import Direction, PlanParams
 from wonderverse.planning.moves import (
     ANGLE_UNITS,
     AXIS_LIMIT,
@@ -25,6 +24,7 @@ from wonderverse.planning.moves import (
     CameraMove,
     PlanError,
 )
+from wonderverse.planning.params import Direction, PlanParams
 
 DIRECTION_WORDS: dict[str, Direction] = {
     **dict.fromkeys(("left", "leftward", "leftwards"), "left"),

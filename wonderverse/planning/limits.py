@@ -11,8 +11,8 @@ from __future__ import annotations
 import math
 from collections.abc import Sequence
 
-from wonderverse.config import PlanParams
 from wonderverse.planning.moves import DECIMALS, DIRECTION_AXIS, CameraMove, PlanError, format_number
+from wonderverse.planning.params import PlanParams
 from wonderverse.planning.segments import PlannedSegment, Role, reference_kind
 
 FULL_TURN_DEG = 360.0

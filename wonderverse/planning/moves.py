@@ -13,9 +13,9 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from wonderverse.config import Direction
 from wonderverse.errors import WonderError
 
+Direction = Literal["left", "right", "up", "down", "forward", "back"]
 Axis = Literal["pitch", "yaw", "forward"]
 
 # Direction -> (axis, sign of that axis's value).

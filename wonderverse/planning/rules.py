@@ -4,13 +4,13 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from wonderverse.config import Direction, ExtensionSpec, PlanParams, VideoSpec
+from wonderverse.camera import DEFAULT_FOV_DEG
 from wonderverse.planning.intents import intent_direction, interpret_intent
 from wonderverse.planning.limits import FULL_TURN_DEG, fit_move
 from wonderverse.planning.moves import DIRECTION_AXIS, CameraMove, PlanError, PlanParseError, parse_move
+from wonderverse.planning.params import Direction, ExtensionSpec, PlanParams
 from wonderverse.planning.segments import Plan, PlannedSegment, next_segment
 
-DEFAULT_FOV_DEG: float = VideoSpec.model_fields["fov_deg"].default
 RULES = "rules"
 
 

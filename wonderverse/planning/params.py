@@ -1,0 +1,65 @@
+"""The planner's settings: the scene's extensions, the planner backend, and the sizes of planned moves.
+
+Pydantic only (and the move parser, to check `initial_move` when the config is built): the config composes these,
+and the planners read them."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator
+
+from wonderverse.planning.moves import Direction, PlanParseError, parse_move
+
+
+class Model(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class ExtensionSpec(Model):
+    """How the scene grows beyond the initial video (the paper repeats left+right `rounds` times)."""
+
+    rounds: int = Field(1, ge=0, le=16, description="extension iterations n; each adds one segment per direction")
+    directions: tuple[Direction, ...] = Field(("left", "right"), min_length=1)
+    intents: tuple[str, ...] = Field((), description="the user's words for each extension, in order")
+    added: tuple[str, ...] = Field(
+        (), description="extensions added later (`wonderverse extend`), the user's words, oldest first"
+    )
+
+
+class PlannerSpec(Model):
+    """Which planner turns the description and the user's words into camera moves."""
+
+    backend: Literal["rules", "chat"] = "rules"
+    base_url: str = Field("http://127.0.0.1:8000/v1", description="OpenAI-compatible endpoint (chat backend)")
+    model: str = "gpt-4o-mini"
+    api_key_env: str = Field("OPENAI_API_KEY", description="name of the environment variable holding the key")
+    timeout_s: float = Field(30.0, gt=0, le=600)
+    max_retries: int = Field(1, ge=0, le=5)
+
+
+class PlanParams(Model):
+    """Step `plan`: the initial camera move and the sizes of rule-planned extension moves."""
+
+    initial_move: str = Field(
+        "up 0, right 30, forward 2", max_length=200, description="paper format, for the initial video"
+    )
+    yaw_step_deg: float = Field(35.0, gt=0, le=180)
+    pitch_step_deg: float = Field(15.0, gt=0, le=89)
+    forward_step_m: float = Field(2.0, gt=0, le=100)
+    yaw_forward_m: float = Field(0.5, gt=0, le=100, description="forward travel added to each turn")
+    step_variation_ratio: float = Field(0.15, ge=0, lt=1, description="shrink of a repeated move on one side")
+    max_pitch_deg: float = Field(60.0, gt=0, le=89, description="pitch limit of each extension chain")
+    min_turn_deg: float = Field(1.0, gt=0, description="less room than this: the direction is exhausted")
+    strafe_m_per_deg: float = Field(
+        0.04, ge=0, le=1, description="sideways travel per degree of yaw, so turns keep parallax for SfM"
+    )
+
+    @field_validator("initial_move")
+    @classmethod
+    def _paper_format(cls, v: str) -> str:
+        try:
+            parse_move(v, any_order=True)
+        except PlanParseError as e:
+            raise ValueError(str(e)) from None
+        return v
