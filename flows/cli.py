@@ -153,6 +153,7 @@ def generate(
         lambda eng: run_pipeline(scene_dir, cfg, until, engine=eng, replace_segments=replace_segments),
         len(steps),
         folder_note,
+        config_notes(cfg),
     )
 
 
@@ -163,10 +164,11 @@ def _run_with_progress(
     run: Callable[[str], list[Any]],
     n_steps: int | None = None,
     folder_note: str = "",
+    notes: list[str] | None = None,
 ) -> None:
-    """The first line (preset, engine, scene, and `folder_note`: why the scene folder is not the default one),
-    `run(engine)` with the progress display (`n_steps` steps, all by default) and the closing table, then the
-    derived files and the list of what the run wrote."""
+    """The first line (preset, engine, scene, and `folder_note`: why the scene folder is not the default one) and
+    `notes` (a line each), `run(engine)` with the progress display (`n_steps` steps, all by default) and the
+    closing table, then the derived files and the list of what the run wrote."""
     from flows import progress
     from flows.engine import quiet_prefect, resolve_engine
     from tasks import STEPS
@@ -174,6 +176,8 @@ def _run_with_progress(
     eng = resolve_engine(engine)
     where = f"{scene_dir} ({folder_note})" if folder_note else str(scene_dir)
     console.print(f"wonderverse: {preset_note}, engine {eng}, scene {where}", highlight=False)
+    for note in notes or []:
+        console.print(f"wonderverse: {note}", highlight=False)
     if eng == "prefect":
         quiet_prefect()
     token = progress.current.set(progress.make_reporter(console, n_steps or len(STEPS)))
@@ -219,17 +223,20 @@ def reconstruct(
     clips: Annotated[list[str], typer.Argument(help="video files, image folders or globs; one segment each, in order")],
     out_dir: Annotated[Path | None, typer.Option("--out", help="scene folder (default scenes/<first clip>)")] = None,
     preset: Preset = None,
+    config: Annotated[Path | None, typer.Option(help="settings YAML (steps, execution), as generate takes")] = None,
+    depth_model: Annotated[
+        Path | None, typer.Option(help="a local Depth Anything V2 folder (transformers format) for depth priors")
+    ] = None,
     on_failure: Annotated[
         str, typer.Option(help="a clip that fails its check: keep_best (keep it, warned), drop, or fail")
     ] = "keep_best",
-    fov_deg: Annotated[float | None, typer.Option(help="horizontal field of view when known (else guessed)")] = None,
+    fov_deg: Annotated[float | None, typer.Option(help="horizontal field of view when known (else estimated)")] = None,
     engine: Engine = "auto",
     replace_segments: ReplaceSegments = False,
 ) -> None:
     """Reconstruct your own clips (any video generator or a phone): check, poses, priors, splats, outputs."""
     from flows.pipeline import run_pipeline, stored_config
     from wonderverse.config import build_config
-    from wonderverse.errors import ConfigError
     from wonderverse.store import check_scene_dir
     from wonderverse.video.files import group_sources
 
@@ -245,27 +252,21 @@ def reconstruct(
         if not Path(path).exists() and not glob.glob(path):  # checked before the store is touched
             raise WonderError(f"{source}: no such file or folder")
         paths.append(path)
+    if depth_model is not None and not depth_model.is_dir():
+        raise WonderError(f"--depth-model {depth_model}: no such folder (a local Depth Anything V2 folder)")
     options = {} if fov_deg is None else {"fov_deg": fov_deg}
-    overrides = {
+    overrides: dict[str, Any] = {
         "scene": {"video": {"backend": "files", "clips": paths, "options": options}},
         "steps": {"check": {"on_failure": on_failure}},
     }
+    if depth_model is not None:
+        models = {"depth_backend": "depth_anything", "depth_model": str(depth_model.resolve()), "allow_download": False}
+        overrides["steps"]["priors"] = {"models": {**models, "normal_backend": "from_depth"}}
     prompt = f"reconstruction of {', '.join(Path(p).name for p in paths)}"
     scene_dir, folder_note = (out_dir, "") if out_dir else _default_scene_folder(prompt, Path(paths[0]).stem)
     check_scene_dir(scene_dir)
-    name, why = _choose_preset(preset, None, stored_config(scene_dir))
-    try:
-        cfg = build_config(prompt=prompt, preset=name, overrides=overrides)
-    except ConfigError as e:
-        if (e.field or "").startswith("steps.priors.models."):
-            # The default priors are the oracle (the procedural world's ground truth); Depth Anything needs weights,
-            # and reconstruct has no option to name them yet.
-            raise WonderError(
-                "reconstruct cannot run yet: real clips need a depth prior that reads images, the only one (Depth "
-                "Anything) needs model weights that reconstruct has no option for, and the default prior (the "
-                "oracle) reads the procedural world's ground truth, which clips lack; nothing was written"
-            ) from None
-        raise
+    name, why = _choose_preset(preset, config, stored_config(scene_dir))
+    cfg = build_config(prompt=prompt, preset=name, config_file=config, overrides=overrides)
     _run_with_progress(
         scene_dir,
         engine,
@@ -274,7 +275,19 @@ def reconstruct(
             scene_dir, cfg, engine=eng, flow_name="reconstruct", replace_segments=replace_segments
         ),
         folder_note=folder_note,
+        notes=config_notes(cfg),
     )
+
+
+def config_notes(cfg: Any) -> list[str]:
+    """What a user must know about this run's configuration before it starts, one line each."""
+    notes = []
+    if not cfg.steps.priors.models.any:
+        notes.append(
+            "priors: none (no depth model named): the splats train on colours alone; --depth-model PATH (a local "
+            "Depth Anything V2 folder) or steps.priors.models in --config adds depth and normal priors"
+        )
+    return notes
 
 
 @app.command()

@@ -21,6 +21,7 @@ from wonderverse.schema import PRIORS, PRIORS_RAW, PRIORS_RAW_SEGMENT, PRIORS_SE
 from wonderverse.store import SceneStore, cache_key, write_array
 
 VERSION = 1
+NO_PRIORS = "no depth or normal prior (no depth model named): the splats train on colours alone"
 Params = PriorsStepParams  # the step reads its own settings only
 
 
@@ -86,32 +87,31 @@ def priors_segment(seg: str, scene_dir: str, settings: PriorsStepParams, step_ke
     gt = _ground_truth(store, ap)
     if "oracle" in (p.depth_backend, p.normal_backend) and gt is None:
         raise WonderError(f"segment {seg}: the oracle prior needs procedural ground truth; use depth_anything")
-    pred = _raw_depth(store, seg, ap, p, frames, gt)
-    points = store.array(SFM.points3d) if store.exists(SFM.points3d) else np.zeros((0, 3))
-    poses = segment_poses(store, seg, len(frames))
-    sky_beyond_ref = settings.sky_beyond_ref
-    aligned = align_frames(pred.depth, pred.kind, poses, points, K, p.align, sky_beyond_ref)
-    normals = make_normal_model(p, gt).predict(frames, K=K, depth=aligned.depth).normals
-    summary = {
-        "segment": seg,
-        "kind": pred.kind,
-        "aligned_frames": int(aligned.ok.sum()),
-        "frames": len(frames),
-        "reasons": aligned.reasons[:20],
-    }
-    with store.staged(group, key, **summary) as g:
-        write_array(g, group.depth, aligned.depth)
-        write_array(g, group.normals, normals)
-        write_array(g, group.scale, aligned.scale)
-        write_array(g, group.shift, aligned.shift)
-        write_array(g, group.aligned, aligned.ok)
+    summary: dict[str, Any] = {"segment": seg, "kind": "none", "aligned_frames": 0, "frames": len(frames)}
+    arrays: dict[str, np.ndarray] = {}
+    depth = None
+    if p.depth_backend != "none":
+        pred = _raw_depth(store, seg, ap, p, frames, gt)
+        points = store.array(SFM.points3d) if store.exists(SFM.points3d) else np.zeros((0, 3))
+        poses = segment_poses(store, seg, len(frames))
+        aligned = align_frames(pred.depth, pred.kind, poses, points, K, p.align, settings.sky_beyond_ref)
+        depth = aligned.depth
+        summary |= {"kind": pred.kind, "aligned_frames": int(aligned.ok.sum()), "reasons": aligned.reasons[:20]}
+        arrays |= {"depth": depth, "scale": aligned.scale, "shift": aligned.shift, "aligned": aligned.ok}
         if pred.confidence is not None:
-            write_array(g, group.confidence, pred.confidence)
+            arrays["confidence"] = pred.confidence
+    if p.normal_backend != "none":
+        arrays["normals"] = make_normal_model(p, gt).predict(frames, K=K, depth=depth).normals
+    with store.staged(group, key, **summary) as g:
+        for name, data in arrays.items():
+            write_array(g, getattr(group, name), data)
     return summary
 
 
 def run(store: SceneStore, p: PriorsStepParams, ctx: StepContext) -> str:
     segs = [s for s in segment_ids(store) if accepted_attempt(store, s) is not None]
+    if not p.models.any:  # no prior to compute: the splats train on colours alone
+        segs = []
     out = map_segments(
         priors_segment,
         segs,
@@ -126,7 +126,12 @@ def run(store: SceneStore, p: PriorsStepParams, ctx: StepContext) -> str:
     for parent, child in ((PRIORS, PRIORS_SEGMENT), (PRIORS_RAW, PRIORS_RAW_SEGMENT)):
         for stale in set(store.children(parent.path)) - set(segs):
             store.remove(child.at(seg=stale))
-    store.mark_complete(PRIORS.path, ctx.key)
+    backends = [p.models.depth_backend, p.models.normal_backend]
+    if not p.models.any:
+        with store.staged(PRIORS.path, ctx.key, backends=backends):  # an empty group: no segment has priors
+            pass
+        return NO_PRIORS
+    store.mark_complete(PRIORS.path, ctx.key, backends=backends)
     aligned = sum(s["aligned_frames"] for s in out)
     total = sum(s["frames"] for s in out)
     return f"{len(segs)} segments, {aligned}/{total} frames aligned to SfM ({out[0]['kind'] if out else '-'})"

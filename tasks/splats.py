@@ -40,11 +40,10 @@ def load_views(store: SceneStore) -> tuple[Views, list[str]]:
     from tasks.segments import attempt_path, posed_stitched
     from wonderverse.splats.trainer import Views
 
-    arrays = {
-        "frames": lambda seg: attempt_path(store, seg).frames,
-        "depth": lambda seg: PRIORS_SEGMENT.at(seg=seg).depth,
-        "normals": lambda seg: PRIORS_SEGMENT.at(seg=seg).normals,
-    }
+    first = store.attrs(SFM.path)["segments"][0]
+    priors = {name for name in ("depth", "normals") if store.exists(getattr(PRIORS_SEGMENT.at(seg=first), name))}
+    arrays = {"frames": lambda seg: attempt_path(store, seg).frames}
+    arrays |= {name: (lambda seg, n=name: getattr(PRIORS_SEGMENT.at(seg=seg), n)) for name in priors}
     rows, w2c, names = posed_stitched(store, arrays)
     if not names:
         raise WonderError("no posed frames to train on")
@@ -52,8 +51,8 @@ def load_views(store: SceneStore) -> tuple[Views, list[str]]:
         frames=rows["frames"],
         w2c=w2c,
         K=store.array(SFM.K),
-        prior_depth=rows["depth"],
-        prior_normals=rows["normals"].astype(np.float32),
+        prior_depth=rows.get("depth"),
+        prior_normals=rows["normals"].astype(np.float32) if "normals" in rows else None,
     )
     return views, names
 

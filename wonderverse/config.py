@@ -473,6 +473,7 @@ def build_config(
         merged = deep_merge(merged, {"scene": {"prompt": prompt}})
     merged = deep_merge(merged, overrides or {})
     merged = _with_video_option_defaults(merged)
+    merged = _with_prior_defaults(merged, [load_preset(name), file_data, overrides or {}])
     if "prompt" not in merged["scene"]:
         raise ConfigError("scene.prompt: no prompt given (pass PROMPT or set scene.prompt in the config file)")
     return validate_config(merged)
@@ -487,6 +488,21 @@ def _with_video_option_defaults(data: dict[str, Any]) -> dict[str, Any]:
         return data  # validation reports the bad backend or options
     options = deep_merge(default_data(model), video["options"], "scene.video.options")
     return deep_merge(data, {"scene": {"video": {"options": options}}})
+
+
+def _with_prior_defaults(data: dict[str, Any], layers: list[dict[str, Any]]) -> dict[str, Any]:
+    """`data` whose priors, when no layer names a depth backend, fit its video: the oracle (a degraded copy of the
+    ground truth) on the procedural world, none on other video, where a depth network needs weights someone
+    must name (`steps.priors.models.depth_model`, `--depth-model`): the splats then train on colours alone."""
+
+    def named(layer: Any) -> bool:
+        models = ((layer.get("steps") or {}).get("priors") or {}).get("models") if isinstance(layer, dict) else None
+        return isinstance(models, dict) and ("depth_backend" in models or "normal_backend" in models)
+
+    backend = data["scene"]["video"].get("backend")
+    if backend == "procedural" or any(named(layer) for layer in layers):
+        return data
+    return deep_merge(data, {"steps": {"priors": {"models": {"depth_backend": "none", "normal_backend": "none"}}}})
 
 
 def validate_config(data: dict[str, Any]) -> RunConfig:

@@ -257,7 +257,11 @@ SFM_MODEL = Group(
     "step poses: the COLMAP model files (cameras.bin, images.bin, points3D.bin) as bytes",
     any_arrays=Array("uint8", ("N",), "blob"),
 )
-PRIORS = Group("priors", "step priors: complete when every segment's priors are")
+PRIORS = Group(
+    "priors",
+    "step priors: complete when every segment's priors are (none at all when both backends are none)",
+    attrs={"backends": "[depth backend, normal backend]"},
+)
 PRIORS_SEGMENT = Group(
     "priors/{seg}",
     "step priors: a segment's depth and normal priors, depth aligned per frame to the global SfM points",

@@ -7,10 +7,10 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-DepthBackend = Literal["depth_anything", "oracle"]
-NormalBackend = Literal["from_depth", "dpt", "oracle"]
+DepthBackend = Literal["depth_anything", "oracle", "none"]  # none: no depth prior (the splats train on colours)
+NormalBackend = Literal["from_depth", "dpt", "oracle", "none"]
 OracleLevel = Literal["none", "mild", "realistic", "harsh"]
 AlignMethod = Literal["lstsq", "trimmed", "ransac"]
 
@@ -152,3 +152,14 @@ class PriorsParams(_Model):
     oracle_seed: int = Field(0, ge=0)
     from_depth: FromDepthParams = FromDepthParams()
     align: AlignParams = AlignParams()
+
+    @model_validator(mode="after")
+    def _normals_have_their_input(self) -> PriorsParams:
+        if self.depth_backend == "none" and self.normal_backend == "from_depth":
+            raise ValueError("normal_backend from_depth needs a depth prior: with depth_backend none use none (or dpt)")
+        return self
+
+    @property
+    def any(self) -> bool:
+        """Whether there is any prior to compute (else the splats train on colours alone)."""
+        return self.depth_backend != "none" or self.normal_backend != "none"
