@@ -311,10 +311,11 @@ def inspect(
     scene_dir: Annotated[Path, typer.Argument(help="scene folder")],
     as_json: Annotated[bool, typer.Option("--json", help="machine-readable output (schema in README)")] = False,
 ) -> None:
-    """Steps with status and cache key, segments with attempts and checks, arrays and sizes."""
+    """Steps with status and cache key, segments (or clips) with attempts and checks, priors, arrays and sizes."""
     from rich.table import Table
 
     from flows.inspect import summarize
+    from wonderverse.report import CLIP_VERDICTS
     from wonderverse.store import SceneStore
 
     info = summarize(SceneStore.open(scene_dir))
@@ -322,15 +323,27 @@ def inspect(
         print(json.dumps(info, indent=2))
         return
     spec = info.get("spec") or {}
-    out.print(f"[bold]{info['scene_dir']}[/] — {spec.get('prompt', '?')!r} (seed {spec.get('seed')})")
+    clips = {c["segment"]: c for c in info["clips"] or []}
+    if info["clips"] is not None:
+        n = len(info["clips"])
+        out.print(f"[bold]{info['scene_dir']}[/] — reconstruction of {n} clip{'s' * (n != 1)}", highlight=False)
+    else:
+        out.print(f"[bold]{info['scene_dir']}[/] — {spec.get('prompt', '?')!r} (seed {spec.get('seed')})")
+    later = "" if info["priors"]["computed"] else " (the priors step has not run)"
+    out.print(f"priors: {info['priors']['words']}{later}", highlight=False)
     t = Table(title="steps")
     for c in ("step", "status", "cache key"):
         t.add_column(c)
     for s in info["steps"]:
         t.add_row(s["name"], s["status"], (s["cache_key"] or "-")[:12])
     out.print(t)
-    t = Table(title="segments (stitched order: " + " ".join(info["order"]) + ")")
-    for c in ("segment", "role", "move", "attempts", "accepted", "check", "frames", "MB"):
+    if clips:
+        t = Table(title="clips (in the order given; each is one segment)")
+        columns: tuple[str, ...] = ("segment", "clip", "frames", "K", "check", "MB")
+    else:
+        t = Table(title="segments (stitched order: " + " ".join(info["order"]) + ")")
+        columns = ("segment", "role", "move", "attempts", "accepted", "check", "frames", "MB")
+    for c in columns:
         t.add_column(c)
     for s in info["segments"]:
         acc = next((a for a in s["attempts"] if a["index"] == s["accepted_attempt"]), None)
@@ -338,6 +351,15 @@ def inspect(
         verdict = "-" if not check else ("ok" if check.get("accepted") else "rejected")
         shape = ((acc or {}).get("arrays", {}).get("frames") or {}).get("shape", "-")
         mb = sum(a["bytes"] for a in s["attempts"]) / 1e6
+        clip = clips.get(s["id"])
+        if clip is not None:
+            name = clip["name"] + ("/" if clip["kind"] == "folder" else "")
+            fov = f" {clip['fov_deg']:.1f}°" if clip["fov_deg"] is not None else ""
+            size = f" ({clip['size'][0]}x{clip['size'][1]})" if clip["size"] else ""
+            frames = "-" if clip["frames"] is None else f"{clip['frames']}{size}"
+            row = [s["id"], name, frames, f"{clip['k_source'] or '-'}{fov}", CLIP_VERDICTS[clip["verdict"]]]
+            t.add_row(*row, f"{mb:.1f}")
+            continue
         t.add_row(
             s["id"],
             str(s["role"]),
@@ -349,6 +371,14 @@ def inspect(
             f"{mb:.1f}",
         )
     out.print(t)
+    for c in clips.values():
+        if c["reasons"]:
+            label = c["name"] + ("/" if c["kind"] == "folder" else "")
+            out.print(f"{c['segment']} {label}: {'; '.join(c['reasons'])}", highlight=False)
+    if info["global_k"]:
+        g = info["global_k"]
+        fov = f", {g['fov_deg']:.1f}° horizontal field of view" if g["fov_deg"] is not None else ""
+        out.print(f"global camera path: K {g['k_source']}{fov}", highlight=False)
     for e in info["extensions"]:
         out.print(f"extension {e['segment']}: {e['words']!r}", highlight=False)
     out.print(f"store size: {info['size_bytes'] / 1e6:.1f} MB")

@@ -1,16 +1,23 @@
-"""What a scene store holds, as a JSON-able summary (`wonderverse inspect`)."""
+"""What a scene store holds, as a JSON-able summary (`wonderverse inspect`).
+
+A scene made from the user's clips (video backend `files`) is described as what it is: `clips` lists each clip
+in order with the frames used, where its K came from and its check's verdict; `priors` says which priors every
+scene has (none: the splats train on colours alone)."""
 
 from __future__ import annotations
 
+import math
+from pathlib import Path
 from typing import Any
 
+import numpy as np
 import zarr
 
 from tasks import STEPS, step_keys
 from tasks.segments import accepted_attempt, attempt_ids, segment_ids
 from wonderverse.config import validate_config
 from wonderverse.errors import WonderError
-from wonderverse.schema import ATTEMPT, SEGMENT, SEGMENTS
+from wonderverse.schema import ATTEMPT, PRIORS, SEGMENT, SEGMENTS, SFM
 from wonderverse.store import SceneStore
 
 
@@ -24,6 +31,154 @@ def _arrays(store: SceneStore, group_path: str) -> dict[str, Any]:
         if isinstance(sub, zarr.Group):
             out |= {f"{name}/{k}": v for k, v in _arrays(store, f"{group_path}/{name}").items()}
     return out
+
+
+def _shape(store: SceneStore, path: str) -> tuple[int, ...] | None:
+    """An array's shape from its metadata (no data read), None when it is absent."""
+    try:
+        return tuple(zarr.open_array(store.root.store, path=path, mode="r").shape)
+    except Exception:
+        return None
+
+
+def _spec(store: SceneStore) -> dict[str, Any]:
+    return store.root.attrs.get("spec") or {}
+
+
+def is_clip_scene(store: SceneStore) -> bool:
+    """Whether the scene is the user's own clips (video backend `files`): nothing generated, nothing planned."""
+    return (_spec(store).get("video") or {}).get("backend") == "files"
+
+
+def fov_deg(K: Any, width: int) -> float | None:
+    """Horizontal field of view in degrees (to 0.01) of a pinhole K (pixels) for frames `width` pixels wide."""
+    try:
+        fx = float(np.asarray(K, dtype=np.float64)[0, 0])
+    except (TypeError, ValueError, IndexError):
+        return None
+    if not (math.isfinite(fx) and fx > 0 and width > 0):
+        return None
+    return round(math.degrees(2.0 * math.atan(width / (2.0 * fx))), 2)
+
+
+def _k_source(store: SceneStore, seg: str, sfm: str, width: int) -> tuple[str, float | None]:
+    """Where a clip's K came from ("given", "estimated" or "guessed") and its horizontal FOV in degrees.
+
+    The check's SfM records `k_source` (and the K it used, as `K` or `fov_deg`) in its attributes; stores
+    written before it did say only whether the segment's K was a guess (`k_is_guess`; absent: a guess)."""
+    a = store.attrs(sfm)
+    source = a.get("k_source")
+    if source is None:
+        source = "guessed" if store.attrs(SEGMENT.at(seg=seg)).get("k_is_guess", True) is not False else "given"
+    if isinstance(a.get("fov_deg"), int | float):
+        return str(source), float(a["fov_deg"])
+    if a.get("K") is not None:
+        return str(source), fov_deg(a["K"], width)
+    # an estimated K is the one the SfM found; a given or guessed one is the segment's
+    k_path = f"{sfm}/K" if source == "estimated" and _shape(store, f"{sfm}/K") else SEGMENT.at(seg=seg).K
+    try:
+        return str(source), fov_deg(store.array(k_path), width)
+    except Exception:
+        return str(source), None
+
+
+def _verdict(store: SceneStore, seg: str, check: dict[str, Any]) -> tuple[str, list[str]]:
+    """The check's verdict on a clip (`accepted`, `kept_failing`, `dropped`, `unchecked`) and its reasons."""
+    acc = store.attrs(SEGMENT.at(seg=seg).accepted)
+    if acc.get("complete") is not True:
+        return "unchecked", []
+    reasons = [str(r) for r in acc.get("reasons") or check.get("reasons") or []]
+    if acc.get("dropped"):
+        return "dropped", reasons
+    if acc.get("reasons"):
+        return "kept_failing", reasons
+    return "accepted", []
+
+
+def clip_kind(source: str) -> str:
+    """The kind of a clip source as given: `video` (a file), `folder` (of images) or `pattern` (a glob)."""
+    if set(source) & set("*?["):
+        return "pattern"
+    path = Path(source)
+    if path.is_dir() or (not path.exists() and not path.suffix):
+        return "folder"
+    return "video"
+
+
+def clips(store: SceneStore) -> list[dict[str, Any]] | None:
+    """Per clip of a `files` scene, in the given order: segment, source (as given), name, kind, frames used,
+    size [width, height], k_source and fov_deg, the check's verdict and its reasons. None for other scenes."""
+    if not is_clip_scene(store):
+        return None
+    given = list((_spec(store).get("video") or {}).get("clips") or [])
+    segs = segment_ids(store)
+    n = max(len(given), max((int(s.lstrip("s")) + 1 for s in segs if s.lstrip("s").isdigit()), default=0))
+    out = []
+    for i in range(n):
+        seg = f"s{i:03d}"
+        # the segment records the clip it was read from (its plan entry's words); before that, the spec says
+        source = str(store.attrs(SEGMENT.at(seg=seg)).get("intent") or (given[i] if i < len(given) else ""))
+        row: dict[str, Any] = {
+            "segment": seg,
+            "source": source,
+            "name": Path(source).name or source,
+            "kind": clip_kind(source),
+            "frames": None,
+            "size": None,
+            "k_source": None,
+            "fov_deg": None,
+            "verdict": "unread",
+            "reasons": [],
+        }
+        ks = attempt_ids(store, seg)
+        if ks:
+            k = accepted_attempt(store, seg)
+            ap = ATTEMPT.at(seg=seg, attempt=ks[-1] if k is None else k)
+            shape = _shape(store, ap.frames)
+            if shape:
+                row["frames"], row["size"] = shape[0], [shape[2], shape[1]]
+                row["k_source"], row["fov_deg"] = _k_source(store, seg, ap.sfm, shape[2])
+            row["verdict"], row["reasons"] = _verdict(store, seg, store.attrs(ap.check))
+        out.append(row)
+    return out
+
+
+def priors_words(depth: str | None, normal: str | None) -> str:
+    """Which priors a scene has, in a few words ("none: colours only" when it has none)."""
+    if depth is None and normal is None:
+        return "unknown (no configuration stored)"
+    if depth == "none" and normal == "none":
+        return "none: colours only"
+    return f"depth {depth}, normals {normal}"
+
+
+def priors(store: SceneStore) -> dict[str, Any]:
+    """The scene's priors: depth and normal backends (from the priors step when it ran, else from the stored
+    configuration), whether the step computed them, and in words."""
+    backends = store.attrs(PRIORS.path).get("backends")
+    done = store.cache_key_of(PRIORS.path) is not None and isinstance(backends, list) and len(backends) == 2
+    if done:
+        depth, normal = (str(b) for b in backends)
+    else:
+        models = (((store.root.attrs.get("config") or {}).get("steps") or {}).get("priors") or {}).get("models") or {}
+        depth, normal = models.get("depth_backend"), models.get("normal_backend")
+    return {"depth_backend": depth, "normal_backend": normal, "computed": done, "words": priors_words(depth, normal)}
+
+
+def global_k(store: SceneStore) -> dict[str, Any] | None:
+    """Where the global solve's K came from (`k_source`, recorded by the poses step) and its FOV; None when the
+    poses step has not run or did not record it."""
+    a = store.attrs(SFM.path)
+    if store.cache_key_of(SFM.path) is None or a.get("k_source") is None:
+        return None
+    fov = a.get("fov_deg") if isinstance(a.get("fov_deg"), int | float) else None
+    if fov is None:
+        segs = a.get("segments") or []
+        k = accepted_attempt(store, segs[0]) if segs else None
+        shape = _shape(store, ATTEMPT.at(seg=segs[0], attempt=k).frames) if k is not None else None
+        if shape and _shape(store, SFM.K):
+            fov = fov_deg(a["K"] if a.get("K") is not None else store.array(SFM.K), shape[2])
+    return {"k_source": str(a["k_source"]), "fov_deg": fov}
 
 
 def _expected_keys(store: SceneStore) -> dict[str, str]:
@@ -91,5 +246,8 @@ def summarize(store: SceneStore) -> dict[str, Any]:
         "steps": steps,
         "segments": segments,
         "extensions": extensions,
+        "clips": clips(store),
+        "priors": priors(store),
+        "global_k": global_k(store),
         "size_bytes": store.size_bytes(),
     }

@@ -7,6 +7,9 @@ come from `splats/` attributes; step times from each step group's `seconds` attr
 run by older versions, shown as not recorded). The Scene section shows the 3D result the outputs step
 wrote beside the store: stills of `novel.mp4` and `flythrough.mp4` (which also play in the page) and
 pictures of `mesh.ply` from the first camera of the video and from above and behind the camera path.
+A scene of the user's own clips (video backend `files`) is described as what it is: a Clips table (each clip's
+frames, size, where its K came from and the check's verdict) in place of the plan, and no rounds, moves,
+planned paths or user's words. A scene without priors says so in one line, with how to add them.
 
 `write_report(..., only_if_stale=True)` leaves a report alone when it was made from the same state
 (`report_state`: a fingerprint of the store's metadata and the files beside it), so a cached re-run of a
@@ -32,8 +35,10 @@ from tasks import STEPS
 from tasks.segments import accepted_attempt, attempt_ids, attempt_path, segment_ids, stitched
 from wonderverse import __version__
 from wonderverse.report import (
+    CLIP_VERDICTS,
     STATE_META,
     AttemptInfo,
+    ClipInfo,
     FileEntry,
     Picture,
     ReportContent,
@@ -48,11 +53,27 @@ from wonderverse.store import STORE_NAME, SceneStore
 
 log = logging.getLogger("wonderverse.report")
 REPORT_NAME = "report.html"
+# A scene without depth or normal priors, in one line (what the splats trained on, and how to add priors).
+NO_PRIORS_NOTE = (
+    "no depth model was named, so the splats train on colours alone; add depth and normal priors with "
+    "--depth-model PATH (a local Depth Anything V2 folder) or steps.priors.models in --config"
+)
 # The scene videos the outputs step writes, in the order the report shows them.
 SCENE_VIDEOS = {"novel.mp4": "Novel views (off the training path)", "flythrough.mp4": "Fly-through"}
 # Modules that decide what the report looks like: a report drawn by other code is redrawn.
-_REPORT_CODE = ("flows/report.py", "wonderverse/report.py", "wonderverse/plots.py", "wonderverse/mesh_view.py")
+_REPORT_CODE = (
+    "flows/report.py",
+    "flows/inspect.py",
+    "wonderverse/report.py",
+    "wonderverse/plots.py",
+    "wonderverse/mesh_view.py",
+)
 
+# What the first steps do for the user's clips (their own descriptions speak of planning and generating).
+CLIP_STEPS = {
+    "plan": "one segment per clip, in the order given (nothing planned)",
+    "generate_segments": "read every clip (nothing generated)",
+}
 # Files other steps write beside the store (whatever exists is linked), with what they are.
 KNOWN_FILES: dict[str, str] = {
     "splats.ply": "Gaussian splats, INRIA 3DGS PLY layout, original world frame",
@@ -278,8 +299,40 @@ def _prior_errors(store: SceneStore, segments: list[SegmentInfo], sfm_to_gt_scal
     return out
 
 
-def _segments(store: SceneStore, p: ReportParams) -> list[SegmentInfo]:
-    """Planned segments (from the plan, else from the store) with attempts, status and previews."""
+def _clip_infos(store: SceneStore) -> list[ClipInfo] | None:
+    """The user's clips in order (video backend `files`), as `inspect` reads them; None for other scenes."""
+    from flows.inspect import clips
+
+    rows = clips(store)
+    if rows is None:
+        return None
+    out = []
+    for r in rows:
+        folder = str(Path(r["source"]).parent) if r["source"] else ""
+        width, height = r["size"] or (None, None)
+        out.append(
+            ClipInfo(
+                segment=r["segment"],
+                name=r["name"],
+                kind=r["kind"],
+                folder=folder,
+                frames=r["frames"],
+                width=width,
+                height=height,
+                k_source=r["k_source"],
+                fov_deg=r["fov_deg"],
+                verdict=r["verdict"],
+                reasons=tuple(r["reasons"]),
+            )
+        )
+    return out
+
+
+def _segments(store: SceneStore, p: ReportParams, clips: list[ClipInfo] | None = None) -> list[SegmentInfo]:
+    """Planned segments (from the plan, else from the store) with attempts, status and previews; for a scene
+    of clips, each segment carries its clip (and no plan entry: nothing was planned)."""
+    if clips is not None:
+        return _clip_segments(store, p, clips)
     params = _check_params(store)
     plan = store.attrs(PLAN.path) if store.cache_key_of(PLAN.path) else {}
     planned = list((plan.get("plan") or {}).get("segments", []))
@@ -316,14 +369,37 @@ def _segments(store: SceneStore, p: ReportParams) -> list[SegmentInfo]:
     return out
 
 
-def _timings(store: SceneStore) -> list[StepTiming]:
+def _clip_segments(store: SceneStore, p: ReportParams, clips: list[ClipInfo]) -> list[SegmentInfo]:
+    """One segment per clip, in the order given, with its attempts, verdict and previews."""
+    params = _check_params(store)
+    ok = {"accepted": True, "kept_failing": False, "dropped": False}
+    out = []
+    for clip in clips:
+        seg = clip.segment
+        ks = attempt_ids(store, seg)
+        chosen = accepted_attempt(store, seg) if ks else None
+        info = SegmentInfo(
+            id=seg,
+            status=CLIP_VERDICTS.get(clip.verdict, clip.verdict),
+            status_ok=ok.get(clip.verdict),
+            frames=clip.frames,
+            attempts=[_attempt(store, seg, k, chosen, params) for k in ks],
+            clip=clip,
+        )
+        info.previews = _previews(store, seg, p)
+        out.append(info)
+    return out
+
+
+def _timings(store: SceneStore, clips: bool = False) -> list[StepTiming]:
     from flows.inspect import summarize
 
     status = {s["name"]: s["status"] for s in summarize(store)["steps"]}
     out = []
     for s in STEPS:
         seconds = store.attrs(s.group).get("seconds") if status[s.name] != "missing" else None
-        out.append(StepTiming(s.name, status[s.name], None if seconds is None else float(seconds), s.description))
+        what = CLIP_STEPS.get(s.name, s.description) if clips else s.description
+        out.append(StepTiming(s.name, status[s.name], None if seconds is None else float(seconds), what))
     return out
 
 
@@ -475,7 +551,7 @@ def _scene(store: SceneStore, p: ReportParams) -> tuple[list[VideoClip], list[Pi
 def _planned_paths(store: SceneStore, segments: list[SegmentInfo]) -> Picture | None:
     from wonderverse.plots import trajectory_topview_plot
 
-    with_path = [s for s in segments if _has_array(store, SEGMENT.at(seg=s.id).path)]
+    with_path = [s for s in segments if s.clip is None and _has_array(store, SEGMENT.at(seg=s.id).path)]
     if not with_path:
         return None
     png = trajectory_topview_plot(
@@ -489,10 +565,18 @@ def _planned_paths(store: SceneStore, segments: list[SegmentInfo]) -> Picture | 
 
 def _metrics(store: SceneStore, segments: list[SegmentInfo]) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
     """Metric groups, and headline figures for the summary."""
+    from flows.inspect import global_k
+
     metrics: dict[str, dict[str, Any]] = {}
     headline: dict[str, Any] = {}
     check = store.attrs(CHECK.path)
-    if check.get("complete") is True:
+    clips = {s.id: s.clip.label for s in segments if s.clip is not None}
+    if check.get("complete") is True and clips:  # a clip cannot be regenerated: no extra trials to count
+        metrics["Geometric correction"] = {
+            "dropped clips": ", ".join(clips.get(s, s) for s in check.get("dropped", [])) or "none",
+            "kept although failing": ", ".join(clips.get(s, s) for s in check.get("kept_failing", [])) or "none",
+        }
+    elif check.get("complete") is True:
         metrics["Geometric correction"] = {
             "mean extra trials per segment": check.get("mean_extra_trials"),
             "dropped segments": ", ".join(check.get("dropped", [])) or "none",
@@ -510,6 +594,10 @@ def _metrics(store: SceneStore, segments: list[SegmentInfo]) -> tuple[dict[str, 
             "reprojection error (px)": a.get("reproj_error_px"),
             "3D points": points[0] if points else None,
         }
+        k = global_k(store)
+        if k is not None:
+            fov = f", {k['fov_deg']:.1f}° horizontal field of view" if k["fov_deg"] is not None else ""
+            metrics["Global camera path"]["intrinsics (K)"] = f"{k['k_source']}{fov}"
     pair = _global_gt(store)
     if pair is not None:
         from wonderverse.camera import camera_centers, umeyama
@@ -555,7 +643,12 @@ def _metrics(store: SceneStore, segments: list[SegmentInfo]) -> tuple[dict[str, 
     return metrics, headline
 
 
-def _facts(store: SceneStore) -> dict[str, Any]:
+def _clip_count(clips: list[ClipInfo]) -> str:
+    """How many clips, in words ("3 clips", "1 clip")."""
+    return f"{len(clips)} clip{'s' * (len(clips) != 1)}"
+
+
+def _facts(store: SceneStore, clips: list[ClipInfo] | None = None) -> dict[str, Any]:
     root = dict(store.root.attrs)
     spec = root.get("spec") or {}
     video = spec.get("video") or {}
@@ -563,6 +656,17 @@ def _facts(store: SceneStore) -> dict[str, Any]:
     facts: dict[str, Any] = {"scene folder": str(store.scene_dir)}
     if config.get("preset"):
         facts["preset"] = config["preset"]
+    if clips is not None:  # nothing generated or planned: no seed, rounds or frame counts of a video model
+        opts = video.get("options") or {}
+        most = opts.get("max_frames")
+        side = opts.get("max_side_px")
+        facts["scene"] = f"reconstruction of {_clip_count(clips)}, one segment each, in the order given (backend files)"
+        facts["clips read"] = (
+            f"{'every frame' if most is None else f'at most {most} frames'} per clip, evenly spread; "
+            f"{'full size' if side is None else f'longer side at most {side} px'}"
+        )
+        facts["store"] = f"format {root.get('format')}, written by WonderVerse {root.get('wonderverse_version')}"
+        return facts
     if "seed" in spec:
         facts["seed"] = spec["seed"]
     if video:
@@ -579,17 +683,27 @@ def _facts(store: SceneStore) -> dict[str, Any]:
     return facts
 
 
+def _priors_note(store: SceneStore) -> str:
+    """One line when the scene has no depth or normal prior (by its priors step, or, before that step ran,
+    by its stored configuration); "" when it has priors."""
+    from flows.inspect import priors
+
+    pr = priors(store)
+    return NO_PRIORS_NOTE if (pr["depth_backend"], pr["normal_backend"]) == ("none", "none") else ""
+
+
 def gather(store: SceneStore, params: ReportParams | None = None) -> ReportContent:
     """Everything the report shows, read from the store (nothing is written)."""
     p = params or ReportParams()
     spec = store.root.attrs.get("spec") or {}
     plan = store.attrs(PLAN.path) if store.cache_key_of(PLAN.path) else {}
     plan_model = plan.get("plan") or {}
-    segments = _segments(store, p)
+    clips = _clip_infos(store)
+    segments = _segments(store, p, clips)
     overview, trajectory = _stitched_pictures(store, p)
     videos, mesh_views, scene_notes = _scene(store, p)
     metrics, headline = _metrics(store, segments)
-    timings = _timings(store)
+    timings = _timings(store, clips is not None)
     curves = {k: [float(x) for x in v] for k, v in (store.attrs(SPLATS.path).get("curves") or {}).items()}
     skipped = curves.pop("skipped", [])
     notes = []
@@ -600,12 +714,16 @@ def gather(store: SceneStore, params: ReportParams | None = None) -> ReportConte
         )
     if not any(t.status == "complete" for t in timings):
         notes.append("Nothing has completed yet: run `wonderverse generate` on this scene.")
-    facts = _facts(store) | headline
+    facts = _facts(store, clips) | headline
+    if clips is not None:
+        prompt = f"Reconstruction of {_clip_count(clips)}: {', '.join(c.label for c in clips)}"
+    else:
+        prompt = str(spec.get("prompt", ""))
     return ReportContent(
         title=f"WonderVerse report — {store.scene_dir.name}",
-        prompt=str(spec.get("prompt", "")),
+        prompt=prompt,
         facts=facts,
-        planner=str(plan_model.get("planner", "")),
+        planner="" if clips is not None else str(plan_model.get("planner", "")),
         plan_note=f"fallback: {plan_model['fallback_reason']}" if plan_model.get("fallback_reason") else "",
         segments=segments,
         overview=overview,
@@ -621,6 +739,8 @@ def gather(store: SceneStore, params: ReportParams | None = None) -> ReportConte
         files=_files(store),
         notes=notes,
         generated=f"written {datetime.now(UTC):%Y-%m-%d %H:%M} UTC by WonderVerse {__version__}",
+        clips=clips,
+        priors_note=_priors_note(store),
     )
 
 

@@ -26,6 +26,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from PIL import Image
 
+from flows.inspect import summarize
 from flows.pipeline import execute
 from flows.report import report_state, write_report
 from tasks import STEPS
@@ -266,6 +267,21 @@ def test_report_lists_every_segment_and_attempt_with_its_verdict(full_scene: Pat
     assert segments.count("steps against the thresholds") == 4 * 2  # alt text + caption
     assert segments.count("camera path from above</figcaption>") == 4
     assert segments.count("normal priors") >= 3
+
+
+def test_a_generated_scene_has_its_plan_and_priors_and_no_clips(full_scene: Path):
+    text = (full_scene / "report.html").read_text()
+    assert '<section id="plan">' in text and '<section id="clips">' not in text
+    assert "No depth or normal previews" not in text and "<th>priors</th>" not in section(text, "summary")
+    info = summarize(SceneStore.open(full_scene))
+    assert info["clips"] is None
+    # the procedural world's default priors: the oracle depth, normals from it
+    assert info["priors"] == {
+        "depth_backend": "oracle",
+        "normal_backend": "from_depth",
+        "computed": True,
+        "words": "depth oracle, normals from_depth",
+    }
 
 
 def test_report_shows_prompt_escaped_timings_metrics_curves_and_files(full_scene: Path):

@@ -78,9 +78,62 @@ class AttemptInfo:
     topview: bytes | None = None
 
 
+# A clip's verdict (as `inspect --json` gives it) in words.
+CLIP_VERDICTS = {
+    "accepted": "accepted",
+    "kept_failing": "kept although it failed its check",
+    "dropped": "dropped by its check",
+    "unchecked": "not checked yet",
+    "unread": "not read yet",
+}
+# What a clip's source is, in words.
+CLIP_KINDS = {"video": "video file", "folder": "image folder", "pattern": "images matching a pattern"}
+# Where a clip's K came from, in words.
+K_SOURCES = {
+    "given": "given (--fov-deg)",
+    "estimated": "estimated from the clip",
+    "guessed": "guessed",
+}
+
+
+@dataclass(frozen=True)
+class ClipInfo:
+    """One of the user's clips (video backend `files`; one segment each, in the order given).
+
+    name: the file or folder name; kind: "video", "folder" (of images) or "pattern" (a glob of images);
+    folder: where it lives; frames: frames used (None: not read yet); width, height: their size in pixels;
+    k_source: "given", "estimated" or "guessed"; fov_deg: horizontal field of view of that K; verdict: a key
+    of CLIP_VERDICTS; reasons: the check's, in words."""
+
+    segment: str
+    name: str
+    kind: str = "video"
+    folder: str = ""
+    frames: int | None = None
+    width: int | None = None
+    height: int | None = None
+    k_source: str | None = None
+    fov_deg: float | None = None
+    verdict: str = "unread"
+    reasons: tuple[str, ...] = ()
+
+    @property
+    def label(self) -> str:
+        """The name as a person reads it: folders end with a slash."""
+        return self.name + ("/" if self.kind == "folder" else "")
+
+    @property
+    def k_words(self) -> str:
+        if self.k_source is None:
+            return "–"
+        fov = f", {self.fov_deg:.1f}° horizontal field of view" if self.fov_deg is not None else ""
+        return K_SOURCES.get(self.k_source, self.k_source) + fov
+
+
 @dataclass
 class SegmentInfo:
-    """One planned segment: its plan entry, status in words, attempts, and prior previews."""
+    """One planned segment: its plan entry, status in words, attempts, and prior previews; `clip` for a
+    segment that is one of the user's clips (no plan entry: nothing was planned or generated)."""
 
     id: str
     role: str = ""
@@ -93,6 +146,7 @@ class SegmentInfo:
     attempts: list[AttemptInfo] = field(default_factory=list)
     previews: list[Picture] = field(default_factory=list)
     metrics: dict[str, Value] = field(default_factory=dict)
+    clip: ClipInfo | None = None
 
 
 @dataclass(frozen=True)
@@ -138,6 +192,9 @@ class ReportContent:
     curves: training curves, name -> one value per iteration.
     videos, mesh_views, scene_notes: the 3D result (renders of the splats, pictures of the mesh) and one
     line for each thing of it that is missing.
+    clips: the user's clips in order (video backend `files`), shown in place of the plan; None for a generated
+    scene. priors_note: one line when the scene has no depth or normal prior (shown in the summary and where
+    the previews would be).
     state: a fingerprint of what the report was made from, written into the page (see `STATE_META`)."""
 
     title: str
@@ -160,6 +217,8 @@ class ReportContent:
     notes: list[str] = field(default_factory=list)
     generated: str = ""
     state: str = ""
+    clips: list[ClipInfo] | None = None
+    priors_note: str = ""
 
 
 # -- figures -------------------------------------------------------------------------------------
@@ -352,6 +411,8 @@ th,td{padding:5px 10px;border-bottom:1px solid #e8eaef;text-align:left;vertical-
 th{background:#f7f8fa;font-weight:600;color:#3b4457}
 td.num{text-align:right;font-variant-numeric:tabular-nums;white-space:nowrap}
 table.kv th{width:220px}
+table.clips th,table.clips td.num,table.clips td:first-child{white-space:nowrap}
+table.clips td:nth-child(2){min-width:180px}table.clips td:nth-child(5){min-width:170px}
 .badge{display:inline-block;padding:1px 9px;border-radius:10px;font-size:12px;font-weight:600;white-space:nowrap}
 .ok{background:#dcf2e3;color:#13602f}.bad{background:#fbe1de;color:#9d2418}.muted{background:#eceef2;color:#555d6b}
 .chosen{background:#e1e9fb;color:#23479a}
@@ -471,19 +532,22 @@ def _reasons(a: AttemptInfo) -> str:
 
 def _attempts_table(seg: SegmentInfo) -> str:
     metric_names = sorted({k for a in seg.attempts for k in a.metrics})
+    generated = seg.clip is None  # a clip is read, not generated: it has no seed and no injected fault
     head = ["attempt", "seed", "verdict", "reasons", "registered", "SfM time", "injected fault (GT)", *metric_names]
+    if not generated:
+        head = [h for h in head if h not in ("seed", "injected fault (GT)")]
     rows = []
     for a in seg.attempts:
         reg = "–" if a.registered_frac is None else f"{100 * a.registered_frac:.0f} %"
         fault = "–" if a.fault is None else (a.fault or "none")
         cells = [
             f'<td class="num">{a.index}</td>',
-            f'<td class="num">{esc(fmt(a.seed))}</td>',
+            f'<td class="num">{esc(fmt(a.seed))}</td>' if generated else "",
             f"<td>{_verdict(a)}</td>",
             f"<td>{_reasons(a)}</td>",
             f'<td class="num">{esc(reg)}</td>',
             f'<td class="num">{esc(fmt_seconds(a.sfm_seconds))}</td>',
-            f"<td>{esc(fault)}</td>",
+            f"<td>{esc(fault)}</td>" if generated else "",
             *(f'<td class="num">{esc(fmt(a.metrics.get(m)))}</td>' for m in metric_names),
         ]
         rows.append(f'<tr id="{esc(seg.id)}-a{a.index}">{"".join(cells)}</tr>')
@@ -492,14 +556,23 @@ def _attempts_table(seg: SegmentInfo) -> str:
 
 def _segment_html(seg: SegmentInfo) -> str:
     kind = {True: "ok", False: "bad", None: "muted"}[seg.status_ok]
-    meta = [f"user's words: {seg.intent}" if seg.intent else "no user's words"]
-    if seg.reference:
-        meta.insert(0, f"starts from {seg.reference}")
-    if seg.frames is not None:
-        meta.append(f"{seg.frames} frames")
+    if seg.clip is not None:
+        c = seg.clip
+        what = CLIP_KINDS.get(c.kind, c.kind)
+        meta = [f"{what} in {c.folder}" if c.folder else what]
+        if c.frames is not None:
+            meta.append(f"{c.frames} frames" + (f", {c.width}×{c.height} px" if c.width else ""))
+        meta.append(f"K {c.k_words}")
+        title = f"{esc(seg.id)} · {esc(c.label)}"
+    else:
+        meta = [f"user's words: {seg.intent}" if seg.intent else "no user's words"]
+        if seg.reference:
+            meta.insert(0, f"starts from {seg.reference}")
+        if seg.frames is not None:
+            meta.append(f"{seg.frames} frames")
+        title = f"{esc(seg.id)} · {esc(seg.role)} · {esc(seg.move)}"
     parts = [
-        f'<h3 id="seg-{esc(seg.id)}">{esc(seg.id)} · {esc(seg.role)} · {esc(seg.move)} '
-        f"{_badge(seg.status or 'unknown', kind)}</h3>",
+        f'<h3 id="seg-{esc(seg.id)}">{title} {_badge(seg.status or "unknown", kind)}</h3>',
         f'<p class="meta">{esc(" · ".join(meta))}</p>',
     ]
     if seg.attempts:
@@ -560,6 +633,32 @@ def _plan_html(c: ReportContent) -> str:
     return f"{planner}{note}<table>{head}{rows}</table>{paths}"
 
 
+def _clips_html(c: ReportContent) -> str:
+    """The user's clips in order: name, frames used, size, where K came from, the check's verdict."""
+    if not c.clips:
+        return _empty("No clips given.")
+    kinds = {"accepted": "ok", "kept_failing": "bad", "dropped": "bad"}
+    head = "<tr><th>segment</th><th>clip</th><th>frames</th><th>size</th><th>K</th><th>check</th></tr>"
+    rows = []
+    for clip in c.clips:
+        where = f'<br><span class="empty">{esc(clip.folder)}</span>' if clip.folder else ""
+        size = f"{clip.width}×{clip.height} px" if clip.width else "–"
+        reasons = "".join(f"<li>{esc(r)}</li>" for r in clip.reasons)
+        verdict = _badge(CLIP_VERDICTS.get(clip.verdict, clip.verdict), kinds.get(clip.verdict, "muted")) + (
+            f'<ul class="reasons">{reasons}</ul>' if reasons else ""
+        )
+        rows.append(
+            f'<tr id="clip-{esc(clip.segment)}"><td><a href="#seg-{esc(clip.segment)}">{esc(clip.segment)}</a></td>'
+            f'<td>{esc(clip.label)}{where}</td><td class="num">{esc(fmt(clip.frames))}</td>'
+            f'<td class="num">{esc(size)}</td><td>{esc(clip.k_words)}</td><td>{verdict}</td></tr>'
+        )
+    note = (
+        "<p>Each clip is one segment, in the order given; nothing was planned or generated, and a clip that "
+        "fails its check cannot be regenerated.</p>"
+    )
+    return f'{note}<table class="clips">{head}{"".join(rows)}</table>'
+
+
 def _metrics_html(metrics: Mapping[str, Mapping[str, Value]]) -> str:
     if not metrics:
         return _empty("No metrics yet: they come with the check, poses, priors and splats steps.")
@@ -608,8 +707,15 @@ def _scene_html(c: ReportContent) -> str:
 def _summary_rows(c: ReportContent) -> dict[str, Value]:
     attempts = [a for s in c.segments for a in s.attempts]
     rows: dict[str, Value] = dict(c.facts)
-    rows["segments"] = len(c.segments)
-    if attempts:
+    if c.priors_note:
+        rows["priors"] = f"none — {c.priors_note}"
+    if c.clips is not None:
+        verdicts = [CLIP_VERDICTS.get(x.verdict, x.verdict) for x in c.clips]
+        counts = ", ".join(f"{verdicts.count(v)} {v}" for v in dict.fromkeys(verdicts))
+        rows["clips"] = f"{len(c.clips)} ({counts})" if c.clips else 0
+    else:
+        rows["segments"] = len(c.segments)
+    if attempts and c.clips is None:
         rejected = sum(a.accepted is False for a in attempts)
         rows["attempts"] = f"{len(attempts)} ({rejected} rejected by the check)"
     done = [t for t in c.timings if t.status == "complete"]
@@ -633,10 +739,13 @@ def render_html(content: ReportContent, params: ReportParams | None = None) -> s
     )
     if c.curves_note:
         curves_html += f'<p class="empty">{esc(c.curves_note)}</p>'
+    segments = "".join(_segment_html(s) for s in c.segments) or _empty("No segments yet.")
+    if c.priors_note:
+        segments = _empty(f"No depth or normal previews: {c.priors_note}") + segments
     sections = [
         ("summary", "Summary", _kv_table(_summary_rows(c))),
         ("scene", "Scene", _scene_html(c)),
-        ("plan", "Plan", _plan_html(c)),
+        ("clips", "Clips", _clips_html(c)) if c.clips is not None else ("plan", "Plan", _plan_html(c)),
         (
             "video",
             "Stitched video",
@@ -644,11 +753,7 @@ def render_html(content: ReportContent, params: ReportParams | None = None) -> s
             + (_figure(c.trajectory.data, c.trajectory.caption) if c.trajectory else ""),
         ),
         ("steps", "Steps and timings", _timings_html(c.timings)),
-        (
-            "segments",
-            "Segments and their attempts",
-            "".join(_segment_html(s) for s in c.segments) or _empty("No segments yet."),
-        ),
+        ("segments", "Segments and their attempts" if c.clips is None else "Clips and their checks", segments),
         ("curves", "Training curves", curves_html),
         ("metrics", "Metrics", _metrics_html(c.metrics)),
         ("files", "Files", _files_html(c.files)),
