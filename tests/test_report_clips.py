@@ -199,6 +199,17 @@ def test_a_failing_clip_kept_and_where_k_came_from(checked: Path, tmp_path: Path
     assert [c["k_source"] for c in summarize(store)["clips"]] == ["estimated", "guessed"]
 
 
+def test_the_global_solve_says_where_its_k_came_from(scene: Path, tmp_path: Path):
+    copy = tmp_path / "scene"
+    shutil.copytree(scene, copy)
+    store = SceneStore.open(copy, mode="r+")
+    assert summarize(store)["global_k"] is None  # the poses step recorded no k_source
+    store.group("sfm").attrs.update({"k_source": "estimated", "K": intrinsics(W, H, 50.0).tolist()})
+    assert summarize(store)["global_k"] == {"k_source": "estimated", "fov_deg": 50.0}
+    metrics = text_of(section(write_report(copy).read_text(), "metrics"))
+    assert "intrinsics (K) estimated, 50.0° horizontal field of view" in metrics
+
+
 def test_clip_names_are_escaped():
     clip = ClipInfo("s000", '<img src=x onerror="1">.mp4', folder="/a/<b>", frames=3, reasons=("<script>",))
     text = render_html(ReportContent(title="t", prompt="p", clips=[clip]))
