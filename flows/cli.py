@@ -19,7 +19,7 @@ from rich.console import Console
 
 from flows.engine import check_engine
 from flows.serve import batch_command, serve_command
-from wonderverse.errors import WonderError, shown
+from wonderverse.errors import WonderError
 
 # Before torch loads: idle OpenMP threads sleep instead of spinning (measured 3-10x faster CPU splat
 # training on a shared 2-core machine).
@@ -120,17 +120,12 @@ def generate(
 ) -> None:
     """Plan, render and reconstruct a scene; cached steps are skipped, the scene's extensions are kept."""
     from flows.extend import with_extensions
-    from flows.pipeline import run_pipeline, segments_config, steps_until, stored_config
+    from flows.pipeline import needed_steps, run_pipeline, segments_config, stored_config
     from wonderverse.config import build_config, read_yaml
     from wonderverse.store import check_scene_dir
 
     check_engine(engine)
-    try:
-        steps = steps_until(until)
-    except KeyError:
-        from tasks import STEP_NAMES
-
-        raise WonderError(f"unknown step {shown(until)}; steps are: {', '.join(STEP_NAMES)}") from None
+    steps = needed_steps(until)
     file_scene = read_yaml(config).get("scene") if config else None
     file_prompt = file_scene.get("prompt") if isinstance(file_scene, dict) else None
     scene_dir, folder_note = (
@@ -231,16 +226,19 @@ def reconstruct(
         str, typer.Option(help="a clip that fails its check: keep_best (keep it, warned), drop, or fail")
     ] = "keep_best",
     fov_deg: Annotated[float | None, typer.Option(help="horizontal field of view when known (else estimated)")] = None,
+    until: Annotated[str | None, typer.Option(help="run only the steps this step needs")] = None,
     engine: Engine = "auto",
     replace_segments: ReplaceSegments = False,
 ) -> None:
     """Reconstruct your own clips (any video generator or a phone): check, poses, priors, splats, outputs."""
-    from flows.pipeline import run_pipeline, stored_config
+    from flows.pipeline import needed_steps, run_pipeline, stored_config
     from wonderverse.config import build_config
     from wonderverse.store import check_scene_dir
+    from wonderverse.video import make_video_model
     from wonderverse.video.files import group_sources
 
     check_engine(engine)
+    steps = needed_steps(until)
     paths = []
     for source in group_sources(clips):  # a shell turns frames/*.png into many arguments: one clip again
         if isinstance(source, list | tuple):
@@ -248,15 +246,12 @@ def reconstruct(
             if len(folders) != 1:
                 raise WonderError("images from several folders: give each folder as one clip")
             source = folders.pop()
-        path = str(Path(source).resolve())
-        if not Path(path).exists() and not glob.glob(path):  # checked before the store is touched
-            raise WonderError(f"{source}: no such file or folder")
-        paths.append(path)
+        paths.append(_clip_path(source))
     if depth_model is not None and not depth_model.is_dir():
         raise WonderError(f"--depth-model {depth_model}: no such folder (a local Depth Anything V2 folder)")
     options = {} if fov_deg is None else {"fov_deg": fov_deg}
     overrides: dict[str, Any] = {
-        "scene": {"video": {"backend": "files", "clips": paths, "options": options}},
+        "scene": {"video": {"backend": "files", "clips": paths, "options": options}, "extensions": {"rounds": 0}},
         "steps": {"check": {"on_failure": on_failure}},
     }
     if depth_model is not None:
@@ -267,16 +262,34 @@ def reconstruct(
     check_scene_dir(scene_dir)
     name, why = _choose_preset(preset, config, stored_config(scene_dir))
     cfg = build_config(prompt=prompt, preset=name, config_file=config, overrides=overrides)
+    make_video_model(cfg.scene.video_source)  # reads every clip: a bad one is refused before the store is touched
     _run_with_progress(
         scene_dir,
         engine,
         f"preset {name} ({why})",
         lambda eng: run_pipeline(
-            scene_dir, cfg, engine=eng, flow_name="reconstruct", replace_segments=replace_segments
+            scene_dir, cfg, until, engine=eng, flow_name="reconstruct", replace_segments=replace_segments
         ),
+        len(steps),
         folder_note=folder_note,
         notes=config_notes(cfg),
     )
+
+
+def _clip_path(source: str) -> str:
+    """The absolute path of a clip argument (a glob stays a pattern); WonderError naming it when it is missing, a
+    symlink loop, or neither a file nor a folder (a device, a pipe)."""
+    try:
+        path = Path(source).resolve()
+    except (RuntimeError, OSError) as e:  # Python 3.11 raises RuntimeError for a symlink loop
+        raise WonderError(f"{source}: cannot be read ({' '.join(str(e).split())})") from None
+    if not path.exists():
+        if glob.glob(str(path)):
+            return str(path)
+        raise WonderError(f"{source}: no such file or folder")
+    if not (path.is_file() or path.is_dir()):
+        raise WonderError(f"{source}: not a video file or a folder of images (a device or a pipe)")
+    return str(path)
 
 
 def config_notes(cfg: Any) -> list[str]:
@@ -425,14 +438,13 @@ def main() -> None:
     except (typer.Exit, SystemExit) as e:
         code = getattr(e, "exit_code", getattr(e, "code", 0))
         sys.exit(code)
-    except Exception as e:  # click usage errors
-        import click
-
-        if isinstance(e, click.ClickException):
-            e.show()
+    except typer.Abort:
+        sys.exit(130)
+    except Exception as e:
+        # Usage errors (no such option, a missing argument): click's exceptions, vendored by typer >= 0.29
+        if hasattr(e, "format_message") and hasattr(e, "exit_code"):
+            print(f"error: {' '.join(e.format_message().split())} (see --help)", file=sys.stderr)
             sys.exit(2)
-        if isinstance(e, click.exceptions.Abort):
-            sys.exit(130)
         raise
 
 

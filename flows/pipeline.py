@@ -59,12 +59,13 @@ def execute(
     """Run the steps `until` needs (all by default); returns one StepResult per step. One run writes a
     scene at a time: a second one waits up to `wait_s` seconds for the first, then refuses (WonderError).
     `on_cached(step, key)` is called for each step skipped as complete (the flow records a "Cached" task run)."""
-    steps = _steps(until)
+    steps = needed_steps(until)
     with scene_lock(scene_dir, wait_s=wait_s):
         return _execute(scene_dir, cfg, steps, call, on_cached)
 
 
-def _steps(until: str | None) -> list[Step]:
+def needed_steps(until: str | None) -> list[Step]:
+    """The steps `until` needs, in order (all when None); WonderError naming the steps when `until` is none of them."""
     try:
         return steps_until(until)
     except KeyError:
@@ -129,7 +130,7 @@ def _generate_flow(
     """The flow body. `lock_held`: the caller (`run_pipeline`) already holds the scene's lock, taken before
     Prefect started so that a busy scene is refused at once."""
     if lock_held:
-        return _execute(scene_dir, config, _steps(until), _prefect_call, _prefect_cached)
+        return _execute(scene_dir, config, needed_steps(until), _prefect_call, _prefect_cached)
     return execute(scene_dir, config, until, call=_prefect_call, on_cached=_prefect_cached)
 
 
@@ -160,7 +161,7 @@ def run_pipeline(
     """Run a scene with the chosen engine (`flows.engine`): a Prefect flow named `flow_name`, or plain
     in-process calls. Before any engine starts, the scene's lock is taken (a busy scene is refused at once) and
     a run that would replace the scene's segments is refused unless `replace_segments` (WonderError)."""
-    steps = _steps(until)
+    steps = needed_steps(until)
     with scene_lock(scene_dir):
         if not replace_segments:
             refuse_replacing_segments(scene_dir, cfg)

@@ -6,6 +6,7 @@ nothing big travels through the scheduler and workers never share a writer."""
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from contextlib import contextmanager
@@ -95,6 +96,8 @@ def _dask_client(address: str | None, n_workers: int) -> Iterator[Any]:
             # cluster, a dashboard) costs no "Port 8787 is already in use" warning. No dashboard.
             dashboard_address="127.0.0.1:0",
             scheduler_kwargs={"dashboard": False},
+            # A task's failure reaches the user once, as the step's error; the workers must not print it too.
+            silence_logs=logging.CRITICAL,
         ) as cluster,
         Client(cluster) as client,
     ):

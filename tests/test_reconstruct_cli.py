@@ -1,0 +1,107 @@
+"""`wonderverse reconstruct` as users run it: real footage from ../shared/data reconstructs to outputs with no model
+weights, a real capture's skipped frames are flagged and kept, and every bad clip is one `error:` line naming it,
+exit 2, with no scene folder made. A step that fails is one `error:` line under either engine."""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+
+import imageio.v2 as imageio
+import numpy as np
+import pytest
+import yaml
+from conftest import TINY_VIDEO, run_cli
+from plyfile import PlyData
+
+RE10K_CLIP = "cameractrl_re10k/reference_videos/0bf152ef84195293.mp4"
+
+
+def error_lines(stderr: str) -> list[str]:
+    return [ln for ln in stderr.splitlines() if ln.startswith("error:")]
+
+
+@pytest.fixture(scope="module")
+def bad_clips(tmp_path_factory) -> dict[str, Path]:
+    d = tmp_path_factory.mktemp("bad")
+    (d / "notvideo.mp4").write_text("hello")
+    (d / "empty.mp4").write_bytes(b"")
+    with imageio.get_writer(d / "one.mp4", fps=8) as w:
+        w.append_data(np.zeros((64, 96, 3), np.uint8))
+    os.symlink(d / "loop2", d / "loop1")
+    os.symlink(d / "loop1", d / "loop2")
+    mixed = d / "mixed"
+    mixed.mkdir()
+    for i, (w, h) in enumerate([(96, 64), (96, 64), (128, 64)]):
+        imageio.imwrite(mixed / f"f{i}.png", np.full((h, w, 3), 40 * i, np.uint8))
+    return {p.name: p for p in d.iterdir()} | {"/dev/zero": Path("/dev/zero")}
+
+
+@pytest.mark.parametrize(
+    ("clip", "extra", "message"),
+    [
+        ("notvideo.mp4", [], "notvideo.mp4: cannot read video"),
+        ("empty.mp4", [], "empty.mp4: cannot read video"),
+        ("one.mp4", [], "one.mp4: only 1 frame"),
+        ("loop1", [], "loop1: cannot be read (Symlink loop"),
+        ("/dev/zero", [], "/dev/zero: not a video file"),
+        ("mixed", [], "f2.png: image is 128x64 but the clip's first frame f0.png is 96x64"),  # refused, not resized
+        ("one.mp4", ["--fov-deg", "nan"], "scene.video.options.fov_deg"),
+        ("one.mp4", ["--fov-deg", "-5"], "scene.video.options.fov_deg"),
+        ("one.mp4", ["--depth-model", "/nonexistent/da"], "--depth-model /nonexistent/da: no such folder"),
+    ],
+)
+def test_a_bad_clip_is_one_line_naming_it_and_makes_no_scene(bad_clips, tmp_path, clip, extra, message):
+    out = tmp_path / "scene"
+    r = run_cli("reconstruct", str(bad_clips[clip]), *extra, "--out", str(out))
+    lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
+    assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: "), r.stderr
+    assert message in lines[0], lines[0]
+    assert not out.exists()
+
+
+def test_a_failed_step_is_one_error_line_under_either_engine(tmp_path):
+    """A segment failing its check with on_failure=fail: the step raises a WonderError; the user sees the step
+    lines and exactly one `error:` line, no traceback, exit 2 (Prefect's own logs stay in its UI)."""
+    spec = tmp_path / "fail.yaml"
+    video = {**TINY_VIDEO, "options": {"fault_probability": 1.0}}
+    steps = {"check": {"max_attempts": 1, "on_failure": "fail"}}
+    spec.write_text(yaml.safe_dump({"preset": "preview", "scene": {"prompt": "a quiet forest lake", "video": video},
+                                    "steps": steps}))  # fmt: skip
+    env = {"PREFECT_HOME": str(tmp_path / "prefect"), "PREFECT_SERVER_ANALYTICS_ENABLED": "false"}
+    for engine in ("local", "prefect"):
+        args = ("generate", "--config", str(spec), "--out", str(tmp_path / f"scene-{engine}"), "--until", "check")
+        r = run_cli(*args, "--engine", engine, env=env, timeout=400)
+        errors = error_lines(r.stderr)
+        assert r.returncode == 2 and len(errors) == 1, r.stderr[-3000:]
+        assert "step check failed" in errors[0] and "failed all 1 attempts" in errors[0]
+        assert "Traceback" not in r.stderr and r.stderr.rstrip().endswith(errors[0])
+
+
+@pytest.mark.slow
+def test_a_real_estate_clip_reconstructs_to_outputs_with_no_weights(data_dir: Path, tmp_path: Path):
+    out = tmp_path / "scene"
+    r = run_cli("reconstruct", str(data_dir / RE10K_CLIP), "--out", str(out), "--preset", "preview", timeout=900)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "priors: none (no depth model named)" in r.stderr
+    for name in ("splats.ply", "mesh.ply", "mesh.glb", "points.ply", "novel.mp4", "report.html"):
+        assert (out / name).stat().st_size > 0, name
+    assert PlyData.read(str(out / "splats.ply"))["vertex"].count > 500
+    info = json.loads(run_cli("inspect", str(out), "--json").stdout)
+    assert {s["name"]: s["status"] for s in info["steps"]}["outputs"] == "complete"
+    assert info["segments"][0]["attempts"][0]["check"]["accepted"] is True  # a real walkthrough passes its check
+
+
+@pytest.mark.slow
+def test_the_fox_captures_real_jump_is_flagged_and_kept(data_dir: Path, tmp_path: Path):
+    """The fox images skip frames 0055-0071 (a 44° jump): the check flags it and, a clip not being regenerable,
+    keeps the clip with the reasons (keep_best)."""
+    out = tmp_path / "fox"
+    r = run_cli("reconstruct", str(data_dir / "instant_ngp_fox/images"), "--out", str(out), "--until", "check",
+                timeout=900)  # fmt: skip
+    assert r.returncode == 0, r.stderr[-3000:]
+    seg = json.loads(run_cli("inspect", str(out), "--json").stdout)["segments"][0]
+    check = seg["attempts"][0]["check"]
+    assert seg["accepted_attempt"] == 0 and check["accepted"] is False
+    assert any("jump" in reason for reason in check["reasons"]), check["reasons"]
