@@ -150,7 +150,7 @@ def pose_error(scene: Path) -> float:
     """ATE of a scene's global poses against the procedural world's true path, as a share of its length."""
     store = SceneStore.open(scene)
     segs = store.attrs(SFM.path)["segments"]
-    true = {seg: store.array(f"{attempt_path(store, seg)}/gt/poses") for seg in segs}
+    true = {seg: store.array(attempt_path(store, seg).gt.poses) for seg in segs}
     gt = np.stack([true[segs[a]][i] for a, i in store.array(SFM.frame_index)])
     return float(ate(store.array(SFM.poses), gt)["rmse_frac"])
 

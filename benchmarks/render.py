@@ -16,6 +16,7 @@ import numpy as np
 from benchmarks.common import parse_args, report
 from flows.pipeline import execute
 from wonderverse.config import build_config
+from wonderverse.schema import ATTEMPT
 from wonderverse.store import SceneStore, cache_key, write_array
 from wonderverse.video import initial_pose, make_video_model
 
@@ -41,8 +42,9 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as tmp:
         store = SceneStore.open_or_create(Path(tmp) / "w")
         t = time.perf_counter()
-        with store.staged("bench", cache_key("bench", 1, {})) as g:
-            write_array(g, "frames", video.frames)
+        at = ATTEMPT.at(seg="s000", attempt=0)  # where a segment's frames go, as generate_segments writes them
+        with store.staged(at, cache_key("bench", 1, {})) as g:
+            write_array(g, at.frames, video.frames)
         write_s = time.perf_counter() - t
         mb = video.frames.nbytes / 1e6
         rows.append({"what": "frames -> store (staged commit)", "frames": n, "seconds": write_s, "rate": mb / write_s})
