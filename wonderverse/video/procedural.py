@@ -19,7 +19,7 @@ from typing import Any
 
 import numpy as np
 
-from wonderverse.camera import camera_centers, intrinsics, look_at
+from wonderverse.camera import camera_centers, intrinsics, look_at, rot_x, rot_z
 from wonderverse.video.base import GroundTruth, Video
 from wonderverse.video.procedural_options import FaultType, ProceduralOptions
 from wonderverse.video.shadows import build_cascades
@@ -92,16 +92,6 @@ def draw_fault(scene_seed: int, seed: int, n_frames: int, opts: ProceduralOption
     return FaultPlan(kind, k, magnitude, int(rng.integers(2**32)))
 
 
-def _rot_z(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
-
-
-def _rot_x(a: float) -> np.ndarray:
-    c, s = np.cos(a), np.sin(a)
-    return np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
-
-
 def apply_pose_fault(path: np.ndarray, plan: FaultPlan | None, opts: ProceduralOptions) -> tuple[np.ndarray, dict]:
     """W2C poses (T,4,4) the camera really renders under `plan`, and the fault record (morph details
     are added by `build_morph`)."""
@@ -124,7 +114,7 @@ def apply_pose_fault(path: np.ndarray, plan: FaultPlan | None, opts: ProceduralO
         yaw, pitch = np.radians(plan.magnitude) * np.cos(phi), np.radians(plan.magnitude) * np.sin(phi)
         centres = camera_centers(poses[k:])
         # yaw about the world's up axis, pitch about the camera's own x axis, centre kept
-        R = np.einsum("ij,tjk,kl->til", _rot_x(pitch).T, poses[k:, :3, :3], _rot_z(yaw).T)
+        R = np.einsum("ij,tjk,kl->til", rot_x(pitch).T, poses[k:, :3, :3], rot_z(yaw).T)
         poses[k:, :3, :3] = R
         poses[k:, :3, 3] = -np.einsum("tij,tj->ti", R, centres)
         rel = R[0] @ path[k, :3, :3].T
@@ -579,7 +569,7 @@ def demo_path(start: np.ndarray, n_frames: int, yaw_deg: float = 30.0, forward_m
     out = []
     for s in np.linspace(0.0, 1.0, n_frames):
         yaw = -np.radians(yaw_deg) * s  # negative about +z turns a +y-looking camera towards +x (right)
-        view = _rot_z(yaw) @ fwd
+        view = rot_z(yaw) @ fwd
         eye = c0 + forward_m * s * level
         out.append(look_at(eye, eye + view))
     return np.stack(out)
