@@ -211,7 +211,9 @@ def refuse_replacing_segments(scene_dir: Path | str, cfg: RunConfig) -> None:
         before = _flat(_jsonable(by_name[name].params(old)))
         after = _flat(_jsonable(by_name[name].params(cfg)))
         changed += [k for k in sorted(before.keys() | after.keys()) if before.get(k) != after.get(k)]
-    changed = [c for c in dict.fromkeys(changed) if not c.startswith("extensions.added")]
+    # the plan and the segments read some settings both (the prompt): name each once, as the user writes it
+    changed = [c.removeprefix("source.") for c in changed if not c.startswith("extensions.added")]
+    changed = list(dict.fromkeys(changed))
     if not changed:
         return
     raise WonderError(
