@@ -22,6 +22,10 @@ from wonderverse.mesh import (
     fuse_tsdf,
     fusion_cameras,
     gaussian_points,
+    glb_bytes,
+    set_ply_comments,
+    srgb_to_linear,
+    vertex_normals,
     write_mesh,
     write_points_ply,
 )
@@ -165,12 +169,16 @@ def test_clean_mesh_drops_a_floating_blob_and_decimates():
 
 
 def test_ply_and_glb_load_back_in_open3d_and_trimesh(fused: TriMesh, tmp_path):
-    ply = write_mesh(fused, tmp_path / "mesh.ply")
-    glb = write_mesh(fused, tmp_path / "mesh.glb")
+    note = "world frame: right-handed, +Z up; units: metres"
+    ply = write_mesh(fused, tmp_path / "mesh.ply", note)
+    glb = write_mesh(fused, tmp_path / "mesh.glb", note)
     o = o3d.io.read_triangle_mesh(str(ply))
     assert len(o.vertices) == len(fused.vertices) and len(o.triangles) == len(fused.triangles)
     np.testing.assert_allclose(np.asarray(o.vertices), fused.vertices, atol=1e-5)
     np.testing.assert_allclose(np.asarray(o.vertex_colors), fused.colors, atol=1 / 255)
+    assert o.has_vertex_normals()
+    np.testing.assert_allclose(np.asarray(o.vertex_normals), vertex_normals(fused), atol=1e-6)
+    assert f"comment WonderVerse: {note}".encode() in ply.read_bytes()[:1000]
     t = trimesh.load(ply, process=False)
     assert len(t.vertices) == len(fused.vertices)
     np.testing.assert_array_equal(np.asarray(t.faces), fused.triangles)
@@ -184,16 +192,129 @@ def test_ply_and_glb_load_back_in_open3d_and_trimesh(fused: TriMesh, tmp_path):
         write_mesh(fused, tmp_path / "mesh.obj")
 
 
+def _glb_json(data: bytes) -> tuple[dict, bytes]:
+    """The JSON and BIN chunks of a GLB (glTF 2.0 binary container: 12-byte header, then chunks)."""
+    import json
+    import struct
+
+    magic, version, length = struct.unpack_from("<4sII", data, 0)
+    assert magic == b"glTF" and version == 2 and length == len(data)
+    n, kind = struct.unpack_from("<I4s", data, 12)
+    assert kind == b"JSON"
+    doc = json.loads(data[20 : 20 + n])
+    rest = data[20 + n :]
+    blob = rest[8 : 8 + struct.unpack_from("<I", rest, 0)[0]] if rest else b""
+    return doc, blob
+
+
+def test_glb_shows_vertex_colours_with_normals_and_its_convention(fused: TriMesh) -> None:
+    doc, blob = _glb_json(glb_bytes(fused, "world frame: +Z up"))
+    prim = doc["meshes"][0]["primitives"][0]
+    assert set(prim["attributes"]) == {"POSITION", "NORMAL", "COLOR_0"}
+    mat = doc["materials"][prim["material"]]
+    assert mat["pbrMetallicRoughness"]["baseColorFactor"] == [1.0, 1.0, 1.0, 1.0]
+    assert mat["pbrMetallicRoughness"]["metallicFactor"] == 0.0  # glTF's default 1 looks black without an env map
+    assert "KHR_materials_unlit" in mat["extensions"] and doc["extensionsUsed"] == ["KHR_materials_unlit"]
+    assert doc["asset"]["extras"]["convention"] == "world frame: +Z up"
+
+    def accessor(name: str) -> np.ndarray:
+        acc = doc["accessors"][prim["attributes"][name]]
+        view = doc["bufferViews"][acc["bufferView"]]
+        dtype = {5126: "<f4", 5123: "<u2"}[acc["componentType"]]
+        width = {"VEC3": 3, "VEC4": 4}[acc["type"]]
+        raw = blob[view["byteOffset"] : view["byteOffset"] + view["byteLength"]]
+        return np.frombuffer(raw, dtype).reshape(acc["count"], width)
+
+    # normals: unit, and the world's up (the ground plane's normal) is glTF's +Y
+    n = accessor("NORMAL")
+    np.testing.assert_allclose(np.linalg.norm(n, axis=1), 1.0, atol=1e-5)
+    ground = fused.vertices[:, 2] < 0.01
+    assert np.median(n[ground, 1]) > 0.99
+    # colours in linear light: the box's sRGB red 0.9 is 0.787 linear
+    rgba = accessor("COLOR_0") / 65535.0
+    np.testing.assert_allclose(rgba[:, :3], srgb_to_linear(fused.colors), atol=1 / 65535)
+    assert srgb_to_linear(np.array([0.0, 0.04045, 0.5, 1.0])) == pytest.approx(
+        [0.0, 0.04045 / 12.92, 0.21404, 1.0], abs=1e-5
+    )
+
+
+def _validate_gltf(path) -> dict:
+    """Khronos glTF-Validator (npm gltf-validator, installed by scripts/install-tools.sh) on one file."""
+    import json
+    import shutil
+    import subprocess
+
+    from conftest import ROOT
+
+    script = ROOT / "tools" / "validate-gltf.mjs"
+    if shutil.which("node") is None:
+        pytest.skip("node is not installed: gltf-validator runs on Node.js (CI has it)")
+    if not (ROOT / "tools" / "node_modules" / "gltf-validator").is_dir():
+        pytest.fail("gltf-validator is missing: run `bash scripts/install-tools.sh`")
+    r = subprocess.run(["node", str(script), str(path)], capture_output=True, text=True, timeout=120)
+    assert r.returncode in (0, 1), r.stderr
+    return json.loads(r.stdout)["issues"]
+
+
+def test_gltf_validator_finds_no_error_and_no_warning(fused: TriMesh, tmp_path) -> None:
+    for name, mesh in (
+        ("mesh", fused),
+        ("empty", TriMesh(np.zeros((0, 3)), np.zeros((0, 3), np.int32), np.zeros((0, 3)))),
+    ):
+        path = write_mesh(mesh, tmp_path / f"{name}.glb", "world frame: +Z up")
+        issues = _validate_gltf(path)
+        assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, (name, issues["messages"])
+    # the validator does find problems: a NORMAL that is not unit length is an error
+    bad = bytearray(glb_bytes(fused))
+    doc, _ = _glb_json(bytes(bad))
+    view = doc["bufferViews"][doc["accessors"][doc["meshes"][0]["primitives"][0]["attributes"]["NORMAL"]]["bufferView"]]
+    start = 12 + 8 + int.from_bytes(bad[12:16], "little") + 8 + view["byteOffset"]
+    bad[start : start + 4] = np.float32(3.0).tobytes()
+    (tmp_path / "bad.glb").write_bytes(bytes(bad))
+    assert _validate_gltf(tmp_path / "bad.glb")["numErrors"] > 0
+
+
+def test_vertex_normals_face_the_winding_side() -> None:
+    import open3d as o3d
+
+    sphere = o3d.geometry.TriangleMesh.create_sphere(2.0, 16)
+    v, f = np.asarray(sphere.vertices), np.asarray(sphere.triangles, np.int32)
+    n = vertex_normals(TriMesh(v, f, np.zeros_like(v)))
+    assert np.all(np.sum(n * v / 2.0, axis=1) > 0.99)  # outward (within 8°), as Open3D winds the sphere
+    flipped = vertex_normals(TriMesh(v, f[:, ::-1], np.zeros_like(v)))
+    np.testing.assert_allclose(flipped, -n, atol=1e-12)
+    lonely = TriMesh(np.vstack([v, [[9.0, 9.0, 9.0]]]), f, np.zeros((len(v) + 1, 3)))
+    np.testing.assert_array_equal(vertex_normals(lonely)[-1], [0.0, 0.0, 1.0])  # no triangle: the fallback
+
+
 def test_points_ply_loads_in_open3d_and_trimesh(tmp_path):
     rng = np.random.default_rng(0)
-    cloud = PointCloud(rng.normal(size=(500, 3)) * 10, rng.random((500, 3)))
-    path = write_points_ply(tmp_path / "points.ply", cloud)
+    normals = rng.normal(size=(500, 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    cloud = PointCloud(rng.normal(size=(500, 3)) * 10, rng.random((500, 3)), normals)
+    path = write_points_ply(tmp_path / "points.ply", cloud, "world frame: +Z up")
     o = o3d.io.read_point_cloud(str(path))
     np.testing.assert_allclose(np.asarray(o.points), cloud.points, rtol=1e-6, atol=1e-5)
     np.testing.assert_allclose(np.asarray(o.colors), cloud.colors, atol=0.5 / 255 + 1e-9)
+    np.testing.assert_allclose(np.asarray(o.normals), normals, atol=1e-6)
     t = trimesh.load(path)
     assert len(t.vertices) == 500
     np.testing.assert_array_equal(t.colors[:, :3], np.round(cloud.colors * 255).astype(np.uint8))
+    assert b"comment WonderVerse: world frame: +Z up" in path.read_bytes()[:300]
+    no_normals = write_points_ply(tmp_path / "plain.ply", PointCloud(cloud.points, cloud.colors))
+    assert not o3d.io.read_point_cloud(str(no_normals)).has_normals()
+
+
+def test_set_ply_comments_keeps_the_data(tmp_path):
+    from plyfile import PlyData
+
+    cloud = PointCloud(np.arange(30.0).reshape(10, 3), np.full((10, 3), 0.5))
+    path = write_points_ply(tmp_path / "p.ply", cloud, "old words")
+    before = PlyData.read(str(path))["vertex"].data.copy()
+    set_ply_comments(path, ["new frame: +Z up", "second line"])
+    after = PlyData.read(str(path))
+    assert after.comments == ["new frame: +Z up", "second line"]
+    np.testing.assert_array_equal(after["vertex"].data, before)
 
 
 def test_gaussian_points_filter_by_opacity_and_return_to_the_world():
@@ -222,6 +343,34 @@ def test_gaussian_points_filter_by_opacity_and_return_to_the_world():
     np.testing.assert_allclose(gaussian_points(arrays, norm, 0.95).points, world[5:], atol=1e-4)  # only 0.99
     arrays["sh0"][0] = 10.0  # far out of gamut: clipped to white
     assert gaussian_points(arrays, norm, 0.8).colors[0].tolist() == [1.0, 1.0, 1.0]
+
+
+def test_gaussian_points_normals_are_the_flattest_axis_facing_the_cameras():
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(2)
+    n = 8
+    norm = Sim3(0.5, Rotation.random(random_state=3).as_matrix(), np.zeros(3), center=np.array([1.0, 2.0, 3.0]))
+    world = rng.normal(size=(n, 3))
+    rot_train = Rotation.random(n, random_state=4)
+    flat = rng.integers(0, 3, n)  # which local axis is the shortest
+    log_scales = np.zeros((n, 3))
+    log_scales[np.arange(n), flat] = -4.0
+    arrays = {
+        "means": norm.apply(world).astype(np.float32),
+        "logit_opacities": np.full(n, 5.0, np.float32),
+        "sh0": np.zeros((n, 1, 3), np.float32),
+        "shN": np.zeros((n, 3, 3), np.float32),
+        "quats": (-rot_train.as_quat()[:, [3, 0, 1, 2]] * 2.0).astype(np.float32),  # unnormalised, sign-flipped
+        "log_scales": log_scales.astype(np.float32),
+    }
+    camera = np.array([0.0, 0.0, 50.0])
+    pc = gaussian_points(arrays, norm, 0.5, toward=camera[None])
+    axis_train = rot_train.as_matrix()[np.arange(n), :, flat]  # the flat local axis in the training frame
+    axis_world = axis_train @ norm.R  # directions back to the world: R^T a
+    np.testing.assert_allclose(np.abs(np.sum(pc.normals * axis_world, axis=1)), 1.0, atol=1e-5)
+    assert np.all(np.sum(pc.normals * (camera - pc.points), axis=1) > 0)  # each faces the camera
+    assert gaussian_points(arrays, norm, 0.5).normals is not None
 
 
 def test_scene_extent_and_fusion_cameras():
