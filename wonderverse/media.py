@@ -10,7 +10,10 @@ from PIL import Image, ImageDraw
 
 
 def write_mp4(frames: np.ndarray, path: Path, fps: float) -> Path:
-    """H.264 mp4 of (N,H,W,3) uint8 frames (ffmpeg from imageio-ffmpeg); sizes padded to even."""
+    """H.264 mp4 of (N,H,W,3) uint8 frames (ffmpeg from imageio-ffmpeg), as browsers and players take it:
+    yuv420p (4:2:0, which H.264's common profiles and every browser decode; sizes padded to even for it) and
+    `+faststart` (the moov atom before the media data, so a page can start playing before the whole file
+    has arrived)."""
     import imageio.v2 as imageio
 
     if frames.ndim != 4 or frames.shape[0] == 0:
@@ -19,7 +22,15 @@ def write_mp4(frames: np.ndarray, path: Path, fps: float) -> Path:
     pad = ((0, 0), (0, h % 2), (0, w % 2), (0, 0))
     frames = np.pad(frames, pad, mode="edge") if h % 2 or w % 2 else frames
     path = Path(path)
-    with imageio.get_writer(path, fps=fps, codec="libx264", quality=8, macro_block_size=1) as wr:
+    with imageio.get_writer(
+        path,
+        fps=fps,
+        codec="libx264",
+        quality=8,
+        macro_block_size=1,
+        pixelformat="yuv420p",
+        output_params=["-movflags", "+faststart"],
+    ) as wr:
         for f in frames:
             wr.append_data(f)
     return path
