@@ -19,6 +19,7 @@ from rich.console import Console
 
 from flows.engine import check_engine
 from flows.serve import batch_command, serve_command
+from flows.view import view_command
 from wonderverse.errors import WonderError
 
 # Before torch loads: idle OpenMP threads sleep instead of spinning (measured 3-10x faster CPU splat
@@ -420,6 +421,7 @@ def report(scene_dir: Annotated[Path, typer.Argument(help="scene folder")]) -> N
 
 app.command("serve")(serve_command)
 app.command("batch")(batch_command)
+app.command("view")(view_command)
 
 
 def main() -> None:
