@@ -76,11 +76,12 @@ def run_supervised(argv: list[str]) -> int:
         signum = stops[0]
         if sys.stderr.isatty():  # the live progress bar was cut mid-line and its cursor hidden
             sys.stderr.write("\r\x1b[2K\x1b[?25h")
-        print(
-            f"stopped by {_STOPS[signal.Signals(signum)]}: every step and segment already complete is kept in the "
-            "scene; run the same command again to resume",
-            file=sys.stderr,
+        kept = (
+            ""
+            if argv[:1] in (["view"], ["serve"], ["inspect"], ["report"], ["preview"])
+            else ": every step and segment already complete is kept in the scene; run the same command again to resume"
         )
+        print(f"stopped by {_STOPS[signal.Signals(signum)]}{kept}", file=sys.stderr)
         return 128 + signum
     if rc < 0:  # killed from outside (the OOM killer, kill -9 of the child)
         print(
