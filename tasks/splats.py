@@ -1,13 +1,13 @@
 """Step `splats`: optimise 3D Gaussians on the stitched video with the paper's RGB + depth + normal
 losses, from the global poses and the aligned priors. Checkpoints go to `splats_checkpoint/` every
-`checkpoint_every_iters`, so a killed run resumes; the result goes to `splats/` and `splats.ply` (INRIA
-layout, original world frame) beside the store."""
+`checkpoint_every_iters`, so a killed run resumes; the result goes to `splats/` (training frame, with the
+normalisation that maps it to the global poses' frame). The exported `splats.ply` is written by the outputs
+step, in the outputs' gravity-aligned frame."""
 
 from __future__ import annotations
 
 import io
 import logging
-from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -101,7 +101,6 @@ def _load_checkpoint(store: SceneStore, key: str) -> dict[str, Any] | None:
 
 def run(store: SceneStore, p: SplatsStepParams, ctx: StepContext) -> str:
     from wonderverse.splats.model import normalization_to_dict
-    from wonderverse.splats.ply import write_ply
     from wonderverse.splats.renderer import make_renderer
     from wonderverse.splats.seeding import start_training
     from wonderverse.splats.trainer import train
@@ -135,13 +134,12 @@ def run(store: SceneStore, p: SplatsStepParams, ctx: StepContext) -> str:
         progress=callback("iterations"),
     )
     arrays = model.to_numpy()
-    ply = write_ply(Path(store.scene_dir) / "splats.ply", arrays, norm)
     with store.staged(
         SPLATS.path,
         ctx.key,
         normalization=normalization_to_dict(norm),
         metrics=metrics,
-        files=[ply.name],
+        files=[],  # splats.ply is the outputs step's (in the outputs' frame)
         frames=names,
         train_digest=_train_digest(p),
         extended_from=None if previous is None else {"frames": len(previous.frames), "kept_gaussians": fixed},

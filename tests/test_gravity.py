@@ -11,7 +11,7 @@ from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from wonderverse.camera import Sim3, camera_centers, move_path
-from wonderverse.gravity import GravityParams, angle_deg, estimate_gravity, rotation_to_z
+from wonderverse.gravity import GravityParams, angle_deg, estimate_gravity, given_frame, rotation_to_z
 
 UP = np.array([0.0, 0.0, 1.0])
 
@@ -189,3 +189,10 @@ def test_procedural_worlds_up_within_two_degrees(prompt: str) -> None:
             noisy = pts + rng.normal(0.0, 0.01 * np.ptp(pts, axis=0).max() / 100, pts.shape)
             g, err = _estimate(path, noisy, sim)
             assert err < 2.0, (name, seed, err, g.evidence)
+
+
+def test_a_given_frame_is_kept_as_it_is() -> None:
+    g = given_frame("the conditioning path's world")
+    pts = np.random.default_rng(0).normal(size=(5, 3))
+    np.testing.assert_array_equal(g.world_from_input.apply(pts), pts)
+    assert g.evidence["source"] == "the conditioning path's world" and g.up.tolist() == [0.0, 0.0, 1.0]

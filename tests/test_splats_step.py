@@ -1,5 +1,6 @@
 """The splats step end to end on a tiny procedural scene: trains from the global poses and aligned
-priors, writes the Gaussians and an INRIA PLY, checkpoints into the store and resumes after a kill."""
+priors, writes the Gaussians into the store (the exported splats.ply is the outputs step's: tests/test_outputs.py),
+checkpoints into the store and resumes after a kill."""
 
 from __future__ import annotations
 
@@ -8,7 +9,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 from conftest import tiny_config
-from plyfile import PlyData
 
 from flows.pipeline import execute
 from wonderverse.store import SceneStore
@@ -34,7 +34,7 @@ def trained(tmp_path_factory) -> Path:
     return scene
 
 
-def test_splats_are_stored_and_exported_in_the_world_frame(trained: Path):
+def test_splats_are_stored_with_the_normalisation_to_the_world(trained: Path):
     store = SceneStore.open(trained)
     a = store.attrs("splats")
     n = a["metrics"]["n_gaussians"]
@@ -42,15 +42,13 @@ def test_splats_are_stored_and_exported_in_the_world_frame(trained: Path):
     assert np.isfinite(store.array("splats/means")).all()
     assert a["metrics"]["test_views"] and np.isfinite(a["metrics"]["test_psnr"])
     assert len(a["curves"]["total"]) == 40 and a["curves"]["total"][-1] < a["curves"]["total"][0]
-    ply = PlyData.read(str(trained / "splats.ply"))["vertex"]
-    assert ply.count == n
-    names = [p.name for p in ply.properties]
-    assert names[:9] == ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
-    assert names[-8:] == ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
-    # world frame: the splats sit where the SfM points are, not in the unit training frame
+    # the normalisation takes the Gaussians back to the world: they sit where the SfM points are
+    from wonderverse.splats.model import normalization_from_dict
+
+    xyz = normalization_from_dict(a["normalization"]).apply_inverse(store.array("splats/means"))
     pts = store.array("sfm/points3d")
-    xyz = np.stack([ply["x"], ply["y"], ply["z"]], -1)
     assert np.linalg.norm(np.median(xyz, 0) - np.median(pts, 0)) < 0.5 * np.ptp(pts, 0).max()
+    assert not (trained / "splats.ply").exists()  # exported by the outputs step, in the outputs' frame
     assert not store.exists("splats_checkpoint")  # removed once the result is committed
 
 

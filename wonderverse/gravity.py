@@ -219,6 +219,17 @@ def ground_plane(
     return {"normal": n, "point": q, "support_frac": frac, "inlier_dist": tol, "points": len(pts)}
 
 
+def given_frame(reason: str) -> GravityFrame:
+    """The input frame kept as it is, for a world that is gravity-aligned by construction (a video backend's
+    own world, where the conditioning paths were planned with +Z up): the identity, with `reason` as the
+    evidence's source."""
+    return GravityFrame(
+        Sim3.identity(),
+        Z_UP.copy(),
+        {"source": reason, "origin": "the world's own origin", "up_in_input": Z_UP.tolist(), "plane": None},
+    )
+
+
 def estimate_gravity(
     w2c: np.ndarray, points: np.ndarray | None = None, params: GravityParams | None = None
 ) -> GravityFrame:

@@ -1,8 +1,10 @@
 """Camera paths for rendering a trained scene: a smooth fly-through along the training cameras, and novel
 views that leave the training trajectory (a parallel track beside/above it, or an orbit).
 
-All poses are W2C (N,4,4) float64 in OpenCV camera axes (x right, y down, z forward); the world is
-right-handed with +z up. Input poses that are not finite (NaN: not registered) are skipped. The scene
+All poses are W2C (N,4,4) float64 in OpenCV camera axes (x right, y down, z forward); the world must be
+right-handed with +z up, since the novel track and the orbit move and aim their cameras by it (in SfM's own
+frame, whose up is anywhere, the video comes out rolled: the outputs step passes its gravity-aligned frame,
+`wonderverse.gravity`). Input poses that are not finite (NaN: not registered) are skipped. The scene
 extent used for offsets is `camera.scene_extent` of the training cameras (their centres' bounding-box diagonal).
 """
 

@@ -316,7 +316,15 @@ SPLATS_CHECKPOINT = Group(
 OUTPUTS = Group(
     "outputs",
     "step outputs: the files written beside the store",
-    attrs={"files": "", "mesh": "", "render_size": "", "quality": ""},
+    attrs={
+        "files": "[{path, bytes, description}] of the files written beside the store",
+        "mesh": "",
+        "render_size": "",
+        "quality": "",
+        "frame": "the output world frame: world_from_sfm (Sim3 dict), up_in_sfm, world (in words), the evidence",
+        "colmap": "{tracks_from}: where colmap/'s points and observations come from",
+        "nerfstudio": "{depth_pixels, depth_clipped}: depth PNG pixels written, and dropped beyond 65.535 units",
+    },
 )
 
 GROUPS: tuple[Group, ...] = (
