@@ -44,6 +44,7 @@ from typing import Any
 import numpy as np
 
 from benchmarks.common import machine, report
+from tasks.outputs import output_frame
 from wonderverse.schema import CHECK, OUTPUTS, SFM, SPLATS
 
 SCENES = {
@@ -162,7 +163,8 @@ def score(scene_dir: Path, cfg: Any) -> dict[str, Any]:
     # the exported mesh in the world, against the true surfaces the cameras see within the fusion's reach
     video = make_video_model(cfg.scene.video_source)  # builds the world: once
     mesh = trimesh.load(scene_dir / "mesh.ply", force="mesh")
-    pred = to_world.apply(sample_mesh_points(np.asarray(mesh.vertices), np.asarray(mesh.faces), 300_000, seed=1))
+    vertices = output_frame(store).apply_inverse(np.asarray(mesh.vertices))  # the files' frame -> sfm/ frame
+    pred = to_world.apply(sample_mesh_points(vertices, np.asarray(mesh.faces), 300_000, seed=1))
     reach = cfg.steps.outputs.mesh.max_depth_frac * store.attrs(OUTPUTS.path)["mesh"]["extent"] * to_world.s
     extent = scene_extent(f["gt_w2c"], f["gt_depth"])
     gt_pts = visible_gt_points(video.world, video.K, f["gt_w2c"], f["gt_depth"], reach)

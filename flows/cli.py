@@ -203,15 +203,13 @@ def _finish(scene_dir: Path, results: list[Any]) -> None:
 
 
 def _output_files(scene_dir: Path, steps: set[str]) -> list[Path]:
-    """The files that `steps` of this run wrote or found current: splats.ply, then the outputs step's."""
+    """The files the outputs step of this run wrote or found current (none when the run stopped before it)."""
     from wonderverse.schema import OUTPUTS
     from wonderverse.store import SceneStore
 
-    files = [Path(scene_dir) / "splats.ply"] if "splats" in steps else []
-    if "outputs" in steps:
-        written = SceneStore.open(scene_dir).attrs(OUTPUTS.path).get("files", [])
-        files += [Path(scene_dir) / f["path"] for f in written]
-    return files
+    if "outputs" not in steps:
+        return []
+    return [Path(scene_dir) / f["path"] for f in SceneStore.open(scene_dir).attrs(OUTPUTS.path).get("files", [])]
 
 
 @app.command()

@@ -75,19 +75,11 @@ CLIP_STEPS = {
     "generate_segments": "read every clip (nothing generated)",
 }
 # Files other steps write beside the store (whatever exists is linked), with what they are.
-KNOWN_FILES: dict[str, str] = {
-    "splats.ply": "Gaussian splats, INRIA 3DGS PLY layout, original world frame",
-    "mesh.ply": "mesh (PLY)",
-    "mesh.glb": "mesh (glTF binary)",
-    "points.ply": "point cloud (PLY)",
-    "flythrough.mp4": "fly-through video of the splats",
-    "novel.mp4": "novel-view video",
+KNOWN_FILES: dict[str, str] = {  # files no step describes (the outputs step lists its own files with what they hold)
     "preview.mp4": "the stitched video (wonderverse preview)",
     "contact_sheet.png": "frames of the stitched video (wonderverse preview)",
-    "camera_path.json": "camera path",
-    "colmap": "COLMAP text model",
-    "nerfstudio": "nerfstudio transforms.json and images",
     "plots": "check plots (wonderverse preview)",
+    "viewer.html": "the splats in the browser (wonderverse view)",
     STORE_NAME: "the scene store (zarr v3), source of truth for everything above",
 }
 
@@ -489,9 +481,15 @@ def _first_camera(store: SceneStore) -> tuple[np.ndarray, np.ndarray, np.ndarray
     first = int(np.flatnonzero(finite)[0])
     seg_index, _ = store.array(SFM.frame_index)[first]
     seg = store.attrs(SFM.path)["segments"][int(seg_index)]
-    shape = _shape(store, f"{attempt_path(store, seg)}/frames") if accepted_attempt(store, seg) is not None else None
+    shape = _shape(store, attempt_path(store, seg).frames) if accepted_attempt(store, seg) is not None else None
     if shape is None:
         return None
+    try:  # mesh.ply is in the outputs' gravity-aligned frame: the cameras go there too
+        from tasks.outputs import output_frame
+
+        poses = output_frame(store).transform_w2c(poses)
+    except KeyError:  # a scene whose outputs predate the frame: its files are in the sfm/ frame
+        pass
     return poses[first], poses[finite], np.asarray(store.array(SFM.K), np.float64), shape[2], shape[1]
 
 

@@ -144,7 +144,7 @@ def scene_view(scene_dir: Path) -> SceneView:
         raise WonderError(f"{scene_dir} holds no scene (no {STORE_NAME})")
     splat = next((name for name in SPLAT_FILES if (scene_dir / name).is_file()), None)
     if splat is None:
-        raise WonderError(f"{scene_dir} has no splats yet ({' or '.join(SPLAT_FILES)}): run the scene to `splats`")
+        raise WonderError(f"{scene_dir} has no splats yet ({' or '.join(SPLAT_FILES)}): run the scene to `outputs`")
     store = SceneStore.open(scene_dir)
     if store.cache_key_of(SFM.path) is None:
         raise WonderError(f"{scene_dir} has no camera poses yet (step `poses`)")

@@ -1,7 +1,8 @@
 """Step `outputs`: the files users open elsewhere, written beside the store from the trained splats, all in
 one gravity-aligned world frame.
 
-  splats.ply              the Gaussians, INRIA 3DGS layout
+  splats.ply              the Gaussians, INRIA 3DGS layout (floaters and absurd Gaussians pruned first)
+  splats.spz, splats.glb  the same Gaussians for the web: Niantic's SPZ, glTF with KHR_gaussian_splatting
   points.ply              Gaussian centres at least `mesh.points_min_opacity` opaque, base colour, normals
   mesh.ply, mesh.glb      TSDF fusion of splat renders from the training cameras (sky/background excluded)
   colmap/                 images/ + sparse/0/ (binary model with the global SfM's tracks): a training dataset
@@ -104,10 +105,12 @@ def run(store: SceneStore, params: Params, ctx: StepContext) -> str:
     )
     from wonderverse.paths import flythrough_path, novel_view_path
     from wonderverse.quality import score_views
+    from wonderverse.splats.cleanup import prune_for_export
     from wonderverse.splats.model import GaussianModel, normalization_from_dict
-    from wonderverse.splats.ply import write_ply
+    from wonderverse.splats.ply import to_world, write_ply
     from wonderverse.splats.renderer import make_renderer
     from wonderverse.splats.views import render_views
+    from wonderverse.splats.web import write_splat_glb, write_spz
 
     p = params.outputs
     out = Path(store.scene_dir)
@@ -151,9 +154,17 @@ def run(store: SceneStore, params: Params, ctx: StepContext) -> str:
     w2c = g.transform_w2c(w2c_sfm)
     centres = camera_centers(w2c)
 
-    ply = write_ply(out / "splats.ply", arrays, norm)
+    # floaters, absurd and invisible Gaussians go before export: viewers frame and render what is left
+    points_world = g.apply(store.array(SFM.points3d)) if store.exists(SFM.points3d) else None
+    gaussians, pruned = prune_for_export(to_world(arrays, norm), w2c, K, width, height, points_world, extent, p.prune)
+    ply = write_ply(out / "splats.ply", gaussians)
     set_ply_comments(ply, [f"WonderVerse Gaussian splats (INRIA 3DGS layout): {world}"])
     files.append((ply, f"Gaussian splats, INRIA 3DGS PLY layout; {world}"))
+    spz_axes = "SPZ's RUB axes: +Y up (the world's +Z), +Z the world's -Y"
+    files.append((write_spz(out / "splats.spz", gaussians), f"Gaussian splats, Niantic SPZ v3; {spz_axes}; {world}"))
+    glb_axes = "glTF axes: +Y up (the world's +Z)"
+    splat_glb = write_splat_glb(out / "splats.glb", gaussians)
+    files.append((splat_glb, f"Gaussian splats, glTF with KHR_gaussian_splatting; {glb_axes}; {world}"))
     cloud = gaussian_points(arrays, norm, p.mesh.points_min_opacity, toward=centres)
     files.append((write_points_ply(out / "points.ply", cloud, world), f"point cloud with normals; {world}"))
     mesh = TriMesh(g.apply(mesh_sfm.vertices), mesh_sfm.triangles, mesh_sfm.colors)
@@ -218,6 +229,7 @@ def run(store: SceneStore, params: Params, ctx: StepContext) -> str:
         render_size=[w, h],
         quality=quality,
         frame=frame,
+        pruned=pruned,
         **stats,
     ):
         pass
@@ -289,8 +301,8 @@ def _size(path: Path) -> int:
 
 
 # 3: the step contract
-# 4: one gravity-aligned frame for every file; splats.ply written here; COLMAP dataset with tracks; nerfstudio
-#    depths, points and camera paths; novel_path.json; faststart videos
+# 4: one gravity-aligned frame for every file; splats.ply written here, pruned, with splats.spz and splats.glb;
+#    COLMAP dataset with tracks; nerfstudio depths, points and camera paths; novel_path.json; faststart videos
 STEP = Step(
     "outputs", 4, ("splats",), params, run, "mesh, point cloud, COLMAP/nerfstudio exports, videos", group=OUTPUTS.path
 )

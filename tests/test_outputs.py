@@ -84,8 +84,8 @@ def _world(store: SceneStore):
 def test_files_are_listed_and_a_rerun_is_cached(scene: Path) -> None:
     store = SceneStore.open(scene)
     listed = {f["path"]: f["description"] for f in store.attrs("outputs")["files"]}
-    expected = {"splats.ply", "points.ply", "mesh.ply", "mesh.glb", "colmap", "nerfstudio", "camera_path.json"}
-    assert set(listed) == expected | {"novel_path.json", "flythrough.mp4", "novel.mp4"}
+    expected = {"splats.ply", "splats.spz", "splats.glb", "points.ply", "mesh.ply", "mesh.glb", "colmap", "nerfstudio"}
+    assert set(listed) == expected | {"camera_path.json", "novel_path.json", "flythrough.mp4", "novel.mp4"}
     assert all((scene / f).exists() for f in listed)
     assert "+Z up" in listed["splats.ply"] and "SfM units" in listed["mesh.ply"]
     # novel views of 160x112 are under NIQE's two 96-px blocks per side, and no CLIP/Q-Align weights are given
@@ -95,6 +95,19 @@ def test_files_are_listed_and_a_rerun_is_cached(scene: Path) -> None:
     # how many views render at once changes the speed, not the files: still cached
     faster = again.model_copy(update={"execution": again.execution.model_copy(update={"render_workers": 3})})
     assert [r.status for r in execute(scene, faster)] == ["cached"] * 7
+
+
+def test_the_exported_splats_are_pruned_and_the_same_in_every_format(scene: Path) -> None:
+    from wonderverse.splats.ply import read_ply
+    from wonderverse.splats.web import read_splat_glb, read_spz
+
+    pruned = SceneStore.open(scene).attrs("outputs")["pruned"]
+    assert pruned["before"] == len(SceneStore.open(scene).array("splats/means"))
+    assert pruned["after"] == pruned["before"] - sum(pruned["removed"].values()) > 0
+    ply, spz, glb = read_ply(scene / "splats.ply"), read_spz(scene / "splats.spz"), read_splat_glb(scene / "splats.glb")
+    assert len(ply["means"]) == len(spz["means"]) == len(glb["means"]) == pruned["after"]
+    lo, hi = ply["means"].min(0), ply["means"].max(0)
+    assert np.allclose([lo, hi], [pruned["bounds_after"]["min"], pruned["bounds_after"]["max"]], atol=1e-3)
 
 
 def test_the_output_frame_is_upright_and_every_file_says_so(scene: Path) -> None:
@@ -176,9 +189,9 @@ def test_point_cloud_mesh_and_splats_lie_on_the_world(scene: Path) -> None:
     assert len(glb.faces) == len(mesh.triangles)
     np.testing.assert_allclose(np.sort(glb.vertices[:, 1]), np.sort(np.asarray(mesh.vertices)[:, 2]), atol=1e-4)
     store = SceneStore.open(scene)
-    splats = PlyData.read(str(scene / "splats.ply"))["vertex"]  # the INRIA 3DGS layout, every Gaussian
+    splats = PlyData.read(str(scene / "splats.ply"))["vertex"]  # the INRIA 3DGS layout, every Gaussian kept
     names = [p.name for p in splats.properties]
-    assert splats.count == store.attrs("splats")["metrics"]["n_gaussians"]
+    assert splats.count == store.attrs("outputs")["pruned"]["after"]
     assert names[:9] == ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
     assert names[-8:] == ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
     to_truth = _to_truth(store)

@@ -12,11 +12,12 @@ from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
 from wonderverse.camera import intrinsics, look_at
-from wonderverse.splats.cleanup import ExportPruneParams, in_any_view, prune_for_export, scene_extent_for_pruning
+from wonderverse.splats.cleanup import ExportPruneParams, in_any_view, prune_for_export
 
 W, H = 160, 120
 K = intrinsics(W, H, 60.0)
-SIDE = 25.0 / math.sqrt(3.0)  # a cube whose diagonal, the scene extent, is 25 units
+EXTENT = 25.0  # the constructed scene's size
+SIDE = EXTENT / math.sqrt(3.0)  # a cube whose diagonal is the scene extent
 
 
 def _cameras(n: int = 6) -> np.ndarray:
@@ -54,11 +55,6 @@ def scene() -> tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]:
     return _cameras(), points, _gaussians(cloud)
 
 
-def test_the_extent_of_the_constructed_scene_is_its_diagonal(scene):
-    w2c, points, _ = scene
-    assert scene_extent_for_pruning(w2c, points, 0.0) == pytest.approx(25.0, rel=1e-9)
-
-
 def test_floaters_far_away_and_a_59_unit_splat_are_removed_the_cloud_stays(scene):
     w2c, points, cloud = scene
     rng = np.random.default_rng(1)
@@ -74,7 +70,7 @@ def test_floaters_far_away_and_a_59_unit_splat_are_removed_the_cloud_stays(scene
     everything = _cat(cloud, floaters, ahead, huge, faint, nan)
     assert in_any_view(ahead["means"], w2c, K, W, H, 0.0, 1e9).all(), "precondition: camera 0 looks at it"
 
-    kept, report = prune_for_export(everything, w2c, K, W, H, points)
+    kept, report = prune_for_export(everything, w2c, K, W, H, points, EXTENT)
 
     n = len(cloud["means"])
     assert report["before"] == n + 24 and report["after"] == n
@@ -109,13 +105,13 @@ def test_a_gaussian_one_camera_sees_at_its_edge_stays(scene, margin):
     assert in_any_view(edge[None], w2c[:1], K, W, H, 0.0, 1e9).all()
     assert not in_any_view(edge[None], w2c[1:], K, W, H, 0.5, 1e9).any(), "precondition: only camera 0 sees it"
     assert cKDTree(points).query(edge)[0] > 0.1 * 25.0, "precondition: far from every SfM point"
-    kept, report = prune_for_export(_cat(cloud, _gaussians(edge[None])), w2c, K, W, H, points, params)
+    kept, report = prune_for_export(_cat(cloud, _gaussians(edge[None])), w2c, K, W, H, points, EXTENT, params)
     assert report["after"] == report["before"] and report["removed"]["outside_views"] == 0
     np.testing.assert_allclose(kept["means"][-1], edge.astype(np.float32))
     # the same Gaussian just past the grown edge, still far from the points, goes
     beyond = at_pixel(W * (1.0 + margin) + 4.0, H / 2)
     assert cKDTree(points).query(beyond)[0] > 0.1 * 25.0
-    report = prune_for_export(_cat(cloud, _gaussians(beyond[None])), w2c, K, W, H, points, params)[1]
+    report = prune_for_export(_cat(cloud, _gaussians(beyond[None])), w2c, K, W, H, points, EXTENT, params)[1]
     assert report["removed"]["outside_views"] == 1 and report["after"] == len(cloud["means"])
 
 
@@ -125,9 +121,9 @@ def test_distant_scenery_near_sfm_points_stays_and_without_points_only_views_cou
     assert not in_any_view(far_point[None], w2c, K, W, H, 0.5, 1e9).any(), "precondition: nobody looks up"
     scenery = _gaussians(far_point[None] + np.array([[0.3, 0.0, 0.0]]))
     with_point = np.concatenate([points, far_point[None]])
-    report = prune_for_export(_cat(cloud, scenery), w2c, K, W, H, with_point)[1]
+    report = prune_for_export(_cat(cloud, scenery), w2c, K, W, H, with_point, EXTENT)[1]
     assert report["removed"]["outside_views"] == 0, "an SfM point vouches for it"
-    kept = prune_for_export(_cat(cloud, scenery), w2c, K, W, H, None)[0]
+    kept = prune_for_export(_cat(cloud, scenery), w2c, K, W, H, None, EXTENT)[0]
     assert not (kept["means"][:, 2] > 100).any(), "with no points, out of every view is out"
     # without points to vouch for them, what stays is what the cameras see: the whole cloud in front of them
     seen = np.zeros(len(cloud["means"]), bool)
@@ -143,9 +139,9 @@ def test_distant_scenery_near_sfm_points_stays_and_without_points_only_views_cou
 def test_thresholds_are_settings(scene):
     w2c, points, cloud = scene
     big = _gaussians(np.zeros((1, 3)), sigma=2.0)  # 12 units wide in a 25-unit scene
-    assert prune_for_export(_cat(cloud, big), w2c, K, W, H, points)[1]["removed"]["too_large"] == 0
+    assert prune_for_export(_cat(cloud, big), w2c, K, W, H, points, EXTENT)[1]["removed"]["too_large"] == 0
     strict = ExportPruneParams(max_width_extent_frac=0.4)
-    assert prune_for_export(_cat(cloud, big), w2c, K, W, H, points, strict)[1]["removed"]["too_large"] == 1
+    assert prune_for_export(_cat(cloud, big), w2c, K, W, H, points, EXTENT, strict)[1]["removed"]["too_large"] == 1
     with pytest.raises(ValueError):
         ExportPruneParams(min_opacity=1.5)
     with pytest.raises(ValueError):
@@ -164,20 +160,16 @@ def test_counts_add_up_and_what_stays_is_in_order(seed, n, margin):
     points = rng.uniform(-5, 5, size=(20, 3))
     g = _gaussians(rng.normal(0, 30, size=(n, 3)), sigma=float(rng.uniform(0.01, 5)))
     g["logit_opacities"] = rng.normal(0, 4, size=n).astype(np.float32)
-    kept, report = prune_for_export(g, w2c, K, W, H, points, ExportPruneParams(view_margin_frac=margin))
+    extent = 10.0 * math.sqrt(3.0)  # the points' box
+    kept, report = prune_for_export(g, w2c, K, W, H, points, extent, ExportPruneParams(view_margin_frac=margin))
     assert report["before"] == n and report["after"] == len(kept["means"])
     assert sum(report["removed"].values()) == n - report["after"]
     # what stays is a subsequence of the input: each kept row is found in order
     rows = [tuple(r) for r in g["means"]]
     pos = [rows.index(tuple(r)) for r in kept["means"]]
     assert pos == sorted(pos)
-    near = (
-        np.linalg.norm(g["means"][:, None] - points[None], axis=2).min(1)
-        <= 0.1 * scene_extent_for_pruning(w2c, points, 2.0) * 0.999
-    )
-    ok = (1 / (1 + np.exp(-g["logit_opacities"])) >= 1 / 255) & (
-        6 * np.exp(g["log_scales"].max(1)) <= scene_extent_for_pruning(w2c, points, 2.0)
-    )
+    near = np.linalg.norm(g["means"][:, None] - points[None], axis=2).min(1) <= 0.1 * extent * 0.999
+    ok = (1 / (1 + np.exp(-g["logit_opacities"])) >= 1 / 255) & (6 * np.exp(g["log_scales"].max(1)) <= extent)
     # a Gaussian close to an SfM point, opaque enough and not too large, always stays
     kept_rows = {tuple(r) for r in kept["means"]}
     assert all(tuple(r) in kept_rows for r in g["means"][near & ok])

@@ -65,7 +65,8 @@ def candidates(value: Any, annotation: Any) -> list[Any]:
         for a in get_args(annotation):
             if get_origin(a) is tuple:
                 guesses.append(tuple(0.5 for _ in get_args(a)))
-            guesses += {str: ["x", "127.0.0.1:8786"], float: [1.0, 0.5, 60.0], int: [1, 2, 518, 1000, 100_000]}.get(a, [])
+            by_type = {str: ["x", "127.0.0.1:8786"], float: [1.0, 0.5, 60.0], int: [1, 2, 518, 1000, 100_000]}
+            guesses += by_type.get(a, [])
         return [*options, *guesses]
     return options
 

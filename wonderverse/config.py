@@ -35,6 +35,7 @@ from wonderverse.planning.params import ExtensionSpec, PlannerSpec, PlanParams
 from wonderverse.priors.params import PriorsParams
 from wonderverse.quality.params import QualityParams
 from wonderverse.sfm import SfmParams
+from wonderverse.splats.cleanup import ExportPruneParams
 from wonderverse.splats.params import TrainParams
 from wonderverse.video.diffusion import DiffusionParams, size_problem
 from wonderverse.video.files import ClipParams
@@ -211,17 +212,20 @@ class SplatsStepParams(Model):
 
 
 class OutputsParams(Model):
-    """Step `outputs`: the files users open elsewhere (mesh, points, COLMAP/nerfstudio data, videos)."""
+    """Step `outputs`: the files users open elsewhere (splats, mesh, points, COLMAP/nerfstudio data, videos)."""
 
     mesh: MeshParams = MeshParams()
+    prune: ExportPruneParams = Field(
+        ExportPruneParams(), description="Gaussians removed before the splat files are written (floaters, absurd)"
+    )
     render_max_side_px: int = Field(480, ge=16, le=8192, description="renders for TSDF and videos: longer side")
     video_frames: int = Field(120, ge=2, le=10_000, description="frames of the fly-through and novel-view videos")
     video_fps: float = Field(24.0, gt=0, le=240)
     novel_offset_frac: float = Field(
         0.1, ge=0, le=1, description="the novel-view path runs this share of the scene extent off the training path"
     )
-    colmap: bool = Field(True, description="write colmap/ (cameras.txt, images.txt, points3D.txt)")
-    nerfstudio: bool = Field(True, description="write nerfstudio/ (transforms.json + images/)")
+    colmap: bool = Field(True, description="write colmap/ (images/ and sparse/0/: a dataset COLMAP trainers read)")
+    nerfstudio: bool = Field(True, description="write nerfstudio/ (transforms.json, images, depths, camera paths)")
     quality: QualityParams = Field(
         QualityParams(), description="no-reference metrics of novel views: NIQE always; CLIP-S, Q-Align with weights"
     )

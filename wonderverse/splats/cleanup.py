@@ -16,9 +16,8 @@ removed when
 On that scene the defaults remove 161 transparent, 73 too large and 485 out-of-view Gaussians (3.3 %), and
 the training views rendered before and after differ by 42-48 dB PSNR.
 
-The scene extent is the bounding-box diagonal of the camera centres and of the SfM points between the
-`extent_percentile` and 100 - `extent_percentile` percentiles per axis (the points' own outliers do not
-inflate it); with no SfM points, that of the camera centres alone.
+Lengths are shares of the scene extent the caller gives: the outputs step passes `camera.scene_extent` of the
+training cameras and their rendered depth, the one extent every output is measured by (paths, the mesh).
 
 Everything is in the world frame: Gaussians in the `GaussianModel.to_numpy()` layout, W2C poses with OpenCV
 axes, K in pixels (pixel centres at +0.5), points in world units.
@@ -28,8 +27,6 @@ from __future__ import annotations
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
-
-from wonderverse.camera import camera_centers
 
 WIDTH_SIGMAS = 6.0  # a Gaussian's width: the diameter of its 3σ ellipsoid along the largest axis
 
@@ -54,27 +51,9 @@ class ExportPruneParams(BaseModel):
         1.0, gt=0, description="a Gaussian wider (6 σ, largest axis) than this share of the extent is absurdly large"
     )
     min_opacity: float = Field(1.0 / 255.0, ge=0, lt=1, description="less opaque than this is nearly transparent")
-    extent_percentile: float = Field(
-        2.0, ge=0, lt=50, description="the SfM points' box for the extent spans these percentiles (and 100 - it)"
-    )
 
 
 REASONS = ("non_finite", "transparent", "too_large", "outside_views")
-
-
-def scene_extent_for_pruning(w2c: np.ndarray, sfm_points: np.ndarray | None, extent_percentile: float) -> float:
-    """The scene's size in world units (see the module docstring): the bounding-box diagonal of the finite
-    camera centres and the SfM points' percentile box; 1.0 when that is zero (one camera, no points)."""
-    w2c = np.asarray(w2c, np.float64).reshape(-1, 4, 4)
-    boxes = [camera_centers(w2c[np.isfinite(w2c).all(axis=(1, 2))])]
-    if sfm_points is not None and len(sfm_points):
-        pts = np.asarray(sfm_points, np.float64).reshape(-1, 3)
-        pts = pts[np.isfinite(pts).all(axis=1)]
-        if len(pts):
-            boxes.append(np.percentile(pts, [extent_percentile, 100.0 - extent_percentile], axis=0))
-    every = np.concatenate(boxes) if boxes else np.zeros((0, 3))
-    extent = float(np.linalg.norm(every.max(0) - every.min(0))) if len(every) else 0.0
-    return extent if extent > 0.0 and np.isfinite(extent) else 1.0
 
 
 def in_any_view(
@@ -123,13 +102,15 @@ def prune_for_export(
     width: int,
     height: int,
     sfm_points: np.ndarray | None,
+    extent: float,
     params: ExportPruneParams | None = None,
 ) -> tuple[dict[str, np.ndarray], dict]:
     """The Gaussians worth exporting, and what was removed.
 
     `gaussians`: world-frame arrays in the GaussianModel.to_numpy() layout; `w2c` (M,4,4) the training cameras
     (OpenCV axes; non-finite poses ignored) with intrinsics K (3,3) or (M,3,3) for width×height images;
-    `sfm_points` (P,3) world points or None. Returns (the kept Gaussians, same arrays and dtypes, in their
+    `sfm_points` (P,3) world points or None; `extent` the scene's size in world units (`camera.scene_extent`).
+    Returns (the kept Gaussians, same arrays and dtypes, in their
     order; a report dict): `before`, `after` (counts), `removed` {non_finite, transparent, too_large,
     outside_views} (each removed Gaussian counted once, under the first reason in that order), `extent` (world
     units), `bounds_before` / `bounds_after` ({min, max} of the finite centres, world units; None when empty)
@@ -141,7 +122,7 @@ def prune_for_export(
     finite = np.ones(n, bool)
     for a in gaussians.values():
         finite &= np.isfinite(np.asarray(a, np.float64).reshape(n, -1)).all(axis=1) if n else finite
-    extent = scene_extent_for_pruning(w2c, sfm_points, params.extent_percentile)
+    extent = float(extent) if np.isfinite(extent) and extent > 0 else 1.0
     logit = np.asarray(gaussians["logit_opacities"], np.float64).reshape(n)
     with np.errstate(over="ignore", invalid="ignore"):
         opacity = 1.0 / (1.0 + np.exp(-logit))
