@@ -9,7 +9,8 @@ so that a single jump in a short segment cannot raise its own reference). `trans
 applies the paper's T1 in SfM units instead. Rotation uses the paper's T2 (radians) as is.
 
 Also rejected: too few frames registered, unregistered frames inside the segment (unless `allow_gaps`),
-fewer than 3 registered frames, a camera that does not move, and every SfM quality-gate problem passed in.
+fewer than 3 registered frames, a camera that does not move, every SfM quality-gate problem passed in, and
+a clip SfM did not map because it saw too little parallax (`stopped`, `wonderverse.parallax`).
 
 Pure rotation (translation steps ~0 while the camera turns): the segment is judged on rotation alone and
 accepted if that is smooth, with a note. Translation ratios of pure noise say nothing, so the reference step
@@ -128,13 +129,17 @@ def check_trajectory(
     params: CheckParams | None = None,
     sfm_problems: Sequence[str] = (),
     points: np.ndarray | None = None,
+    stopped: str = "",
 ) -> CheckResult:
     """Judge the continuity of one segment's camera trajectory.
 
     poses: (T,4,4) world-to-camera (NaN rows allowed where unregistered); registered: (T,) bool.
     sfm_problems: the SfM quality-gate problems (each one rejects, quoted as "SfM: ...").
     points: (P,3) SfM points, optional; they give the scene depth that tells a still camera or a pure
-    rotation from a moving one. Returns a CheckResult; raises ValueError only for wrong shapes.
+    rotation from a moving one.
+    stopped: why SfM stopped before mapping (`SfmResult.stopped`: too little parallax); it is then the one
+    reason, in SfM's words (a clip never mapped has no trajectory to judge, and "0 frames registered"
+    would only hide the cause). Returns a CheckResult; raises ValueError only for wrong shapes.
     """
     params = params or CheckParams()
     poses = np.asarray(poses, dtype=np.float64)
@@ -153,6 +158,8 @@ def check_trajectory(
     trans = np.full(max(n - 1, 0), np.nan)
     rot = np.full(max(n - 1, 0), np.nan)
     ratio = np.full(max(n - 1, 0), np.nan)
+    if stopped:
+        return CheckResult(False, [stopped], trans, ratio, rot, [], notes, float("nan"), frac)
 
     if frac < params.min_registered_frac:
         reasons.append(f"only {100 * frac:.0f}% of frames registered ({len(idx)} of {n})")

@@ -29,6 +29,28 @@ path); held, with incremental first, wrong in 3 of 4 (10-23 %). So the global `p
 `K_known`. Reproducibility: with `num_threads=1` and a fixed
 `random_seed` two runs give bit-identical poses; with 2 threads they differ slightly (measured).
 
+A guessed K (`K_guessed`: a clip whose field of view nobody gave, `reconstruct` assumes 60°) is not a
+prior. Measured on the seven 16-frame 384x256 RealEstate10K clips (ATE after a Sim(3), share of the path;
+their pose files give fx 182-195 px and fy/fx = 32/27: 16:9 footage resized to 3:2, non-square pixels):
+the guess as a refined prior left `3c35` 2.55 % off (focal 199 px), `0f47` 1.76 % and `2f25` 1.35 %,
+the same as with their true FOV on a square-pixel camera. Started from no prior at all (view-graph
+calibration) `3c35` came to 0.23 %, the two others stayed at 1.3-2.0 %; a free PINHOLE camera (fx and fy
+refined apart) ran fy to 63-328 px on some clips (up to 2.5 %); stretching the frames 32/27 times in x
+left `0f47` at 1.6 % and once ran its focal to 554 px (11 %). What worked: SIFT once on the frames, the
+keypoints' x then times the pixel aspect fy/fx of the K given (`keep_pixel_aspect`, `_stretch_x`), so
+one focal is refined with the aspect held; the guess only starting the view graph's self-calibration
+(`guessed_focal: calibrate`, bounded to the gate's plausible focal range: unbounded from COLMAP's own
+1.2·max(W,H) start it once went to 2113 px); and SIFT keeping weaker features when the focal is not known
+(`uncalibrated_peak_threshold` 0.004 for COLMAP's 0.0067; the clips give 300-600 features a frame).
+With all three, seed 0: 0.07-0.83 % (median 0.38 %); over seeds 0-4 the worst clip was 0.70-1.04 %
+(`0c9b`, `0f47`). Reprojection error does not pick the better focal (it was lowest for `0c9b`'s worst
+seeds), so several hypotheses are not scored by it. A given FOV with the pixel aspect held (incremental
+first, as above): 0.15-0.90 %. The fox capture (guessed, square pixels): 0.035 %.
+
+Without a known focal, a few frames are looked at for parallax before anything else
+(`wonderverse.parallax`, `min_parallax_deg`): a clip with too little is not mapped (`stopped`), which on
+near-static CogVideoX clips takes 1.5-4 s where the three mappers took 49-234 s.
+
 Frame pairs are those of COLMAP's sequential matcher (`sequential_pairs`), matched as an imported list so
 that the caller's frame order counts, not the order of the image names. `reconstruct(names=...,
 keep_workspace=True)` hands back the COLMAP database and kept model (`SfmWorkspace`), into which
@@ -122,6 +144,32 @@ class SfmParams(BaseModel):
         (0.3, 3.0), description="gate: plausible focal as a multiple of max(W, H) (FOV ~118° .. ~19°)"
     )
     max_reproj_px: float = Field(2.0, gt=0, description="gate: mean reprojection error")
+    guessed_focal: Literal["calibrate", "prior"] = Field(
+        "calibrate",
+        description="a guessed K's focal only starts the view graph's self-calibration (calibrate), or is a "
+        "trusted prior the mappers refine (prior); see module notes",
+    )
+    keep_pixel_aspect: bool = Field(
+        True, description="with a K prior (SIMPLE_PINHOLE), hold its fy/fx while the focal is refined"
+    )
+    min_parallax_deg: float | None = Field(
+        3.0,
+        gt=0,
+        le=45,
+        description="focal not known: stop before mapping when the pair of `parallax_frames` that sees most "
+        "has a smaller median triangulation angle (None: never look; `wonderverse.parallax`)",
+    )
+    parallax_homography_px: float = Field(
+        2.0, ge=0, description="... or when one homography explains 90 % of every pair's matches to this (px)"
+    )
+    uncalibrated_peak_threshold: float | None = Field(
+        0.004,
+        gt=0,
+        description="SIFT peak threshold when the focal is not known (no K, or a guess): weaker features kept "
+        "for the self-calibration (None: COLMAP's 0.0067, which a known focal always uses)",
+    )
+    parallax_frames: int = Field(9, ge=3, le=1000, description="frames looked at for parallax, spread over the clip")
+    parallax_max_features: int = Field(2048, ge=64, le=65536, description="SIFT features per frame of that look")
 
     @model_validator(mode="after")
     def _consistent(self) -> SfmParams:
@@ -179,7 +227,13 @@ class SfmResult:
     intrinsics in pixels of the input frames (NaN if nothing was reconstructed). reproj_error_px: mean
     reprojection error (NaN if none). mapper: which mapper produced the kept model ("" if none).
     timings: seconds per stage. gates_passed: every quality gate held. problems: what failed, in words.
-    workspace: the COLMAP database and kept model, only when asked for (`keep_workspace`) and a model exists.
+    workspace: the COLMAP database and kept model, only when asked for (`keep_workspace`) and a model exists
+    (with a held pixel aspect a ≠ 1 its pixels are the frames' stretched a times in x, `pixel_aspect`).
+    k_source: where K came from: "given" (a known K held, or a trusted prior kept as it was), "estimated"
+    (refined or self-calibrated by SfM), "guessed" (a guess kept as it was); "" when nothing was mapped.
+    stopped: why SfM stopped before mapping (too little parallax), in words; "" when it mapped.
+    parallax: the look before mapping (`wonderverse.parallax.ParallaxReport.to_attrs`), when taken.
+    pixel_aspect: the fy/fx held while mapping (1: square pixels or not held).
     """
 
     poses: np.ndarray
@@ -194,10 +248,26 @@ class SfmResult:
     gates_passed: bool = False
     problems: list[str] = field(default_factory=list)
     workspace: SfmWorkspace | None = None
+    k_source: str = ""
+    stopped: str = ""
+    parallax: dict[str, Any] | None = None
+    pixel_aspect: float = 1.0
 
     @property
     def n_registered(self) -> int:
         return int(self.registered.sum())
+
+
+def k_record(res: SfmResult | None, K_prior: np.ndarray, K_known: bool) -> dict[str, Any]:
+    """Where the K a reconstruction used came from, for store attributes: {"k_source": "given" | "estimated"
+    | "guessed", "K": 3x3 list (pixels), "fov_deg": its horizontal field of view over the frame width
+    2·cx, "pixel_aspect": fy/fx}. The K is the estimated one, or else the prior K_prior (3,3) (also when
+    nothing was mapped, or there was no reconstruction (`res` None): the K given or guessed)."""
+    source = (res.k_source if res is not None else "") or ("given" if K_known else "guessed")
+    estimated = source == "estimated" and res is not None and np.all(np.isfinite(res.K))
+    K = res.K if estimated and res is not None else np.asarray(K_prior, dtype=np.float64)
+    fov = float(np.degrees(2.0 * np.arctan(K[0, 2] / K[0, 0])))
+    return {"k_source": source, "K": K.tolist(), "fov_deg": fov, "pixel_aspect": float(K[1, 1] / K[0, 0])}
 
 
 def empty_result(n_frames: int, problems: list[str], timings: dict[str, float] | None = None) -> SfmResult:
@@ -234,7 +304,9 @@ def _validate_frames(frames: np.ndarray | Sequence[np.ndarray]) -> list[np.ndarr
     return out
 
 
-def _validate_K(K_prior: np.ndarray | None) -> np.ndarray | None:
+def _validate_K(K_prior: np.ndarray | None, K_known: bool = False, K_guessed: bool = False) -> np.ndarray | None:
+    if K_known and K_guessed:
+        raise ValueError("K_prior cannot be both known (K_known) and a guess (K_guessed)")
     if K_prior is None:
         return None
     K = np.asarray(K_prior, dtype=np.float64)
@@ -327,9 +399,11 @@ def _largest_model(models: dict[int, Any]) -> Any | None:
 
 
 def _result_from_model(
-    rec: Any, names: list[str], size_wh: tuple[int, int], mapper: str, params: SfmParams
+    rec: Any, names: list[str], size_wh: tuple[int, int], mapper: str, params: SfmParams, aspect: float = 1.0
 ) -> SfmResult:
-    """Poses, points and intrinsics out of a pycolmap Reconstruction, with the quality gates applied."""
+    """Poses, points and intrinsics out of a pycolmap Reconstruction, with the quality gates applied.
+    size_wh: the frames' (W,H); aspect: the pixel aspect held while mapping (the model's x pixels are the
+    frames' stretched `aspect` times), undone in K."""
     n = len(names)
     index = {name: i for i, name in enumerate(names)}
     poses = np.full((n, 4, 4), np.nan)
@@ -348,6 +422,7 @@ def _result_from_model(
     points = np.array([p.xyz for p in pts.values()], dtype=np.float64).reshape(-1, 3)
     colors = np.array([p.color for p in pts.values()], dtype=np.uint8).reshape(-1, 3)
     K = np.asarray(camera.calibration_matrix(), dtype=np.float64) if camera is not None else np.full((3, 3), np.nan)
+    K = np.diag([1.0 / aspect, 1.0, 1.0]) @ K
     reproj = float(rec.compute_mean_reprojection_error()) if len(points) else float("nan")
     res = SfmResult(
         poses=poses,
@@ -358,6 +433,7 @@ def _result_from_model(
         reproj_error_px=reproj,
         n_points=len(points),
         mapper=mapper,
+        pixel_aspect=aspect,
     )
     res.problems = _gate_problems(res, per_image_points, size_wh, params)
     res.gates_passed = not res.problems
@@ -453,16 +529,47 @@ def sequential_pairs(n_frames: int, overlap: int, quadratic: bool) -> list[tuple
 
 
 def _extract(
-    db_path: Path, image_dir: Path, names: list[str], params: SfmParams, reader: pycolmap.ImageReaderOptions
+    db_path: Path,
+    image_dir: Path,
+    names: list[str],
+    params: SfmParams,
+    reader: pycolmap.ImageReaderOptions,
+    peak_threshold: float | None = None,
 ) -> None:
-    """SIFT on `names` (files in `image_dir`) into the database, all with one camera."""
+    """SIFT on `names` (files in `image_dir`) into the database, all with one camera; `peak_threshold`
+    None is COLMAP's."""
+    _extract_with(
+        db_path,
+        image_dir,
+        names,
+        reader,
+        params.max_image_size_px,
+        params.max_num_features,
+        params.num_threads,
+        peak_threshold,
+    )
+
+
+def _extract_with(
+    db_path: Path,
+    image_dir: Path,
+    names: list[str],
+    reader: pycolmap.ImageReaderOptions,
+    max_image_size_px: int,
+    max_num_features: int,
+    num_threads: int,
+    peak_threshold: float | None = None,
+) -> None:
+    """`_extract` with its settings spelled out (the parallax look uses fewer features)."""
     import pycolmap
 
     extraction = pycolmap.FeatureExtractionOptions()
-    extraction.num_threads = params.num_threads
+    extraction.num_threads = num_threads
     extraction.use_gpu = False
-    extraction.max_image_size = params.max_image_size_px
-    extraction.sift.max_num_features = params.max_num_features
+    extraction.max_image_size = max_image_size_px
+    extraction.sift.max_num_features = max_num_features
+    if peak_threshold is not None:
+        extraction.sift.peak_threshold = peak_threshold
     pycolmap.extract_features(
         db_path,
         image_dir,
@@ -477,13 +584,21 @@ def _extract(
 def _match(db_path: Path, pairs: list[tuple[str, str]], params: SfmParams) -> pycolmap.TwoViewGeometryOptions:
     """Match and verify the given image-name pairs (never loop detection: offline it aborts the process);
     returns the verification options used."""
+    return _match_pairs(db_path, pairs, params.random_seed, params.num_threads)
+
+
+def _match_pairs(
+    db_path: Path, pairs: list[tuple[str, str]], random_seed: int, num_threads: int, relative_pose: bool = False
+) -> pycolmap.TwoViewGeometryOptions:
+    """`_match` with its settings spelled out; `relative_pose` also stores each pair's relative pose."""
     import pycolmap
 
     matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = params.num_threads
+    matching.num_threads = num_threads
     matching.use_gpu = False
     verification = pycolmap.TwoViewGeometryOptions()
-    verification.ransac.random_seed = params.random_seed
+    verification.ransac.random_seed = random_seed
+    verification.compute_relative_pose = relative_pose
     if not pairs:
         return verification
     pair_file = db_path.with_name("pairs.txt")
@@ -500,6 +615,102 @@ def _match(db_path: Path, pairs: list[tuple[str, str]], params: SfmParams) -> py
     return verification
 
 
+ASPECT_TOL = 1e-3  # pixel aspects this close to 1 are square
+
+
+def _pixel_aspect(K: np.ndarray | None, params: SfmParams) -> float:
+    """fy/fx of a K prior to hold while mapping: 1 without a prior, for square pixels, or when not held."""
+    if K is None or not params.keep_pixel_aspect or params.camera_model != "SIMPLE_PINHOLE":
+        return 1.0
+    aspect = float(K[1, 1] / K[0, 0])
+    return 1.0 if abs(aspect - 1.0) < ASPECT_TOL else aspect
+
+
+def _set_camera(db_path: Path, K: np.ndarray, width: int, model: str, has_prior: bool) -> None:
+    """The database's one camera set to K (3,3, SfM pixels) and `width`; `has_prior`: COLMAP trusts its
+    focal (no view-graph self-calibration; the mappers start from it)."""
+    import pycolmap
+
+    db = pycolmap.Database.open(db_path)
+    try:
+        for camera in db.read_all_cameras():
+            camera.width = int(width)
+            camera.params = np.array([float(v) for v in _camera_params_string(K, model).split(",")])
+            camera.has_prior_focal_length = has_prior
+            db.update_camera(camera)
+    finally:
+        db.close()
+
+
+def _stretch_x(db_path: Path, image_dir: Path, names: list[str], aspect: float, width: int) -> None:
+    """Hold a pixel aspect fy/fx = `aspect` with a one-focal camera: every keypoint's x (and its affine
+    shape's first row) times `aspect`, so the features are those of frames stretched to `width` with square
+    pixels; the image files are stretched too, since COLMAP takes the points' colours from them."""
+    import pycolmap
+    from PIL import Image
+
+    db = pycolmap.Database.open(db_path)
+    try:
+        for image in db.read_all_images():
+            kp = np.array(db.read_keypoints(image.image_id), dtype=np.float32)
+            kp[:, 0] *= aspect
+            if kp.shape[1] >= 6:
+                kp[:, 2:4] *= aspect
+            db.update_keypoints(image.image_id, kp)
+    finally:
+        db.close()
+    for name in names:
+        path = image_dir / name
+        with Image.open(path) as im:
+            stretched = im.convert("RGB").resize((width, im.height), Image.Resampling.LANCZOS)
+        path.unlink()  # may be a link to the caller's file: replace it, never write through it
+        stretched.save(path)
+
+
+def _calibration_options(
+    params: SfmParams, K_start: np.ndarray | None, size_wh: tuple[int, int], aspect: float
+) -> pycolmap.ViewGraphCalibrationOptions:
+    """View-graph self-calibration; started from a guess (`K_start`, SfM pixels) it may only move the focal
+    within the gate's plausible range (`focal_range_frac`), else COLMAP keeps the guess."""
+    import pycolmap
+
+    calibration = pycolmap.ViewGraphCalibrationOptions()
+    calibration.random_seed = params.random_seed
+    if K_start is not None:
+        # the gate judges 0.5 (fx + fy) of the frames; in SfM pixels that is f (1 + 1/aspect) / 2
+        f0, scale = float(K_start[1, 1]), 0.5 * (1.0 + 1.0 / aspect)
+        lo, hi = params.focal_range_frac
+        calibration.min_focal_length_ratio = lo * max(size_wh) / scale / f0
+        calibration.max_focal_length_ratio = hi * max(size_wh) / scale / f0
+    return calibration
+
+
+def _looks_for_parallax(K_prior: np.ndarray | None, K_known: bool, K_guessed: bool, params: SfmParams) -> bool:
+    """The parallax look runs when the focal is not known: no K at all, or a guessed one."""
+    return params.min_parallax_deg is not None and not K_known and (K_prior is None or K_guessed)
+
+
+def _parallax_stop(
+    image_files: list[Path], size_wh: tuple[int, int], K_prior: np.ndarray | None, params: SfmParams, work: Path
+) -> tuple[str, dict[str, Any]]:
+    """(why there is too little parallax to map, or ""; the look's attrs) over the frames' files."""
+    from wonderverse.parallax import measure_parallax
+
+    report = measure_parallax(
+        image_files,
+        size_wh,
+        K_prior,
+        params.parallax_frames,
+        params.max_image_size_px,
+        min(params.parallax_max_features, params.max_num_features),
+        params.random_seed,
+        params.num_threads,
+        workdir=work / "parallax",
+    )
+    assert params.min_parallax_deg is not None
+    return report.verdict(params.min_parallax_deg, params.parallax_homography_px), report.to_attrs()
+
+
 def _reconstruct_dir(
     image_dir: Path,
     names: list[str],
@@ -511,6 +722,7 @@ def _reconstruct_dir(
     keep_workspace: bool = False,
     K_known: bool = False,
     progress: ProgressFn = no_progress,
+    K_guessed: bool = False,
 ) -> SfmResult:
     """SIFT + sequential matching + mapping over `names` in `image_dir` (all of size `size_wh`, in sequence
     order); with `keep_workspace` the result carries the database and the kept model. Reports stages 1-3
@@ -520,14 +732,24 @@ def _reconstruct_dir(
     pycolmap.set_random_seed(params.random_seed)
     db_path = work / "database.db"
     db_path.unlink(missing_ok=True)  # a reused workdir must not append to an old database
+    aspect = _pixel_aspect(K_prior, params)
+    K_sfm = None if K_prior is None else np.diag([aspect, 1.0, 1.0]) @ K_prior  # in the mapped (stretched) pixels
+    size_sfm = (round(size_wh[0] * aspect), size_wh[1])
+    # A guessed focal is not a prior: it only starts the view graph's self-calibration (module notes).
+    trusted = K_prior is not None and not (K_guessed and params.guessed_focal == "calibrate")
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = params.camera_model
-    if K_prior is not None:
+    if trusted and aspect == 1.0:
         # The prior both fixes the initial focal and marks it as trusted (has_prior_focal_length).
         reader.camera_params = _camera_params_string(K_prior, params.camera_model)
     t = time.perf_counter()
     progress(1, len(STAGES), f"{STAGES[1]} ({len(names)} frames)")
-    _extract(db_path, image_dir, names, params, reader)
+    uncalibrated = K_prior is None or K_guessed
+    _extract(db_path, image_dir, names, params, reader, params.uncalibrated_peak_threshold if uncalibrated else None)
+    if aspect != 1.0:
+        _stretch_x(db_path, image_dir, names, aspect, size_sfm[0])
+    if K_sfm is not None and (aspect != 1.0 or not trusted):
+        _set_camera(db_path, K_sfm, size_sfm[0], params.camera_model, has_prior=trusted)
     timings["extract"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -541,17 +763,18 @@ def _reconstruct_dir(
         return empty_result(len(names), ["COLMAP registered no frames", *feature_problems], timings)
 
     hold = K_prior is not None and K_known and params.hold_known_intrinsics  # module notes
+    prior_source = "given" if K_known or not K_guessed else "guessed"
 
     def run(kind: str) -> tuple[SfmResult, Any] | None:
         t0 = time.perf_counter()
-        if kind == "global" and K_prior is None:
+        if kind == "global" and not trusted:
             # Without a focal prior the global mapper fails at random; calibrating the view graph fixes it.
-            calibration = pycolmap.ViewGraphCalibrationOptions()
-            calibration.random_seed = params.random_seed
-            pycolmap.calibrate_view_graph(db_path, calibration)
+            pycolmap.calibrate_view_graph(db_path, _calibration_options(params, K_sfm, size_wh, aspect))
+        if kind == PRIOR_FOCAL and K_sfm is not None and not trusted:
+            _set_camera(db_path, K_sfm, size_sfm[0], params.camera_model, has_prior=True)  # back to the guess
         rec = _run_mapper(kind, db_path, image_dir, work, params, hold)
         timings[f"map_{kind}"] = time.perf_counter() - t0
-        return None if rec is None else (_result_from_model(rec, names, size_wh, kind, params), rec)
+        return None if rec is None else (_result_from_model(rec, names, size_wh, kind, params, aspect), rec)
 
     auto = params.auto_order_known_k if hold else params.auto_order
     kinds = list(auto) if params.mapper == "auto" else [params.mapper]
@@ -578,6 +801,7 @@ def _reconstruct_dir(
         ] + ([p for p in feature_problems if best.n_registered < len(names)])
     if keep_workspace:
         best.workspace = SfmWorkspace.pack(db_path, best_rec, work / "kept")
+    best.k_source = prior_source if hold or best.mapper == PRIOR_FOCAL else "estimated"
     best.timings = timings
     return best
 
@@ -614,14 +838,20 @@ def reconstruct(
     keep_workspace: bool = False,
     K_known: bool = False,
     progress: ProgressFn | None = None,
+    K_guessed: bool = False,
 ) -> SfmResult:
     """Reconstruct one segment: (T,H,W,3) uint8 frames (or a list of (H,W,3) uint8), in sequence order ->
     SfmResult.
 
     K_prior (3,3, pixels of these frames) seeds the shared camera's focal length; without it the
     incremental mapper starts from COLMAP's 1.2·max(W,H) and the global one calibrates the view graph.
+    Its pixel aspect fy/fx is held while mapping (`keep_pixel_aspect`), the focal refined.
     K_known: K_prior is the camera's calibration, not a guess; with `params.hold_known_intrinsics` (default)
     no mapper refines it, and `auto` follows `auto_order_known_k`.
+    K_guessed: K_prior is a guess (an assumed field of view): with `guessed_focal="calibrate"` its focal only
+    starts the view graph's self-calibration, and is held as it was only by the last-resort mapper.
+    Without a known focal (no K_prior, or a guessed one) a few frames are first looked at for parallax
+    (`wonderverse.parallax`); with too little, nothing is mapped and `stopped` says why.
     workdir keeps the images, database and models there (for debugging); otherwise a temp dir is used.
     names: one unique `.png` file name per frame, used for the images in COLMAP (default: the frame's
     position); give stable ids when the workspace is to be extended later, sorting in sequence order:
@@ -630,10 +860,12 @@ def reconstruct(
     `sfm_extend.extend_reconstruction`).
     progress(stage, len(STAGES), what it is doing): each of `STAGES` as it starts, then done.
     """
+    from wonderverse.parallax import subset
+
     report = progress or no_progress
     params = params or SfmParams()
     frame_list = _validate_frames(frames)
-    K = _validate_K(K_prior)
+    K = _validate_K(K_prior, K_known, K_guessed)
     names = _checked_names(names, len(frame_list))
     t_start = time.perf_counter()
     sizes = [(int(f.shape[1]), int(f.shape[0])) for f in frame_list]
@@ -647,9 +879,22 @@ def reconstruct(
         timings: dict[str, float] = {}
         t = time.perf_counter()
         report(0, len(STAGES), STAGES[0])
-        write_png_frames(image_dir, names, frame_list)
-        timings["write"] = time.perf_counter() - t
-        res = _reconstruct_dir(image_dir, names, sizes[0], params, K, work, timings, keep_workspace, K_known, report)
+        look = _looks_for_parallax(K, K_known, K_guessed, params)
+        first = [int(i) for i in subset(len(names), params.parallax_frames)] if look else []
+        write_png_frames(image_dir, [names[i] for i in first], [frame_list[i] for i in first])
+        seen = None
+        if look:
+            stop, seen = _parallax_stop([image_dir / n for n in names], sizes[0], K, params, work)
+            timings["parallax"] = seen["seconds"]
+            if stop:
+                return _stopped(len(names), stop, seen, K, K_known, K_guessed, timings, t_start)
+        rest = [i for i in range(len(names)) if i not in set(first)]
+        write_png_frames(image_dir, [names[i] for i in rest], [frame_list[i] for i in rest])
+        timings["write"] = time.perf_counter() - t - timings.get("parallax", 0.0)
+        res = _reconstruct_dir(
+            image_dir, names, sizes[0], params, K, work, timings, keep_workspace, K_known, report, K_guessed
+        )
+        res.parallax = seen
     res.timings["total"] = time.perf_counter() - t_start
     report(len(STAGES), len(STAGES), f"{res.n_registered}/{len(names)} frames registered")
     return res
@@ -660,13 +905,15 @@ def reconstruct_from_images(
     params: SfmParams | None = None,
     K_prior: np.ndarray | None = None,
     workdir: Path | None = None,
+    K_known: bool = False,
+    K_guessed: bool = False,
 ) -> SfmResult:
     """Like `reconstruct`, over image files in the given order (frame i = paths[i]); files are not decoded
     into memory, COLMAP reads them (downscaled to `max_image_size_px` for SIFT, K in full-size pixels)."""
     from PIL import Image
 
     params = params or SfmParams()
-    K = _validate_K(K_prior)
+    K = _validate_K(K_prior, K_known, K_guessed)
     t_start = time.perf_counter()
     paths = [Path(p) for p in paths]
     sizes: list[tuple[int, int]] = []
@@ -686,9 +933,37 @@ def reconstruct_from_images(
         names = [f"{i:06d}{p.suffix.lower()}" for i, p in enumerate(paths)]
         for name, p in zip(names, paths, strict=True):
             link = image_dir / name
-            if not link.exists():
-                link.symlink_to(p.resolve())
+            if link.is_symlink() or link.exists():
+                link.unlink()  # a reused workdir may hold a stretched copy (`_stretch_x`) or an old link
+            link.symlink_to(p.resolve())
         timings: dict[str, float] = {}
-        res = _reconstruct_dir(image_dir, names, sizes[0], params, K, work, timings)
+        seen = None
+        if _looks_for_parallax(K, K_known, K_guessed, params):
+            stop, seen = _parallax_stop([image_dir / n for n in names], sizes[0], K, params, work)
+            timings["parallax"] = seen["seconds"]
+            if stop:
+                return _stopped(len(names), stop, seen, K, K_known, K_guessed, timings, t_start)
+        res = _reconstruct_dir(
+            image_dir, names, sizes[0], params, K, work, timings, False, K_known, no_progress, K_guessed
+        )
+        res.parallax = seen
+    res.timings["total"] = time.perf_counter() - t_start
+    return res
+
+
+def _stopped(
+    n_frames: int,
+    reason: str,
+    seen: dict[str, Any],
+    K: np.ndarray | None,
+    K_known: bool,
+    K_guessed: bool,
+    timings: dict[str, float],
+    t_start: float,
+) -> SfmResult:
+    """The result of a reconstruction stopped before mapping for `reason` (too little parallax)."""
+    res = empty_result(n_frames, [reason], timings)
+    res.stopped, res.parallax = reason, seen
+    res.k_source = "" if K is None else ("given" if K_known or not K_guessed else "guessed")
     res.timings["total"] = time.perf_counter() - t_start
     return res
