@@ -25,7 +25,7 @@ from wonderverse.schema import ATTEMPT, CHECK, SEGMENT
 from wonderverse.store import SceneStore, cache_key, write_array
 
 log = logging.getLogger("wonderverse.check")
-VERSION = 2  # 2: keyed by the step's params model
+VERSION = 3  # 2: keyed by the step's params model; 3: guessed K self-calibrated, parallax looked at first
 THIS_RUN = "this_run"  # the key of what `check_segment` did in this run (returned, never stored)
 
 
@@ -47,14 +47,14 @@ def segment_key(p: Params, seg_key: str) -> str:
 def _judge(store: SceneStore, p: CheckStepParams, seg: str, k: int, key: str) -> dict[str, Any]:
     """SfM + check of one attempt (cached in its `sfm` and `check` groups); returns the check attrs."""
     from wonderverse.check import check_trajectory
-    from wonderverse.sfm import reconstruct
+    from wonderverse.sfm import k_record, reconstruct
 
     ap = ATTEMPT.at(seg=seg, attempt=k)
     if store.is_complete(ap.check, key):
         return store.attrs(ap.check)
     K, known = intrinsics(store, seg)
-    sfm = reconstruct(store.array(ap.frames), p.sfm, K_prior=K, K_known=known)
-    result = check_trajectory(sfm.poses, sfm.registered, p.rules, sfm.problems, points=sfm.points)
+    sfm = reconstruct(store.array(ap.frames), p.sfm, K_prior=K, K_known=known, K_guessed=not known)
+    result = check_trajectory(sfm.poses, sfm.registered, p.rules, sfm.problems, points=sfm.points, stopped=sfm.stopped)
     with store.staged(
         ap.sfm,
         key,
@@ -63,6 +63,9 @@ def _judge(store: SceneStore, p: CheckStepParams, seg: str, k: int, key: str) ->
         n_points=sfm.n_points,
         timings=sfm.timings,
         problems=sfm.problems,
+        stopped=sfm.stopped,
+        parallax=sfm.parallax,
+        **k_record(sfm, K, known),
     ) as g:
         write_array(g, ap.sfm.poses, sfm.poses)
         write_array(g, ap.sfm.registered, sfm.registered)
@@ -157,6 +160,7 @@ def run(store: SceneStore, p: Params, ctx: StepContext) -> str:
     )
 
 
+# 3: a guessed K is self-calibrated with its pixel aspect held; too little parallax stops SfM before mapping
 STEP = Step(
-    "check", 2, ("generate_segments",), params, run, "SfM pose check, regenerate abnormal segments", group=CHECK.path
+    "check", 3, ("generate_segments",), params, run, "SfM pose check, regenerate abnormal segments", group=CHECK.path
 )

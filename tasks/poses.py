@@ -8,7 +8,9 @@ guidance for real video models).
 The `sfm` group keeps the COLMAP workspace (`colmap_database`, `colmap_model/<file>`, image names from
 `global_poses.image_names`) and, in its attrs, what it was made from (`segment_sources`, `workspace_key`), the
 Sim(3) from the COLMAP model to the world frame (`model_to_world`), the solve (`solve`: incremental | full,
-`incremental_problems`, `segment_disagreement`, `solves`, `seed_offset`) and the SfM's own report.
+`incremental_problems`, `segment_disagreement`, `solves`, `seed_offset`), where K came from (`k_source`,
+`K`, `fov_deg`, `pixel_aspect`) and the SfM's own report. A video of one segment reuses that segment's SfM
+from the check (`solve: reused_check`, no COLMAP workspace kept): the same frames are never mapped twice.
 """
 
 from __future__ import annotations
@@ -19,14 +21,14 @@ import numpy as np
 
 from tasks.base import Step, StepContext
 from tasks.progress import advance
-from tasks.segments import accepted_attempt, attempt_path, stitched
+from tasks.segments import accepted_attempt, attempt_path, intrinsics, stitched
 from wonderverse.config import PosesParams, RunConfig
 from wonderverse.errors import WonderError
 from wonderverse.schema import SEGMENT, SEGMENTS, SFM, SFM_MODEL
 from wonderverse.store import SceneStore, cache_key, write_array
 
 if TYPE_CHECKING:
-    from wonderverse.global_poses import PreviousSolve
+    from wonderverse.global_poses import OwnModel, PreviousSolve
     from wonderverse.sfm import SfmWorkspace
 
 UNIT = "SfM stages"
@@ -96,6 +98,19 @@ def _own_poses(store: SceneStore, segs: list[str]) -> dict[str, np.ndarray]:
     return out
 
 
+def _own_model(store: SceneStore, segs: list[str]) -> OwnModel | None:
+    """The check's SfM of the accepted attempt when the video is one segment (None: several, or no check)."""
+    from wonderverse.global_poses import OwnModel
+
+    if len(segs) != 1:
+        return None
+    ap = attempt_path(store, segs[0]).sfm
+    if not store.exists(ap.poses):
+        return None
+    arrays = [store.array(a) for a in (ap.poses, ap.registered, ap.points, ap.colors, ap.K)]
+    return OwnModel(*arrays, attrs=store.attrs(ap))
+
+
 def _load_workspace(store: SceneStore) -> SfmWorkspace:
     from wonderverse.sfm import SfmWorkspace
 
@@ -114,12 +129,14 @@ def _write_workspace(g: Any, ws: SfmWorkspace) -> None:
 
 def run(store: SceneStore, p: PosesParams, ctx: StepContext) -> str:
     from wonderverse.global_poses import select_frames, solve_global_poses
+    from wonderverse.sfm import k_record
 
     frames, index = stitched(store)
     if len(frames) == 0:
         raise WonderError("no accepted frames to pose (every segment was dropped)")
     segs = sorted({s for s, _ in index})
     K = store.array(SEGMENT.at(seg=index[0][0]).K)
+    guessed = not all(intrinsics(store, s)[1] for s in segs)  # a guess anywhere: self-calibrate
     n = len(frames)
     frame_index = np.array([(segs.index(s), i) for s, i in index], dtype=np.int32)
     points = np.zeros((0, 3))
@@ -130,6 +147,7 @@ def run(store: SceneStore, p: PosesParams, ctx: StepContext) -> str:
         paths = {s: store.array(SEGMENT.at(seg=s).path) for s in segs}
         poses = np.stack([paths[s][i] for s, i in index])
         registered = np.ones(n, bool)
+        attrs |= k_record(None, K, K_known=not guessed)
     else:
         solved = solve_global_poses(
             frames,
@@ -142,6 +160,8 @@ def run(store: SceneStore, p: PosesParams, ctx: StepContext) -> str:
             own=_own_poses(store, segs),
             previous=_previous(store),
             progress=lambda done, total, note: advance(done, total, UNIT, note, eta=False),  # stages: no pace
+            K_guessed=guessed,
+            own_model=_own_model(store, segs),
         )
         poses, registered, points, colors = solved.poses, solved.registered, solved.points, solved.colors
         K, workspace = solved.K, solved.workspace
@@ -163,4 +183,5 @@ def run(store: SceneStore, p: PosesParams, ctx: StepContext) -> str:
 # 2: the group keeps the COLMAP workspace (extensions register only their new frames); frames selected per segment
 # 3: image names in stitched order; full solves checked against each segment's own SfM
 # 4: the step contract
-STEP = Step("poses", 4, ("check",), params, run, "one camera path for the stitched video", group=SFM.path)
+# 5: one segment reuses its check's SfM; a guessed K is self-calibrated; k_source recorded
+STEP = Step("poses", 5, ("check",), params, run, "one camera path for the stitched video", group=SFM.path)

@@ -221,6 +221,14 @@ ATTEMPT_SFM = Group(
         "n_points": "",
         "timings": "seconds per stage",
         "problems": "what went wrong, in words",
+        "stopped": "why SfM stopped before mapping (too little parallax), in words; empty when it mapped",
+        "parallax": "the look for parallax before mapping (wonderverse.parallax.ParallaxReport.to_attrs); "
+        "None when K was known",
+        "k_source": "where K came from: given (known: the renderer's or a given FOV), estimated (refined or "
+        "self-calibrated by SfM from a guess), guessed (the guess kept as it was)",
+        "K": "the K used, 3x3 pixels (estimated, else the segment's)",
+        "fov_deg": "horizontal field of view of that K, degrees",
+        "pixel_aspect": "fy/fx of that K",
     },
 )
 ATTEMPT_CHECK = Group(
@@ -250,7 +258,16 @@ SFM = Group(
         "colors": Array("uint8", ("N", 3), "whole"),
         "colmap_database": Array("uint8", ("N",), "blob", "COLMAP's database.db, bytes"),
     },
-    attrs={"source": "sfm|conditioning", "segments": "segment ids in stitched order"},
+    attrs={
+        "source": "sfm|conditioning",
+        "segments": "segment ids in stitched order",
+        "solve": "full | incremental (an extension registered into the kept model) | reused_check (one "
+        "segment: its check's SfM)",
+        "k_source": "where K came from: given, estimated or guessed (as segments/{seg}/attempts/{k}/sfm)",
+        "K": "the K used, 3x3 pixels",
+        "fov_deg": "horizontal field of view of that K, degrees",
+        "pixel_aspect": "fy/fx of that K",
+    },
 )
 SFM_MODEL = Group(
     "sfm/colmap_model",
