@@ -142,6 +142,10 @@ def generate(
     made = segments_config(scene_dir)
     if made is not None and not replace_segments and not cfg.scene.extensions.added:
         cfg = with_extensions(cfg, made.scene.extensions.added)  # extensions are part of the scene
+    if cfg.scene.video.backend == "files":
+        from wonderverse.video import make_video_model
+
+        make_video_model(cfg.scene.video_source)  # reads every clip: a bad one is refused before the store is touched
     _run_with_progress(
         scene_dir,
         engine,

@@ -70,10 +70,10 @@ def _k_source(store: SceneStore, seg: str, sfm: str, width: int) -> tuple[str, f
     source = a.get("k_source")
     if source is None:
         source = "guessed" if store.attrs(SEGMENT.at(seg=seg)).get("k_is_guess", True) is not False else "given"
+    if a.get("K") is not None:  # the K itself before its recorded FOV: one truth
+        return str(source), fov_deg(a["K"], width)
     if isinstance(a.get("fov_deg"), int | float):
         return str(source), float(a["fov_deg"])
-    if a.get("K") is not None:
-        return str(source), fov_deg(a["K"], width)
     # an estimated K is the one the SfM found; a given or guessed one is the segment's
     k_path = f"{sfm}/K" if source == "estimated" and _shape(store, f"{sfm}/K") else SEGMENT.at(seg=seg).K
     try:
@@ -171,13 +171,14 @@ def global_k(store: SceneStore) -> dict[str, Any] | None:
     a = store.attrs(SFM.path)
     if store.cache_key_of(SFM.path) is None or a.get("k_source") is None:
         return None
-    fov = a.get("fov_deg") if isinstance(a.get("fov_deg"), int | float) else None
-    if fov is None:
-        segs = a.get("segments") or []
-        k = accepted_attempt(store, segs[0]) if segs else None
-        shape = _shape(store, ATTEMPT.at(seg=segs[0], attempt=k).frames) if k is not None else None
-        if shape and _shape(store, SFM.K):
-            fov = fov_deg(a["K"] if a.get("K") is not None else store.array(SFM.K), shape[2])
+    segs = a.get("segments") or []
+    k = accepted_attempt(store, segs[0]) if segs else None
+    shape = _shape(store, ATTEMPT.at(seg=segs[0], attempt=k).frames) if k is not None else None
+    fov = None
+    if shape and (a.get("K") is not None or _shape(store, SFM.K)):  # the K itself before its recorded FOV
+        fov = fov_deg(a["K"] if a.get("K") is not None else store.array(SFM.K), shape[2])
+    if fov is None and isinstance(a.get("fov_deg"), int | float):
+        fov = float(a["fov_deg"])
     return {"k_source": str(a["k_source"]), "fov_deg": fov}
 
 

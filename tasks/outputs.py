@@ -135,7 +135,9 @@ def run(store: SceneStore, params: Params, ctx: StepContext) -> str:
     # The fused mesh first, in the SfM frame (it is turned into the output frame once that is known).
     # Colour as uint8 and depth only: nothing else is needed, and every view is held until the extent is known.
     cams_sfm = fusion_cameras(w2c_sfm, p.mesh.extra_views_per_gap)
-    views = [(np.round(v.rgb * 255).astype(np.uint8), v.depth) for v in render(cams_sfm, norm_sfm, "views rendered")]
+    rendered = render(cams_sfm, norm_sfm, "views rendered for the mesh")
+    views = [(np.round(v.rgb * 255).astype(np.uint8), v.depth) for v in rendered]
+    del rendered
     mesh_sfm, extent = mesh_from_views(views, cams_sfm, Kr, p.mesh, progress=callback("views fused"))
 
     source = store.attrs(SFM.path).get("source")

@@ -9,8 +9,7 @@ The `sfm` group keeps the COLMAP workspace (`colmap_database`, `colmap_model/<fi
 `global_poses.image_names`) and, in its attrs, what it was made from (`segment_sources`, `workspace_key`), the
 Sim(3) from the COLMAP model to the world frame (`model_to_world`), the solve (`solve`: incremental | full,
 `incremental_problems`, `segment_disagreement`, `solves`, `seed_offset`), where K came from (`k_source`,
-`K`, `fov_deg`, `pixel_aspect`) and the SfM's own report. A video of one segment reuses that segment's SfM
-from the check (`solve: reused_check`, no COLMAP workspace kept): the same frames are never mapped twice.
+`K`, `fov_deg`, `pixel_aspect`) and the SfM's own report.
 """
 
 from __future__ import annotations
@@ -28,7 +27,7 @@ from wonderverse.schema import SEGMENT, SEGMENTS, SFM, SFM_MODEL
 from wonderverse.store import SceneStore, cache_key, write_array
 
 if TYPE_CHECKING:
-    from wonderverse.global_poses import OwnModel, PreviousSolve
+    from wonderverse.global_poses import PreviousSolve
     from wonderverse.sfm import SfmWorkspace
 
 UNIT = "SfM stages"
@@ -98,19 +97,6 @@ def _own_poses(store: SceneStore, segs: list[str]) -> dict[str, np.ndarray]:
     return out
 
 
-def _own_model(store: SceneStore, segs: list[str]) -> OwnModel | None:
-    """The check's SfM of the accepted attempt when the video is one segment (None: several, or no check)."""
-    from wonderverse.global_poses import OwnModel
-
-    if len(segs) != 1:
-        return None
-    ap = attempt_path(store, segs[0]).sfm
-    if not store.exists(ap.poses):
-        return None
-    arrays = [store.array(a) for a in (ap.poses, ap.registered, ap.points, ap.colors, ap.K)]
-    return OwnModel(*arrays, attrs=store.attrs(ap))
-
-
 def _load_workspace(store: SceneStore) -> SfmWorkspace:
     from wonderverse.sfm import SfmWorkspace
 
@@ -161,7 +147,6 @@ def run(store: SceneStore, p: PosesParams, ctx: StepContext) -> str:
             previous=_previous(store),
             progress=lambda done, total, note: advance(done, total, UNIT, note, eta=False),  # stages: no pace
             K_guessed=guessed,
-            own_model=_own_model(store, segs),
         )
         poses, registered, points, colors = solved.poses, solved.registered, solved.points, solved.colors
         K, workspace = solved.K, solved.workspace
@@ -183,5 +168,5 @@ def run(store: SceneStore, p: PosesParams, ctx: StepContext) -> str:
 # 2: the group keeps the COLMAP workspace (extensions register only their new frames); frames selected per segment
 # 3: image names in stitched order; full solves checked against each segment's own SfM
 # 4: the step contract
-# 5: one segment reuses its check's SfM; a guessed K is self-calibrated; k_source recorded
+# 5: a guessed K is self-calibrated; k_source recorded
 STEP = Step("poses", 5, ("check",), params, run, "one camera path for the stitched video", group=SFM.path)

@@ -58,8 +58,22 @@ def bad_inputs(folder: Path) -> list[tuple[list[str], str]]:
             "steps.plan.initial_move: expected 3 clauses",
         ),
         (
-            ["--config", str(spec(folder, "oracle", scene__video={"backend": "files", "clips": ["/x/clip.mp4"]}))],
+            [
+                "--config",
+                str(
+                    spec(
+                        folder,
+                        "oracle",
+                        scene__video={"backend": "files", "clips": ["/x/clip.mp4"]},
+                        steps__priors__models={"depth_backend": "oracle"},
+                    )
+                ),
+            ],
             "steps.priors.models.depth_backend: the oracle prior needs the procedural world's ground truth",
+        ),
+        (
+            ["--config", str(spec(folder, "noclip", scene__video={"backend": "files", "clips": ["/x/clip.mp4"]}))],
+            "/x/clip.mp4: no such file",
         ),
         (["a small house", "--preset", "../../tmp/x"], "unknown preset '../../tmp/x'; choose one of: high,"),
         (["a small house", "--preset", ""], "unknown preset ''; choose one of: high, preview, standard"),
@@ -99,11 +113,11 @@ def test_huge_and_exploding_config_files_are_refused_at_once(scene: Path, tmp_pa
 
 
 def test_reconstruct_refuses_in_one_line_before_writing_anything(tmp_path: Path):
-    """No depth prior that needs no weights exists yet, and the default one (the oracle) cannot read real clips:
-    refused when the config is built, not after check and poses have run."""
+    """A clip that cannot be read (here a folder without images) is refused before the scene folder exists."""
     clip = tmp_path / "clip"
     clip.mkdir()
     r = run_cli("reconstruct", str(clip), "--out", str(tmp_path / "s"), "--engine", "local")
     lines = [ln for ln in r.stderr.splitlines() if ln.strip()]
-    assert r.returncode == 2 and len(lines) == 1 and lines[0].startswith("error: reconstruct cannot run yet"), r.stderr
-    assert "nothing was written" in lines[0] and not (tmp_path / "s").exists()
+    assert r.returncode == 2 and len(lines) == 1, r.stderr
+    assert lines[0].startswith(f"error: {clip}: folder has no images"), r.stderr
+    assert not (tmp_path / "s").exists()

@@ -264,12 +264,18 @@ def test_video_options_are_the_backends_own_models() -> None:
             r"steps\.plan\.initial_move: .*out of range",
         ),
         (
-            {"scene": {"video": {"backend": "files", "clips": ["a.mp4"]}}},
+            {
+                "scene": {"video": {"backend": "files", "clips": ["a.mp4"]}},
+                "steps": {"priors": {"models": {"depth_backend": "oracle"}}},
+            },
             r"steps\.priors\.models\.depth_backend: the oracle prior needs the procedural world's ground truth, "
             r"which files video has none of: use depth_anything",
         ),
         (
-            {"scene": {"video": {"backend": "diffusers"}}},
+            {
+                "scene": {"video": {"backend": "diffusers"}},
+                "steps": {"priors": {"models": {"depth_backend": "oracle"}}},
+            },
             r"steps\.priors\.models\.depth_backend: .*diffusers video",
         ),
         (

@@ -298,18 +298,18 @@ from wonderverse.store import SceneStore
 SceneStore.open_or_create(sys.argv[1])
 calls = {"flaky": 0, "buggy": 0}
 
-def flaky(store, cfg, key):
+def flaky(store, params, ctx):
     calls["flaky"] += 1
     if calls["flaky"] < 3:
         raise ConnectionError("scheduler connection lost")
     return "ok"
 
-def buggy(store, cfg, key):
+def buggy(store, params, ctx):
     calls["buggy"] += 1
     raise ValueError("a bug")
 
 def task_of(name, fn):
-    return Step(name, 1, (), lambda cfg: None, fn).task.with_options(retry_delay_seconds=0)
+    return Step(name, 1, (), lambda cfg: None, fn, f"test step {name}", name).task.with_options(retry_delay_seconds=0)
 
 @flow
 def f():

@@ -49,7 +49,8 @@ def candidates(value: Any, annotation: Any) -> list[Any]:
         nudges = [1.5, 0.5, 1.1, 0.9, 1 + 1e-4, 1 - 1e-4]
         return [*options, *(value * f for f in nudges), value + 0.1, value - 0.1, value + 1, 0.5, 0.01]
     if isinstance(value, str):
-        return [*options, "up 0, right 10, forward 1", f"{value}x", "x", "auto"]
+        numbers = [1.5] if float in get_args(annotation) else []  # a setting of "auto" or a number
+        return [*options, *numbers, "up 0, right 10, forward 1", f"{value}x", "x", "auto"]
     if isinstance(value, tuple | list):
         out: list[Any] = [type(value)(reversed(value))]
         if value and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value):

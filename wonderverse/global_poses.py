@@ -10,12 +10,6 @@ intrinsics held fixed (`wonderverse.sfm_extend`), and the old frames keep their 
 `segment_disagreement`) and maps the result into the previous world frame (`map_into_previous`), so an
 extended scene keeps its frame and its splats stay where they were.
 
-When the stitched video is one segment's frames, its own SfM from the check is that solve already
-(`OwnModel`): it is reused (`solve: reused_check`) instead of running the mappers again over the same
-frames (measured on a near-static 49-frame CogVideoX clip: three mappers in the check and the same three
-again here, 648 s in all under load 4-5). It has no COLMAP workspace to keep, so a later extension
-re-solves every frame rather than registering its new ones. A clip the check did not map (too little
-parallax) is solved here, where the same look before mapping stops it again in seconds.
 The `K` attrs say where the solve's intrinsics came from (`wonderverse.sfm.k_record`).
 
 Frames are keyed by (segment id, generation-order index). Poses are W2C (N,4,4) float64, NaN where unknown.
@@ -63,20 +57,6 @@ class PreviousSolve:
     model_to_world: Sim3 | None = None
     kept_frame: dict[str, Any] | None = None
     load_workspace: Callable[[], SfmWorkspace] | None = None
-
-
-@dataclass
-class OwnModel:
-    """A segment's own SfM from its check: poses (T,4,4) W2C in generation order (NaN where unregistered),
-    registered (T,) bool, points (P,3), colors (P,3) uint8, K (3,3) and the check's SfM attrs (mapper,
-    reproj_error_px, problems, timings, and `k_record`'s k_source, K, fov_deg, pixel_aspect)."""
-
-    poses: np.ndarray
-    registered: np.ndarray
-    points: np.ndarray
-    colors: np.ndarray
-    K: np.ndarray
-    attrs: dict[str, Any]
 
 
 @dataclass
@@ -275,19 +255,16 @@ def solve_global_poses(
     previous: PreviousSolve | None,
     progress: ProgressFn,
     K_guessed: bool = False,
-    own_model: OwnModel | None = None,
 ) -> GlobalPoses:
-    """Global SfM over the stitched video: the check's own model when the video is that one segment's frames
-    (`own_model`, reused), registered into the previous reconstruction when this solve only adds segments to
-    it (old frames keep their exact poses, `can_extend`), else solved from scratch (and again while a segment
-    disagrees with `own`, its own SfM); mapped into the previous world frame.
+    """Global SfM over the stitched video: registered into the previous reconstruction when this solve only
+    adds segments to it (old frames keep their exact poses, `can_extend`), else solved from scratch (and again
+    while a segment disagrees with `own`, its own SfM); mapped into the previous world frame.
 
     frames (N,H,W,3) uint8 and index (N keys) in stitched order; K (3,3) the prior intrinsics, K_guessed: a
     guess (self-calibrated, `wonderverse.sfm.reconstruct`), else refined from; names: the COLMAP image name
     of each frame `select_frames(index, params.frame_stride)` picks; sources: per segment, what its frames
     are; workspace_key: what must not change for a reconstruction to be extended; own: per segment whose
-    check passed, its own SfM poses (generation order); previous: the last solve or None; own_model: the
-    check's SfM of the segment when every frame of `index` is one segment's (None: not at hand).
+    check passed, its own SfM poses (generation order); previous: the last solve or None.
     Raises WonderError when no frame could be posed."""
     from wonderverse.sfm import k_record, reconstruct
     from wonderverse.sfm_extend import extend_reconstruction
@@ -296,8 +273,6 @@ def solve_global_poses(
     sel = select_frames(index, p.frame_stride)
     name_seg = {name: index[k][0] for name, k in zip(names, sel, strict=True)}
     attrs: dict[str, Any] = {}
-    if own_model is not None and len({seg for seg, _ in index}) == 1 and own_model.registered.any():
-        return _reuse(index, own_model, names, sources, workspace_key, previous)
     if can_extend(previous, workspace_key, names, name_seg, sources):
         assert previous is not None and previous.load_workspace is not None and previous.model_to_world is not None
         old_names = set(previous.names)
@@ -360,41 +335,3 @@ def solve_global_poses(
         "workspace_key": workspace_key,
     }
     return GlobalPoses(poses, registered, points, res.colors, res.K, res.workspace, attrs)
-
-
-def _reuse(
-    index: Sequence[Key],
-    model: OwnModel,
-    names: Sequence[str],
-    sources: Mapping[str, Any],
-    workspace_key: str,
-    previous: PreviousSolve | None,
-) -> GlobalPoses:
-    """The check's own SfM of the one segment the stitched video shows, as the global solve: its poses in
-    stitched order (frames between registered ones interpolated), mapped into the previous world frame."""
-    gen = np.array([i for _, i in index])
-    registered = model.registered[gen]
-    poses = np.where(registered[:, None, None], model.poses[gen], np.nan)
-    poses = fill_poses(poses, registered)
-    poses, points, kept, sim = map_into_previous(
-        index, poses, model.points, None if previous is None else previous.poses
-    )
-    a = model.attrs
-    attrs = {
-        "solve": "reused_check",
-        "kept_frame": kept,
-        "model_to_world": sim.to_dict(),
-        "segment_disagreement": {},
-        "solves": 0,
-        "seed_offset": 0,
-        **{k: a[k] for k in ("k_source", "K", "fov_deg", "pixel_aspect") if k in a},
-        "mapper": a.get("mapper", ""),
-        "reproj_error_px": a.get("reproj_error_px"),
-        "problems": list(a.get("problems") or []),
-        "timings": {},
-        "frames_used": len(index),
-        "sfm_names": list(names),
-        "segment_sources": dict(sources),
-        "workspace_key": workspace_key,
-    }
-    return GlobalPoses(poses, registered, points, model.colors, model.K, None, attrs)

@@ -261,8 +261,7 @@ SFM = Group(
     attrs={
         "source": "sfm|conditioning",
         "segments": "segment ids in stitched order",
-        "solve": "full | incremental (an extension registered into the kept model) | reused_check (one "
-        "segment: its check's SfM)",
+        "solve": "full | incremental (an extension registered into the kept model)",
         "k_source": "where K came from: given, estimated or guessed (as segments/{seg}/attempts/{k}/sfm)",
         "K": "the K used, 3x3 pixels",
         "fov_deg": "horizontal field of view of that K, degrees",
