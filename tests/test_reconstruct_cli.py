@@ -105,3 +105,21 @@ def test_the_fox_captures_real_jump_is_flagged_and_kept(data_dir: Path, tmp_path
     check = seg["attempts"][0]["check"]
     assert seg["accepted_attempt"] == 0 and check["accepted"] is False
     assert any("jump" in reason for reason in check["reasons"]), check["reasons"]
+
+
+def test_a_near_static_ai_clip_stops_in_one_line_for_too_little_parallax(data_dir: Path, tmp_path: Path):
+    """A CogVideoX clip whose camera barely turns (SOURCE.md: near-static): the check keeps it with a parallax
+    reason (not a jump), and the global solve stops in one line saying why, before any mapper runs twice."""
+    clip = data_dir / "cogvideox_samples" / "cogvideox2b_gallery_4.mp4"
+    if not clip.is_file():
+        pytest.skip(f"{clip} is absent")
+    out = tmp_path / "static"
+    r = run_cli("reconstruct", str(clip), "--out", str(out), "--engine", "local", timeout=600)
+    errors = error_lines(r.stderr)
+    assert r.returncode == 2 and len(errors) == 1, r.stderr[-3000:]
+    assert "step poses failed" in errors[0] and "too little parallax" in errors[0], errors[0]
+    info = json.loads(run_cli("inspect", str(out), "--json").stdout)
+    clip_row = info["clips"][0]
+    assert clip_row["verdict"] == "kept_failing" and clip_row["k_source"] == "guessed", clip_row
+    assert len(clip_row["reasons"]) == 1 and clip_row["reasons"][0].startswith("too little parallax")
+    assert "jump" not in clip_row["reasons"][0]
