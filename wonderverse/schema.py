@@ -326,8 +326,12 @@ SPLATS = Group(
 SPLATS_CHECKPOINT = Group(
     "splats_checkpoint",
     "step splats: the latest training checkpoint (removed when training completes)",
-    arrays={"state": Array("uint8", ("N",), "blob")},
-    attrs={"step": "iteration", "run_key": "the training it belongs to"},
+    arrays={"state": Array("uint8", ("N",), "blob", "the tensors end to end, as `layout` says; never a pickle")},
+    attrs={
+        "step": "iteration",
+        "run_key": "the training it belongs to",
+        "layout": "the state's tree (JSON) and its tensors' dtypes and shapes (wonderverse.splats.checkpoint)",
+    },
 )
 OUTPUTS = Group(
     "outputs",
