@@ -97,6 +97,15 @@ def _own_poses(store: SceneStore, segs: list[str]) -> dict[str, np.ndarray]:
     return out
 
 
+def _check_mapper(store: SceneStore, segs: list[str]) -> tuple[str, bool] | None:
+    """For a video of one segment: the mapper its check's SfM kept and whether that model passed its gates
+    (None: several segments, or the check mapped nothing)."""
+    if len(segs) != 1:
+        return None
+    a = store.attrs(attempt_path(store, segs[0]).sfm)
+    return (str(a["mapper"]), not a.get("problems")) if a.get("mapper") else None
+
+
 def _load_workspace(store: SceneStore) -> SfmWorkspace:
     from wonderverse.sfm import SfmWorkspace
 
@@ -147,6 +156,7 @@ def run(store: SceneStore, p: PosesParams, ctx: StepContext) -> str:
             previous=_previous(store),
             progress=lambda done, total, note: advance(done, total, UNIT, note, eta=False),  # stages: no pace
             K_guessed=guessed,
+            check_mapper=_check_mapper(store, segs),
         )
         poses, registered, points, colors = solved.poses, solved.registered, solved.points, solved.colors
         K, workspace = solved.K, solved.workspace
@@ -168,5 +178,5 @@ def run(store: SceneStore, p: PosesParams, ctx: StepContext) -> str:
 # 2: the group keeps the COLMAP workspace (extensions register only their new frames); frames selected per segment
 # 3: image names in stitched order; full solves checked against each segment's own SfM
 # 4: the step contract
-# 5: a guessed K is self-calibrated; k_source recorded
+# 5: a guessed K is self-calibrated; k_source recorded; one segment: its check's mapper first
 STEP = Step("poses", 5, ("check",), params, run, "one camera path for the stitched video", group=SFM.path)

@@ -177,3 +177,18 @@ def test_can_extend_only_when_segments_are_added() -> None:
     assert not can_extend(None, "w", names, seg, more)
     no_workspace = PreviousSolve(poses={}, registered=set(), names=names[:1], sources=sources, workspace_key="w")
     assert not can_extend(no_workspace, "w", names, seg, more)
+
+
+def test_one_segment_global_solve_starts_with_its_checks_mapper() -> None:
+    """The same frames never go through the whole mapper chain twice: the check's mapper first, alone when it
+    passed no gates (the prior-focal run is an incremental one); several segments keep the configured order."""
+    from wonderverse.global_poses import mappers_after_check
+    from wonderverse.sfm import SfmParams
+
+    assert mappers_after_check(None) == {}
+    assert mappers_after_check(("", False)) == {}
+    assert mappers_after_check(("global", True)) == {"auto_order": ("global", "incremental")}
+    assert mappers_after_check(("incremental", True)) == {"auto_order": ("incremental", "global")}
+    assert mappers_after_check(("incremental_prior_focal", False)) == {"mapper": "incremental"}
+    for update in (mappers_after_check(("global", False)), mappers_after_check(("incremental", True))):
+        assert SfmParams.model_validate({**SfmParams().model_dump(), **update}).model_dump().items() >= update.items()

@@ -189,6 +189,19 @@ def segment_disagreement(poses: np.ndarray, keys: Sequence[Key], own: Mapping[st
     return out
 
 
+def mappers_after_check(check_mapper: tuple[str, bool] | None) -> dict[str, Any]:
+    """SfmParams updates for the global solve of a one-segment video whose check mapped it with `check_mapper`
+    (the mapper's name, whether its model passed the gates): that mapper goes first, and alone when no mapper
+    passed in the check, so the same frames never go through the whole mapper chain twice (measured before
+    the parallax look: a near-static 49-frame clip ran three mappers in the check and three again here)."""
+    if check_mapper is None or not check_mapper[0]:
+        return {}
+    kind = "global" if check_mapper[0] == "global" else "incremental"  # the prior-focal run is an incremental one
+    if not check_mapper[1]:
+        return {"mapper": kind}
+    return {"auto_order": (kind, "incremental" if kind == "global" else "global")}
+
+
 def solve_consistent(
     solve: Callable[[int, str], SfmResult],
     disagreement: Callable[[np.ndarray], dict[str, float]],
@@ -255,6 +268,7 @@ def solve_global_poses(
     previous: PreviousSolve | None,
     progress: ProgressFn,
     K_guessed: bool = False,
+    check_mapper: tuple[str, bool] | None = None,
 ) -> GlobalPoses:
     """Global SfM over the stitched video: registered into the previous reconstruction when this solve only
     adds segments to it (old frames keep their exact poses, `can_extend`), else solved from scratch (and again
@@ -264,7 +278,9 @@ def solve_global_poses(
     guess (self-calibrated, `wonderverse.sfm.reconstruct`), else refined from; names: the COLMAP image name
     of each frame `select_frames(index, params.frame_stride)` picks; sources: per segment, what its frames
     are; workspace_key: what must not change for a reconstruction to be extended; own: per segment whose
-    check passed, its own SfM poses (generation order); previous: the last solve or None.
+    check passed, its own SfM poses (generation order); previous: the last solve or None; check_mapper: when
+    the video is one segment, the mapper its check's SfM kept and whether that model passed its gates
+    (`mappers_after_check`).
     Raises WonderError when no frame could be posed."""
     from wonderverse.sfm import k_record, reconstruct
     from wonderverse.sfm_extend import extend_reconstruction
@@ -289,8 +305,10 @@ def solve_global_poses(
     if "solve" not in attrs:
         keys = [index[k] for k in sel]
 
+        order = mappers_after_check(check_mapper)
+
         def solve(seed_offset: int, note: str) -> SfmResult:
-            sfm = p.sfm.model_copy(update={"random_seed": p.sfm.random_seed + seed_offset})
+            sfm = p.sfm.model_copy(update={"random_seed": p.sfm.random_seed + seed_offset, **order})
             return reconstruct(
                 frames[sel],
                 sfm,
