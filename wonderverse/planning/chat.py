@@ -2,15 +2,22 @@
 
 Any failure (transport, HTTP status, malformed response, an answer that does not parse strictly or does not
 fit the planned roles and view limits) logs one warning and falls back to the rule-based plan. The API key
-is read from the environment at request time, sent only in the Authorization header and redacted from every
-reason this module writes.
+is read from the environment at request time, sent only in the Authorization header, and masked (whole and
+any 8-character part, `secrets.mask_secret`) in the server's text as it arrives, before anything shortens it,
+and in httpx's and httpcore's log records. Each attempt is bounded as a whole by `timeout_s` (connect, send and
+every byte of the answer: a server that drips its answer is cut off) and the answer by MAX_ANSWER_BYTES.
 """
 
 from __future__ import annotations
 
+import json
 import logging
 import os
+import socket
+import threading
+import time
 from collections.abc import Sequence
+from contextlib import suppress
 from typing import TYPE_CHECKING, Any
 
 import wonderverse.planning.rules as rules
@@ -18,10 +25,11 @@ from wonderverse.planning.intents import intent_direction
 from wonderverse.planning.limits import move_problem
 from wonderverse.planning.moves import CameraMove, PlanParseError, parse_moves
 from wonderverse.planning.params import Direction, ExtensionSpec, PlannerSpec, PlanParams
+from wonderverse.planning.secrets import mask_secret, masked_logs
 from wonderverse.planning.segments import Plan, PlannedSegment, Role, next_segment
 
 if TYPE_CHECKING:
-    import httpx
+    from collections.abc import Callable
 
 logger = logging.getLogger("wonderverse.planning")
 
@@ -37,10 +45,17 @@ PAPER_PROMPT = (
     "give one answer."
 )
 _SNIPPET_CHARS = 200
+# A plan's answer is a few hundred bytes; a megabyte is a misconfigured or hostile server. A constant rather than
+# a setting: every planner setting is hashed into the plan's key, and this limit changes no plan.
+MAX_ANSWER_BYTES = 1 << 20
 
 
 class ChatFailure(Exception):
     """Why the chat planner's answer cannot be used (internal: always caught and turned into a fallback)."""
+
+
+class _Expired(Exception):
+    """An attempt ran past its deadline (turned into a ChatFailure that says so)."""
 
 
 class ChatPlanner:
@@ -95,7 +110,7 @@ class ChatPlanner:
             )
 
     def _ask(self, user_message: str) -> str:
-        """The model's answer text to the paper's prompt and `user_message`."""
+        """The model's answer text to the paper's prompt and `user_message`, the API key masked."""
         body = {
             "model": self.spec.model,
             "messages": [
@@ -106,37 +121,118 @@ class ChatPlanner:
         }
         key = os.environ.get(self.spec.api_key_env)
         headers = {"Authorization": f"Bearer {key}"} if key else {}
-        return _answer_text(self._post(body, headers))
+        with masked_logs(key):
+            text = self._post(body, headers, lambda t: mask_secret(t, key))
+        return mask_secret(_answer_text(text), key)
 
-    def _post(self, body: dict[str, Any], headers: dict[str, str]) -> httpx.Response:
-        """The endpoint's response, retrying transport errors and 5xx; ChatFailure unless it is 200."""
+    def _post(self, body: dict[str, Any], headers: dict[str, str], mask: Callable[[str], str]) -> str:
+        """The endpoint's answer text (`mask`ed), retrying transport errors, timeouts and 5xx; ChatFailure unless
+        it is HTTP 200."""
         import httpx  # here, not at the top: the CLI imports this package and should start fast
 
         url = f"{self.spec.base_url.rstrip('/')}/chat/completions"
         attempts = self.spec.max_retries + 1
-        with httpx.Client(timeout=self.spec.timeout_s) as client:
-            for _ in range(attempts):
-                try:
-                    response = client.post(url, json=body, headers=headers)
-                except httpx.TransportError as e:
-                    problem = f"cannot reach {url}: {type(e).__name__} {e}".strip()
-                    continue
-                if response.status_code < 500:
-                    break
-                problem = f"HTTP {response.status_code} from {url}"
-            else:
-                raise ChatFailure(f"{problem} (after {attempts} attempt(s))")
-        if response.status_code != 200:
-            raise ChatFailure(f"HTTP {response.status_code} from {url}: {_snippet(response.text)}")
-        return response
+        for _ in range(attempts):
+            try:
+                status, text = _request(url, body, headers, self.spec.timeout_s, mask)
+            except _Expired:
+                problem = f"chat server {url} did not answer within {self.spec.timeout_s:g} s"
+                continue
+            except httpx.HTTPError as e:
+                problem = mask(f"cannot reach {url}: {type(e).__name__} {e}".strip())
+                continue
+            if status < 500:
+                break
+            problem = f"HTTP {status} from {url}"
+        else:
+            raise ChatFailure(f"{problem} (after {attempts} attempt(s))")
+        if status != 200:
+            raise ChatFailure(f"HTTP {status} from {url}: {_snippet(text)}")
+        return text
 
     def _fallback_reason(self, failure: ChatFailure) -> str:
-        """The failure as one line with the API key redacted; logged as a warning."""
-        reason = " ".join(str(failure).split())
-        if key := os.environ.get(self.spec.api_key_env):
-            reason = reason.replace(key, "***")
+        """The failure as one line with the API key masked; logged as a warning."""
+        key = os.environ.get(self.spec.api_key_env)
+        reason = mask_secret(" ".join(mask_secret(str(failure), key).split()), key)
         logger.warning("chat planner failed, using the rule-based plan: %s", reason)
         return reason
+
+
+def _request(
+    url: str, body: dict[str, Any], headers: dict[str, str], timeout_s: float, mask: Callable[[str], str]
+) -> tuple[int, str]:
+    """One POST: (HTTP status, answer text passed through `mask`). _Expired when it takes more than `timeout_s`
+    in all (httpx's own timeouts bound each operation only: at the deadline a timer shuts the socket, which ends
+    a blocked read at once); ChatFailure for an answer over MAX_ANSWER_BYTES or a compressed one; httpx errors."""
+    import httpx
+
+    deadline = time.monotonic() + timeout_s
+    lock = threading.Lock()
+    expired = threading.Event()
+    sockets: list[socket.socket] = []
+
+    def cut(sock: socket.socket) -> None:
+        with suppress(OSError):  # already closed
+            sock.shutdown(socket.SHUT_RDWR)
+
+    def trace(event: str, info: dict[str, Any]) -> None:  # httpcore's documented `trace` request extension
+        if event.endswith((".connect_tcp.complete", ".start_tls.complete")):  # direct, through a proxy, TLS
+            sock = info["return_value"].get_extra_info("socket")
+            if sock is None:
+                return
+            with lock:
+                sockets.append(sock)
+            if expired.is_set():  # connected just as the deadline passed
+                cut(sock)
+
+    def expire() -> None:
+        with lock:
+            expired.set()
+            for sock in sockets:
+                cut(sock)
+
+    def too_big(size: str) -> ChatFailure:
+        return ChatFailure(f"the answer of {url} is {size}, over the limit of {MAX_ANSWER_BYTES} bytes")
+
+    timer = threading.Timer(timeout_s, expire)
+    timer.daemon = True
+    timer.start()
+    try:
+        with (
+            httpx.Client(timeout=timeout_s) as client,
+            client.stream(
+                "POST",
+                url,
+                json=body,
+                headers={**headers, "Accept-Encoding": "identity"},  # compressed: no bound on the unpacked size
+                extensions={"trace": trace},
+            ) as response,
+        ):
+            encoding = response.headers.get("Content-Encoding", "identity").strip().lower()
+            if encoding not in ("", "identity"):
+                raise ChatFailure(f"{url} answered compressed ({_snippet(mask(encoding))}), which is not read")
+            declared = response.headers.get("Content-Length", "").strip()
+            if declared.isdigit() and int(declared) > MAX_ANSWER_BYTES:
+                raise too_big(f"{int(declared)} bytes")
+            data = bytearray()
+            for chunk in response.iter_raw():
+                data += chunk
+                if len(data) > MAX_ANSWER_BYTES:
+                    raise too_big(f"more than {MAX_ANSWER_BYTES} bytes")
+                if time.monotonic() > deadline:
+                    raise _Expired
+            status, charset = response.status_code, response.charset_encoding
+    except httpx.HTTPError:
+        if expired.is_set() or time.monotonic() >= deadline:
+            raise _Expired from None
+        raise
+    finally:
+        timer.cancel()
+    try:
+        text = data.decode(charset or "utf-8", errors="replace")
+    except LookupError:  # a charset Python does not know
+        text = data.decode("utf-8", errors="replace")
+    return status, mask(text)
 
 
 def scene_message(description: str, jobs: Sequence[tuple[Direction, str]]) -> str:
@@ -179,18 +275,18 @@ def _parse(answer: str, expected: int) -> list[CameraMove]:
         raise ChatFailure(f"unusable answer: {e}") from None
 
 
-def _answer_text(response: httpx.Response) -> str:
-    """`choices[0].message.content` of a chat-completions response."""
+def _answer_text(text: str) -> str:
+    """`choices[0].message.content` of a chat-completions response's text."""
     try:
-        data = response.json()
-    except ValueError:
-        raise ChatFailure(f"the response is not JSON: {_snippet(response.text)}") from None
+        data = json.loads(text)
+    except (ValueError, RecursionError):
+        raise ChatFailure(f"the response is not JSON: {_snippet(text)}") from None
     try:
         content = data["choices"][0]["message"]["content"]
     except (KeyError, IndexError, TypeError):
         content = None
     if not isinstance(content, str):
-        raise ChatFailure(f"the response has no choices[0].message.content: {_snippet(response.text)}")
+        raise ChatFailure(f"the response has no choices[0].message.content: {_snippet(text)}")
     return content
 
 

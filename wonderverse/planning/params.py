@@ -34,7 +34,9 @@ class PlannerSpec(Model):
     base_url: str = Field("http://127.0.0.1:8000/v1", description="OpenAI-compatible endpoint (chat backend)")
     model: str = "gpt-4o-mini"
     api_key_env: str = Field("OPENAI_API_KEY", description="name of the environment variable holding the key")
-    timeout_s: float = Field(30.0, gt=0, le=600)
+    timeout_s: float = Field(
+        30.0, gt=0, le=600, description="seconds for each attempt as a whole: connect, send, every byte of the answer"
+    )
     max_retries: int = Field(1, ge=0, le=5)
 
 
