@@ -638,7 +638,33 @@ def _metrics(store: SceneStore, segments: list[SegmentInfo]) -> tuple[dict[str, 
             "CLIP-S (0..2.5)": q.get("clip_s"),
             "Q-Align": q.get("q_align"),
         }
+    out = store.attrs(OUTPUTS.path)
+    pruned = out.get("pruned") if out.get("complete") is True else None
+    if pruned:
+        metrics["Exported splats"] = _export_facts(pruned, out.get("frame") or {})
     return metrics, headline
+
+
+def _export_facts(pruned: dict[str, Any], frame: dict[str, Any]) -> dict[str, Any]:
+    """What `prune_for_export` removed before splats.ply/.spz/.glb were written, their bounds, and the frame."""
+
+    def box(bounds: Any) -> str | None:
+        if not bounds:
+            return None
+        lo, hi = np.asarray(bounds["min"], float), np.asarray(bounds["max"], float)
+        size = " × ".join(f"{v:.3g}" for v in hi - lo)
+        return f"{size} (from {np.round(lo, 3).tolist()} to {np.round(hi, 3).tolist()})"
+
+    removed = pruned.get("removed") or {}
+    facts = {
+        "Gaussians exported": f"{pruned.get('after')} of {pruned.get('before')}",
+        "removed": ", ".join(f"{n} {why.replace('_', ' ')}" for why, n in removed.items() if n) or "none",
+        "bounds before (world units)": box(pruned.get("bounds_before")),
+        "bounds exported (world units)": box(pruned.get("bounds_after")),
+    }
+    if frame.get("source"):
+        facts["world frame: +Z up from"] = frame["source"]
+    return facts
 
 
 def _clip_count(clips: list[ClipInfo]) -> str:

@@ -108,6 +108,11 @@ def test_the_exported_splats_are_pruned_and_the_same_in_every_format(scene: Path
     assert len(ply["means"]) == len(spz["means"]) == len(glb["means"]) == pruned["after"]
     lo, hi = ply["means"].min(0), ply["means"].max(0)
     assert np.allclose([lo, hi], [pruned["bounds_after"]["min"], pruned["bounds_after"]["max"]], atol=1e-3)
+    from flows.report import write_report
+
+    text = write_report(scene).read_text()  # the counts and bounds are in the report
+    assert f"{pruned['after']} of {pruned['before']}" in text
+    assert f"{hi[0] - lo[0]:.3g} × {hi[1] - lo[1]:.3g} × {hi[2] - lo[2]:.3g}" in text
 
 
 def test_the_output_frame_is_upright_and_every_file_says_so(scene: Path) -> None:
