@@ -25,12 +25,28 @@ def _arrays(store: SceneStore, group_path: str) -> dict[str, Any]:
     """Every array under a group: relative path -> shape, dtype, chunks."""
     out: dict[str, Any] = {}
     g = store.group(group_path)
-    for name, arr in g.arrays():
+    try:
+        arrays, groups = list(g.arrays()), list(g.groups())
+    except Exception:  # damaged metadata (listed under `damaged`): name what still reads, one node at a time
+        arrays, groups = _readable_members(store, group_path)
+    for name, arr in arrays:
         out[name] = {"shape": list(arr.shape), "dtype": str(arr.dtype), "chunks": list(arr.chunks)}
-    for name, sub in g.groups():
+    for name, sub in groups:
         if isinstance(sub, zarr.Group):
             out |= {f"{name}/{k}": v for k, v in _arrays(store, f"{group_path}/{name}").items()}
     return out
+
+
+def _readable_members(store: SceneStore, group_path: str) -> tuple[list[tuple[str, Any]], list[tuple[str, Any]]]:
+    """The arrays and sub-groups directly under a group whose metadata zarr can read (others are left out)."""
+    arrays, groups = [], []
+    for name in store.children(group_path):
+        try:
+            node = zarr.open(store.root.store, path=f"{group_path}/{name}", mode="r")
+        except Exception:
+            continue
+        (groups if isinstance(node, zarr.Group) else arrays).append((name, node))
+    return arrays, groups
 
 
 def _shape(store: SceneStore, path: str) -> tuple[int, ...] | None:
@@ -251,4 +267,19 @@ def summarize(store: SceneStore) -> dict[str, Any]:
         "priors": priors(store),
         "global_k": global_k(store),
         "size_bytes": store.size_bytes(),
+        "damaged": damaged(store),
     }
+
+
+def damaged(store: SceneStore) -> list[dict[str, Any]]:
+    """The store's damaged groups (`SceneStore.damaged_groups`): [{group, problems}], by path. A group listed here
+    is rebuilt by the step that wrote it on the next run, where its inputs are intact."""
+    return [{"group": g, "problems": p} for g, p in store.damaged_groups().items()]
+
+
+def damaged_lines(info: dict[str, Any]) -> list[str]:
+    """One line per damaged group of a `summarize` result, for the text output (none when nothing is damaged)."""
+    return [
+        f"damaged: {d['group']}: {'; '.join(d['problems'][:3])}{' …' if len(d['problems']) > 3 else ''}"
+        for d in info.get("damaged") or []
+    ]

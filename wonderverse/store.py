@@ -7,6 +7,13 @@ true and the key matches, so a run killed at any instant leaves nothing half-wri
 
 Cache keys form a Merkle chain: sha256 over the step name, its version, the parameters it reads
 and the keys of its inputs (`cache_key`).
+
+Integrity: a commit records, in the group's attribute `chunk_digests`, the size and CRC-32C of every file of
+every array it wrote (metadata and chunks, so a deleted chunk is noticed: zarr would read it as the fill value),
+and the keys of the complete sub-groups a container holds (`mark_complete`). `is_complete` is false for a
+damaged group (and marks it incomplete, so everything that trusts the flag stops trusting it): the step that
+wrote it runs again. `array` verifies what it reads and raises DamagedData naming the group. Groups committed
+before digests existed carry none and are read unverified, as before (the store format is unchanged).
 """
 
 from __future__ import annotations
@@ -36,6 +43,104 @@ STORE_NAME = "scene.zarr"
 LOCK_NAME = ".wonderverse.lock"  # beside the store; see `scene_lock`
 _STAGING = "_staging"
 _TRASH = "_trash"
+DIGESTS = "chunk_digests"  # group attribute: {"algorithm", "arrays": {array: {file: [bytes, crc]}}, "groups": {...}}
+DAMAGED = "damaged"  # group attribute: what was found wrong when it was marked incomplete
+_ALGORITHM = "crc32c"  # 3.7 GB/s here (google-crc32c, a dependency of zarr) against blake2b's 0.46 GB/s
+
+
+class DamagedData(StoreError):
+    """Data of a committed group that differs from what was committed (a chunk missing, truncated, emptied or
+    altered; array metadata damaged or unreadable). `group`: the committed group; `what`: what is wrong."""
+
+    def __init__(self, group: str, what: str):
+        super().__init__(f"damaged scene data in {group}: {what}")
+        self.group, self.what = group, what
+
+    def __reduce__(self) -> tuple[Any, ...]:  # raised in Dask workers too: pickles with its two arguments
+        return (DamagedData, (self.group, self.what))
+
+
+def _file_digest(path: Path) -> list[Any]:
+    """[size in bytes, CRC-32C as 8 hex digits] of a file's bytes."""
+    import google_crc32c
+
+    data = path.read_bytes()
+    return [len(data), f"{google_crc32c.value(data):08x}"]
+
+
+def _node(d: Path) -> dict[str, Any] | None:
+    """The zarr v3 metadata of the node at folder `d` (a group or an array), None when absent or unreadable."""
+    try:
+        meta = json.loads((d / "zarr.json").read_bytes())
+    except (OSError, ValueError):
+        return None
+    return meta if isinstance(meta, dict) else None
+
+
+def _is_unit(meta: dict[str, Any]) -> bool:
+    """Whether a node is a committed group of its own (it carries a cache key)."""
+    attrs = meta.get("attributes")
+    return meta.get("node_type") == "group" and isinstance(attrs, dict) and "cache_key" in attrs
+
+
+def _record(d: Path) -> dict[str, Any]:
+    """The digests of what group folder `d` holds: every array's files (its zarr.json and chunks), below plain
+    sub-groups too; a sub-group committed on its own (a unit: it has a cache key) is recorded by its key when
+    complete (it keeps its own digests) and left out when not."""
+    arrays: dict[str, dict[str, list[Any]]] = {}
+    groups: dict[str, str] = {}
+
+    def walk(folder: Path, prefix: str) -> None:
+        for child in sorted(folder.iterdir()):
+            meta = _node(child) if child.is_dir() and not child.name.startswith("_") else None
+            if meta is None:
+                continue
+            rel = f"{prefix}{child.name}"
+            if meta.get("node_type") == "array":
+                arrays[rel] = {name: _file_digest(child / name) for name in _files(child)}
+            elif _is_unit(meta):
+                if meta["attributes"].get("complete") is True:
+                    groups[rel] = meta["attributes"]["cache_key"]
+            else:
+                walk(child, f"{rel}/")
+
+    walk(d, "")
+    return {"algorithm": _ALGORITHM, "arrays": arrays, "groups": groups}
+
+
+def _files(folder: Path) -> list[str]:
+    """Paths of the files below `folder`, relative to it with '/', sorted (os.walk: 3x faster than rglob)."""
+    out = []
+    for root, _, names in os.walk(folder):
+        rel = Path(root).relative_to(folder).as_posix()
+        out += [name if rel == "." else f"{rel}/{name}" for name in names]
+    return sorted(out)
+
+
+def _check_array(base: Path, name: str, files: Any) -> list[str]:
+    """What differs between array `name`'s files under `base` and their recorded digests (empty: intact)."""
+    if not isinstance(files, dict):
+        return [f"the digests of array {name} are unreadable"]
+    problems = []
+    for rel, want in files.items():
+        what = f"the metadata of array {name}" if rel == "zarr.json" else f"chunk {rel} of array {name}"
+        f = base / name / rel
+        try:
+            size = f.stat().st_size
+        except OSError:
+            problems.append(f"{what} is missing")
+            continue
+        if not isinstance(want, list) or len(want) != 2:
+            problems.append(f"the digest of {what} is unreadable")
+        elif size != want[0]:
+            problems.append(f"{what} has {size} bytes, {want[0]} were written" if size else f"{what} is empty")
+        elif _file_digest(f) != want:
+            problems.append(f"{what} differs from what was written (CRC-32C)")
+    return problems
+
+
+def _described(problems: list[str]) -> str:
+    return problems[0] + (f" (and {len(problems) - 1} more)" if len(problems) > 1 else "")
 
 
 def _canonical(obj: Any) -> Any:
@@ -143,7 +248,13 @@ class SceneStore:
         return zarr.open_group(self.root.store, path=group_path, mode=mode, use_consolidated=False)
 
     def attrs(self, group_path: str) -> dict[str, Any]:
-        """The attributes of a group, or {} when it is absent or its metadata is unreadable."""
+        """The attributes of a group (its digests left out), or {} when it is absent or its metadata is
+        unreadable."""
+        a = self._raw_attrs(group_path)
+        a.pop(DIGESTS, None)
+        return a
+
+    def _raw_attrs(self, group_path: str) -> dict[str, Any]:
         try:
             return dict(self.group(group_path).attrs)
         except Exception:
@@ -155,7 +266,70 @@ class SceneStore:
         return a.get("cache_key") if a.get("complete") is True else None
 
     def is_complete(self, group_path: str, key: str) -> bool:
-        return self.cache_key_of(group_path) == key
+        """Whether the group is complete under `key` and intact (`damage` finds nothing). A damaged group is marked
+        incomplete (when the store is writable), with what was wrong in its attribute `damaged`, so that the
+        step that wrote it runs again and nothing that trusts the flag reads it meanwhile."""
+        if self.cache_key_of(group_path) != key:
+            return False
+        found = self.damage(group_path)
+        if found:
+            self._mark_damaged(found)
+            return False
+        return True
+
+    def damage(self, group_path: str, deep: bool = True) -> dict[str, list[str]]:
+        """What is wrong with a complete group's data, by group: its own (its arrays' files against the digests
+        its commit recorded) and that of the complete sub-groups its commit recorded, recursively; a recorded
+        sub-group missing or no longer complete under its key counts against the parent. Empty when intact, when
+        the group is not complete, or when it was committed before digests existed (read unverified). `deep`
+        false: the group's own data only (its recorded sub-groups' presence included)."""
+        a = self._raw_attrs(group_path)
+        record = a.get(DIGESTS)
+        if a.get("complete") is not True or record is None:
+            return {}
+        if not (isinstance(record, dict) and record.get("algorithm") == _ALGORITHM):
+            return {group_path: ["its digests are unreadable"]}
+        base = self._dir(group_path)
+        problems = [p for name, files in (record.get("arrays") or {}).items() for p in _check_array(base, name, files)]
+        found: dict[str, list[str]] = {}
+        for child, key in (record.get("groups") or {}).items():
+            child_path = f"{group_path}/{child}"
+            if self.cache_key_of(child_path) != key:
+                problems.append(f"its part {child} is missing or incomplete")
+            elif deep:
+                found |= self.damage(child_path)
+        return ({group_path: problems} if problems else {}) | found
+
+    def damaged_groups(self) -> dict[str, list[str]]:
+        """Every damaged group of the store, by path (what `inspect` lists): complete groups whose own data
+        differs from their digests, and groups marked incomplete because of damage not yet repaired."""
+        out: dict[str, list[str]] = {}
+
+        def walk(folder: Path, path: str) -> None:
+            for child in sorted(p for p in folder.iterdir() if p.is_dir() and not p.name.startswith("_")):
+                meta = _node(child)
+                if meta is None or meta.get("node_type") != "group":
+                    continue
+                child_path = f"{path}/{child.name}" if path else child.name
+                attrs = meta.get("attributes") if isinstance(meta.get("attributes"), dict) else {}
+                if attrs.get("complete") is True:
+                    own = self.damage(child_path, deep=False).get(child_path)
+                    if own:
+                        out[child_path] = own
+                elif isinstance(attrs.get(DAMAGED), list) and "cache_key" in attrs:
+                    out[child_path] = [str(p) for p in attrs[DAMAGED]]
+                walk(child, child_path)
+
+        walk(self.path, "")
+        return out
+
+    def _mark_damaged(self, found: dict[str, list[str]]) -> None:
+        """Mark damaged groups incomplete (keeping their key: a rewrite under the same key keeps their units)."""
+        if self.root.store.read_only:
+            return
+        for path, problems in found.items():
+            with suppress(Exception):  # a group whose metadata cannot be written stays as it is: still damaged
+                self.group(path).attrs.update({"complete": False, DAMAGED: problems[:20]})
 
     def children(self, group_path: str) -> list[str]:
         """Names of the sub-groups and arrays directly under a group, sorted."""
@@ -174,9 +348,15 @@ class SceneStore:
             shutil.rmtree(trash, ignore_errors=True)
 
     def mark_complete(self, group_path: str, key: str, **attrs: Any) -> None:
-        """Write extra attributes, then `cache_key`, then `complete=true` (last)."""
+        """Write extra attributes, the digests of what the group holds (its arrays; its complete sub-groups by
+        key), then `cache_key`, then `complete=true` (last)."""
+        self._commit(group_path, key, _record(self._dir(group_path)), attrs)
+
+    def _commit(self, group_path: str, key: str, record: dict[str, Any], attrs: dict[str, Any]) -> None:
         g = self.group(group_path)
-        g.attrs.update({**attrs, "cache_key": key, "complete": False})
+        g.attrs.update({**attrs, DIGESTS: record, "cache_key": key, "complete": False})
+        if DAMAGED in g.attrs:
+            del g.attrs[DAMAGED]
         g.attrs["complete"] = True
 
     def _ensure_parents(self, group_path: str) -> None:
@@ -189,7 +369,12 @@ class SceneStore:
     @contextmanager
     def staged(self, group_path: str, key: str, **attrs: Any) -> Iterator[zarr.Group]:
         """Write a group atomically: yields a fresh staging group; on success it replaces
-        `group_path` and is marked complete with `key` (and `attrs`). On error nothing changes."""
+        `group_path` and is marked complete with `key` (and `attrs`), recording the digests of what was
+        written. On error nothing changes.
+
+        A rewrite under the key the group already has (a repair of damaged data: the same key makes the same
+        content) keeps the units other steps committed inside the old version (a segment's checked attempts),
+        hard-linked into the new one before it replaces the old."""
         staging_path = f"{_STAGING}/{uuid.uuid4().hex}"
         g = zarr.open_group(self.root.store, path=staging_path, mode="w", zarr_format=3)
         try:
@@ -197,10 +382,14 @@ class SceneStore:
         except BaseException:
             shutil.rmtree(self._dir(staging_path), ignore_errors=True)
             raise
+        staged_dir = self._dir(staging_path)
+        record = _record(staged_dir)
+        if self._raw_attrs(group_path).get("cache_key") == key:
+            _keep_units(self._dir(group_path), staged_dir)
         self._ensure_parents(group_path)
         self.remove(group_path)
-        os.replace(self._dir(staging_path), self._dir(group_path))
-        self.mark_complete(group_path, key, **attrs)
+        os.replace(staged_dir, self._dir(group_path))
+        self._commit(group_path, key, record, attrs)
 
     def clean_staging(self) -> None:
         """Remove leftovers of killed runs (staging and trash folders)."""
@@ -210,12 +399,74 @@ class SceneStore:
     # -- small helpers for steps ---------------------------------------------------------------
 
     def array(self, path: str) -> np.ndarray:
-        """Read a whole array."""
-        return np.asarray(zarr.open_array(self.root.store, path=path, mode="r")[...])
+        """Read a whole array, verified first against the digests of the committed group it belongs to (the
+        nearest complete ancestor); DamagedData naming that group when a file differs or the array cannot be
+        decoded (the group is then marked incomplete when the store is writable). An array absent from the
+        store raises as zarr does."""
+        owner, name, record = self._owner(path)
+        files = record.get("arrays", {}).get(name) if isinstance(record, dict) else None
+        if owner is not None and record is not None and (files is not None or not isinstance(record, dict)):
+            problems = _check_array(self._dir(owner), name, files)
+            if problems:
+                self._mark_damaged({owner: problems})
+                raise DamagedData(owner, _described(problems))
+        try:
+            return np.asarray(zarr.open_array(self.root.store, path=path, mode="r")[...])
+        except Exception as e:
+            if not (self._dir(path) / "zarr.json").is_file():
+                raise
+            what = f"array {name} cannot be read ({type(e).__name__}: {' '.join(str(e).split())[:200]})"
+            if owner is not None:
+                self._mark_damaged({owner: [what]})
+            raise DamagedData(owner or path.rsplit("/", 1)[0], what) from None
+
+    def _owner(self, path: str) -> tuple[str | None, str, Any]:
+        """The commit `path` belongs to (its nearest ancestor group with a cache key), `path` relative to it and the
+        digests that commit recorded (None when committed before digests existed); (None, path, None) when there
+        is no such group or it is not complete (being committed, or left by a killed run: read as before).
+        DamagedData when that group was marked incomplete for damage not yet repaired."""
+        parts = path.strip("/").split("/")
+        for i in range(len(parts) - 1, 0, -1):
+            group = "/".join(parts[:i])
+            attrs = (_node(self._dir(group)) or {}).get("attributes")
+            if not isinstance(attrs, dict) or "cache_key" not in attrs:
+                continue
+            if attrs.get("complete") is True:
+                return group, "/".join(parts[i:]), attrs.get(DIGESTS)
+            if isinstance(attrs.get(DAMAGED), list) and attrs[DAMAGED]:
+                raise DamagedData(group, _described([str(p) for p in attrs[DAMAGED]]))
+            break
+        return None, path, None
 
     def size_bytes(self, group_path: str = "") -> int:
         d = self._dir(group_path) if group_path else self.path
         return sum(f.stat().st_size for f in d.rglob("*") if f.is_file())
+
+
+def _keep_units(old: Path, new: Path) -> None:
+    """Hard-link into `new` (a staged group) the complete units of `old` (its previous version) that `new` lacks,
+    looking through the plain sub-groups both have; arrays and plain groups are the rewrite's own."""
+    if not old.is_dir():
+        return
+    for child in sorted(old.iterdir()):
+        meta = _node(child) if child.is_dir() and not child.name.startswith("_") else None
+        if meta is None or meta.get("node_type") != "group":
+            continue
+        target = new / child.name
+        if _is_unit(meta):
+            if meta["attributes"].get("complete") is True and not target.exists():
+                shutil.copytree(child, target, copy_function=_link_or_copy)
+        elif (
+            target.is_dir() and (_node(target) or {}).get("node_type") == "group" and not _is_unit(_node(target) or {})
+        ):
+            _keep_units(child, target)
+
+
+def _link_or_copy(src: str, dst: str) -> None:
+    try:
+        os.link(src, dst)
+    except OSError:  # a file system without hard links
+        shutil.copy2(src, dst)
 
 
 def write_array(group: zarr.Group, array: str, data: np.ndarray, chunks: tuple[int, ...] | None = None) -> zarr.Array:
@@ -262,6 +513,8 @@ def _holder(lock_file: Path) -> str:
     try:
         info = json.loads(lock_file.read_text() or "{}")
         return f"pid {info['pid']} on {info['host']} since {info['since']}"
+    except FileNotFoundError:
+        return f"holder unknown: {LOCK_NAME} was removed"  # the lock is on the folder: it holds all the same
     except (OSError, ValueError, KeyError, TypeError):
         return "holder not yet recorded"  # it has the lock but has not written its details yet
 
@@ -288,13 +541,16 @@ def check_scene_dir(scene_dir: Path | str) -> None:
 def scene_lock(scene_dir: Path | str, wait_s: float = 0.0, poll_s: float = 0.1) -> Iterator[Path]:
     """Hold the one-writer lock of a scene while the block runs; yields the lock file's path.
 
-    An exclusive `fcntl.flock` on `<scene_dir>/.wonderverse.lock` (created, with the folder, when
-    absent). Non-blocking attempts every `poll_s` seconds for up to `wait_s` (0: one attempt;
-    math.inf: wait for ever); when the scene stays busy, raises StoreError naming the holder's pid,
-    host and start time. The kernel drops the lock when its holder exits or is killed, so a crashed
-    run never leaves the scene locked. The holder writes its details into the file and empties it
-    again on release; the file itself stays (deleting it would let two runs lock different inodes).
-    A folder that is non-empty and holds no scene is refused untouched, as `open_or_create` does.
+    An exclusive `fcntl.flock` on the scene folder itself (a descriptor of the directory, created when
+    absent): a lock on something a file operation inside the folder cannot swap out, so deleting or replacing
+    `<scene_dir>/.wonderverse.lock` while a run holds the lock lets no second run in. Non-blocking attempts
+    every `poll_s` seconds for up to `wait_s` (0: one attempt; math.inf: wait for ever); when the scene stays
+    busy, raises StoreError naming the holder's pid, host and start time. The kernel drops the lock when its
+    holder exits or is killed, so a crashed run never leaves the scene locked. The holder writes its details
+    into `.wonderverse.lock` (what a refused run quotes; it also marks the folder as a scene's) and empties it
+    again on release. A folder that is non-empty and holds no scene is refused untouched, as `open_or_create`
+    does. What it does not stop: a process that writes the store without taking the lock, or a scene folder
+    renamed or replaced as a whole while a run holds it.
     """
     import fcntl
 
@@ -303,14 +559,14 @@ def scene_lock(scene_dir: Path | str, wait_s: float = 0.0, poll_s: float = 0.1) 
     check_scene_dir(scene_dir)
     try:
         scene_dir.mkdir(parents=True, exist_ok=True)
-        fd = os.open(lock_file, os.O_RDWR | os.O_CREAT, 0o644)  # no O_TRUNC: the holder's details stay readable
+        dir_fd = os.open(scene_dir, os.O_RDONLY | os.O_DIRECTORY)
     except OSError as e:
         raise StoreError(f"cannot write to output folder {scene_dir}: {e.strerror or e}") from None
     try:
         deadline = time.monotonic() + wait_s
         while True:
             try:
-                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                fcntl.flock(dir_fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
                 break
             except BlockingIOError:
                 if time.monotonic() >= deadline:
@@ -320,14 +576,20 @@ def scene_lock(scene_dir: Path | str, wait_s: float = 0.0, poll_s: float = 0.1) 
                         "wait for it to finish or use another --out"
                     ) from None
                 time.sleep(poll_s)
-        since = time.strftime("%Y-%m-%d %H:%M:%S %z")
-        info = json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "since": since}).encode()
-        os.ftruncate(fd, 0)
-        os.pwrite(fd, info, 0)
+        try:  # opened only once the lock is ours: a refused run leaves the holder's details (and file) alone
+            fd = os.open(lock_file, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
+        except OSError as e:
+            raise StoreError(f"cannot write to output folder {scene_dir}: {e.strerror or e}") from None
         try:
-            yield lock_file
+            since = time.strftime("%Y-%m-%d %H:%M:%S %z")
+            info = json.dumps({"pid": os.getpid(), "host": socket.gethostname(), "since": since}).encode()
+            os.ftruncate(fd, 0)
+            os.pwrite(fd, info, 0)
+            try:
+                yield lock_file
+            finally:
+                os.ftruncate(fd, 0)  # before unlocking, so a later reader never sees a finished run's details
         finally:
-            os.ftruncate(fd, 0)  # before unlocking, so a later reader never sees a finished run's details
-            fcntl.flock(fd, fcntl.LOCK_UN)
+            os.close(fd)
     finally:
-        os.close(fd)
+        os.close(dir_fd)  # closing the only descriptor of the lock releases it
