@@ -330,7 +330,7 @@ def inspect(
     """Steps with status and cache key, segments (or clips) with attempts and checks, priors, arrays and sizes."""
     from rich.table import Table
 
-    from flows.inspect import summarize
+    from flows.inspect import damaged_lines, summarize
     from wonderverse.report import CLIP_VERDICTS
     from wonderverse.store import SceneStore
 
@@ -397,6 +397,8 @@ def inspect(
         out.print(f"global camera path: K {g['k_source']}{fov}", highlight=False)
     for e in info["extensions"]:
         out.print(f"extension {e['segment']}: {e['words']!r}", highlight=False)
+    for line in damaged_lines(info):
+        out.print(line, highlight=False)
     out.print(f"store size: {info['size_bytes'] / 1e6:.1f} MB")
 
 

@@ -144,6 +144,8 @@ def test_inspect_json_lists_the_damaged_group(made: tuple[Path, RunConfig], tmp_
     assert out.returncode == 0, out.stderr
     damaged = json.loads(out.stdout)["damaged"]
     assert damaged == [{"group": SFM.path, "problems": ["chunk c/0/0 of array points3d is missing"]}]
+    text = run_cli("inspect", str(scene))
+    assert text.returncode == 0 and f"damaged: {SFM.path}: chunk c/0/0 of array points3d is missing" in text.stdout
     assert tree_digest(scene) == before  # inspect changes nothing
 
 

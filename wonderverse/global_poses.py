@@ -190,7 +190,8 @@ def segment_disagreement(poses: np.ndarray, keys: Sequence[Key], own: Mapping[st
 
 
 def mappers_after_check(check_mapper: tuple[str, bool] | None) -> dict[str, Any]:
-    """SfmParams updates for the global solve of a one-segment video whose check mapped it with `check_mapper`
+    """SfmParams updates for the global solve of a one-segment video whose check mapped it (with the same
+    intrinsics handling: a guessed K) with `check_mapper`
     (the mapper's name, whether its model passed the gates): that mapper goes first, and alone when no mapper
     passed in the check, so the same frames never go through the whole mapper chain twice (measured before
     the parallax look: a near-static 49-frame clip ran three mappers in the check and three again here)."""
