@@ -101,7 +101,7 @@ def _check_mapper(store: SceneStore, segs: list[str]) -> tuple[str, bool] | None
     """For a video of one segment: the mapper its check's SfM kept and whether that model passed its gates
     (None: several segments, or the check mapped nothing). Only for a guessed K: the check holds a known one,
     the global solve refines it, and the mapper that suits one does not suit the other (RealEstate10K
-    `0c11` with its FOV given: incremental first here ended 9.4 % of the path off, global first 0.5 %)."""
+    `0c11` with its FOV given: incremental first here ended 9.4 % of the path off, global first 0.37 %)."""
     if len(segs) != 1:
         return None
     a = store.attrs(attempt_path(store, segs[0]).sfm)
