@@ -121,7 +121,7 @@ def generate(
 ) -> None:
     """Plan, render and reconstruct a scene; cached steps are skipped, the scene's extensions are kept."""
     from flows.extend import with_extensions
-    from flows.pipeline import needed_steps, run_pipeline, segments_config, stored_config
+    from flows.pipeline import claimed, needed_steps, run_pipeline, segments_config, stored_config
     from wonderverse.config import build_config, read_yaml
     from wonderverse.store import check_scene_dir
 
@@ -146,15 +146,16 @@ def generate(
         from wonderverse.video import make_video_model
 
         make_video_model(cfg.scene.video_source)  # reads every clip: a bad one is refused before the store is touched
-    _run_with_progress(
-        scene_dir,
-        engine,
-        f"preset {name} ({why})",
-        lambda eng: run_pipeline(scene_dir, cfg, until, engine=eng, replace_segments=replace_segments),
-        len(steps),
-        folder_note,
-        config_notes(cfg),
-    )
+    with claimed(scene_dir, cfg, replace_segments):  # a busy, newer or read-only scene is refused in one line
+        _run_with_progress(
+            scene_dir,
+            engine,
+            f"preset {name} ({why})",
+            lambda eng: run_pipeline(scene_dir, cfg, until, engine=eng, lock_held=True),
+            len(steps),
+            folder_note,
+            config_notes(cfg),
+        )
 
 
 def _run_with_progress(
@@ -234,8 +235,8 @@ def reconstruct(
     replace_segments: ReplaceSegments = False,
 ) -> None:
     """Reconstruct your own clips (any video generator or a phone): check, poses, priors, splats, outputs."""
-    from flows.pipeline import needed_steps, run_pipeline, stored_config
-    from wonderverse.config import build_config
+    from flows.pipeline import claimed, needed_steps, run_pipeline, stored_config
+    from wonderverse.config import build_config, control_character
     from wonderverse.store import check_scene_dir
     from wonderverse.video import make_video_model
     from wonderverse.video.files import group_sources
@@ -260,23 +261,24 @@ def reconstruct(
     if depth_model is not None:
         models = {"depth_backend": "depth_anything", "depth_model": str(depth_model.resolve()), "allow_download": False}
         overrides["steps"]["priors"] = {"models": {**models, "normal_backend": "from_depth"}}
-    prompt = f"reconstruction of {', '.join(Path(p).name for p in paths)}"
+    names = ", ".join(Path(p).name for p in paths)
+    # a file name may hold any byte but "/": its control characters are not the user's words, so not refused here
+    prompt = "reconstruction of " + "".join("?" if control_character(c) else c for c in names)
     scene_dir, folder_note = (out_dir, "") if out_dir else _default_scene_folder(prompt, Path(paths[0]).stem)
     check_scene_dir(scene_dir)
     name, why = _choose_preset(preset, config, stored_config(scene_dir))
     cfg = build_config(prompt=prompt, preset=name, config_file=config, overrides=overrides)
     make_video_model(cfg.scene.video_source)  # reads every clip: a bad one is refused before the store is touched
-    _run_with_progress(
-        scene_dir,
-        engine,
-        f"preset {name} ({why})",
-        lambda eng: run_pipeline(
-            scene_dir, cfg, until, engine=eng, flow_name="reconstruct", replace_segments=replace_segments
-        ),
-        len(steps),
-        folder_note=folder_note,
-        notes=config_notes(cfg),
-    )
+    with claimed(scene_dir, cfg, replace_segments):
+        _run_with_progress(
+            scene_dir,
+            engine,
+            f"preset {name} ({why})",
+            lambda eng: run_pipeline(scene_dir, cfg, until, engine=eng, flow_name="reconstruct", lock_held=True),
+            len(steps),
+            folder_note=folder_note,
+            notes=config_notes(cfg),
+        )
 
 
 def _clip_path(source: str) -> str:
@@ -313,13 +315,18 @@ def extend(
     engine: Engine = "auto",
 ) -> None:
     """Extend a scene in words: plan, generate, check one more segment; update poses, priors, splats, outputs."""
-    from flows.extend import extend as extend_scene
-    from flows.pipeline import stored_config
+    from flows.extend import extension_config
+    from flows.pipeline import claimed, run_pipeline
 
     check_engine(engine)
-    cfg = stored_config(scene_dir)
-    preset = f"preset {cfg.preset} (the scene's)" if cfg is not None else "no scene yet"
-    _run_with_progress(scene_dir, engine, preset, lambda eng: extend_scene(scene_dir, words, engine=eng))
+    cfg = extension_config(scene_dir, words)  # no scene, no completed run, unusable words: refused here
+    with claimed(scene_dir, cfg):
+        _run_with_progress(
+            scene_dir,
+            engine,
+            f"preset {cfg.preset} (the scene's)",
+            lambda eng: run_pipeline(scene_dir, cfg, engine=eng, flow_name="extend", lock_held=True),
+        )
 
 
 @app.command()
@@ -428,6 +435,17 @@ app.command("batch")(batch_command)
 app.command("view")(view_command)
 
 
+def error_line(message: str) -> str:
+    """`message` as one line for a terminal: every run of whitespace one space, and any other control character
+    (a terminal escape in a file name or a setting's name) written as its escape, never sent as it is."""
+    from wonderverse.config import control_character
+
+    text = " ".join(message.split())
+    if control_character(text) is None:
+        return text
+    return "".join(c.encode("unicode_escape").decode() if control_character(c) else c for c in text)
+
+
 def main() -> None:
     """`wonderverse ...`: run the command in a supervised child (Ctrl-C, SIGTERM: see flows.supervise); in the
     child, run it, user errors becoming one line on stderr and exit code 2."""
@@ -439,7 +457,11 @@ def main() -> None:
     try:
         app(standalone_mode=False)
     except WonderError as e:  # StepFailed included
-        print(f"error: {' '.join(str(e).split())}", file=sys.stderr)
+        print(f"error: {error_line(str(e))}", file=sys.stderr)
+        sys.exit(2)
+    except OSError as e:  # the disk, not the code: full, read-only, gone while writing
+        where = f"{e.filename}: " if e.filename else ""
+        print(f"error: {error_line(where + (e.strerror or str(e)))}", file=sys.stderr)
         sys.exit(2)
     except (typer.Exit, SystemExit) as e:
         code = getattr(e, "exit_code", getattr(e, "code", 0))
@@ -449,7 +471,7 @@ def main() -> None:
     except Exception as e:
         # Usage errors (no such option, a missing argument): click's exceptions, vendored by typer >= 0.29
         if hasattr(e, "format_message") and hasattr(e, "exit_code"):
-            print(f"error: {' '.join(e.format_message().split())} (see --help)", file=sys.stderr)
+            print(f"error: {error_line(e.format_message())} (see --help)", file=sys.stderr)
             sys.exit(2)
         raise
 

@@ -12,7 +12,7 @@ from pathlib import Path
 
 from flows.engine import Engine
 from tasks import StepResult
-from wonderverse.config import RunConfig
+from wonderverse.config import RunConfig, plain_words
 from wonderverse.errors import WonderError
 from wonderverse.store import SceneStore
 
@@ -20,8 +20,12 @@ MAX_WORDS_CHARS = 500
 
 
 def extended_config(cfg: RunConfig, words: str) -> RunConfig:
-    """`cfg` with one more user extension; WonderError for empty or over-long words."""
-    words = " ".join(words.split())
+    """`cfg` with one more user extension; WonderError for empty or over-long words, or words holding a control
+    character (a terminal escape)."""
+    try:
+        words = plain_words(words, "the extension request")
+    except ValueError as e:
+        raise WonderError(str(e)) from None
     if not words:
         raise WonderError("the extension request is empty; say where to go, e.g. 'a frozen lake on the left'")
     if len(words) > MAX_WORDS_CHARS:
@@ -36,9 +40,10 @@ def with_extensions(cfg: RunConfig, added: tuple[str, ...]) -> RunConfig:
     return RunConfig.model_validate({**cfg.model_dump(), "scene": scene.model_dump()})
 
 
-def extend(scene_dir: Path | str, words: str, engine: Engine = "auto") -> list[StepResult]:
-    """Add one segment planned from `words` to the scene in `scene_dir` and bring every step up to date."""
-    from flows.pipeline import run_pipeline, segments_config, stored_config
+def extension_config(scene_dir: Path | str, words: str) -> RunConfig:
+    """The configuration of the scene in `scene_dir` with one more extension, `words`; WonderError when there is no
+    scene, no completed run, or the words are unusable."""
+    from flows.pipeline import segments_config, stored_config
 
     cfg = stored_config(scene_dir)
     if cfg is None:
@@ -46,4 +51,11 @@ def extend(scene_dir: Path | str, words: str, engine: Engine = "auto") -> list[S
         raise WonderError(f"{scene_dir} holds no completed run; run `wonderverse generate` first")
     made = segments_config(scene_dir)  # an extension whose run failed after its segment was made is kept
     cfg = with_extensions(cfg, made.scene.extensions.added) if made is not None else cfg
-    return run_pipeline(scene_dir, extended_config(cfg, words), engine=engine, flow_name="extend")
+    return extended_config(cfg, words)
+
+
+def extend(scene_dir: Path | str, words: str, engine: Engine = "auto") -> list[StepResult]:
+    """Add one segment planned from `words` to the scene in `scene_dir` and bring every step up to date."""
+    from flows.pipeline import run_pipeline
+
+    return run_pipeline(scene_dir, extension_config(scene_dir, words), engine=engine, flow_name="extend")

@@ -8,7 +8,8 @@ the last complete step (and, inside a step, from the last complete segment).
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager, nullcontext
 from pathlib import Path
 from typing import Any, Literal
 
@@ -18,7 +19,7 @@ from tasks.base import StepContext
 from wonderverse.config import RunConfig
 from wonderverse.errors import WonderError, shown
 from wonderverse.schema import SEGMENT
-from wonderverse.store import SceneStore, scene_lock
+from wonderverse.store import STORE_NAME, SceneStore, scene_lock
 
 Call = Callable[[Step, str, Any, StepContext], str]
 OnCached = Callable[[Step, str], None]
@@ -150,6 +151,20 @@ def generate_flow(name: FlowName = "generate") -> Any:
     return _flows[name]
 
 
+@contextmanager
+def claimed(scene_dir: Path | str, cfg: RunConfig, replace_segments: bool = False) -> Iterator[None]:
+    """Hold the scene for a run of `cfg` while the block runs: its lock taken (a busy scene is refused at once), its
+    store, when it has one, opened for writing (a newer, damaged or read-only store is refused), and a run that
+    would replace the scene's segments refused unless `replace_segments` (WonderError each). What `run_pipeline`
+    does before any engine starts; the CLI does it before its first line, so that a refusal is its only line."""
+    with scene_lock(scene_dir):
+        if (Path(scene_dir) / STORE_NAME).exists():
+            SceneStore.open(scene_dir, mode="r+")
+        if not replace_segments:
+            refuse_replacing_segments(scene_dir, cfg)
+        yield
+
+
 def run_pipeline(
     scene_dir: Path | str,
     cfg: RunConfig,
@@ -157,14 +172,12 @@ def run_pipeline(
     engine: Engine = "auto",
     flow_name: FlowName = "generate",
     replace_segments: bool = False,
+    lock_held: bool = False,
 ) -> list[StepResult]:
     """Run a scene with the chosen engine (`flows.engine`): a Prefect flow named `flow_name`, or plain
-    in-process calls. Before any engine starts, the scene's lock is taken (a busy scene is refused at once) and
-    a run that would replace the scene's segments is refused unless `replace_segments` (WonderError)."""
+    in-process calls, inside `claimed` (taken here unless `lock_held`: the caller is inside it already)."""
     steps = needed_steps(until)
-    with scene_lock(scene_dir):
-        if not replace_segments:
-            refuse_replacing_segments(scene_dir, cfg)
+    with nullcontext() if lock_held else claimed(scene_dir, cfg, replace_segments):
         if resolve_engine(engine) == "local":
             return _execute(scene_dir, cfg, steps, _direct, _nothing)
         return generate_flow(flow_name)(str(scene_dir), cfg, until, lock_held=True)

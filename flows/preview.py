@@ -10,7 +10,7 @@ import numpy as np
 from tasks.segments import attempt_ids, segment_ids, stitched
 from wonderverse.errors import WonderError
 from wonderverse.schema import ATTEMPT, SFM
-from wonderverse.store import SceneStore
+from wonderverse.store import SceneStore, check_writable
 
 PREVIEW_FILE = "preview.mp4"
 
@@ -80,6 +80,7 @@ def write_preview(scene_dir: Path) -> list[Path]:
     frames, index = stitched(store)
     if len(frames) == 0:
         raise WonderError(f"{scene_dir} has no rendered segments yet; run `wonderverse generate` first")
+    check_writable(scene_dir, f"{PREVIEW_FILE} in {scene_dir}")  # before ffmpeg starts (it prints its own errors)
     fps = float((store.root.attrs.get("spec") or {}).get("video", {}).get("fps", 8))
     mp4 = write_mp4(frames, Path(scene_dir) / PREVIEW_FILE, fps)
     pick = sorted(set(range(0, len(frames), max(1, len(frames) // 32))))

@@ -18,6 +18,7 @@ complete scene does not redraw its plots.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -49,7 +50,7 @@ from wonderverse.report import (
     render_html,
 )
 from wonderverse.schema import ATTEMPT, CHECK, OUTPUTS, PLAN, PRIORS_SEGMENT, SEGMENT, SFM, SPLATS
-from wonderverse.store import STORE_NAME, SceneStore
+from wonderverse.store import STORE_NAME, SceneStore, StoreError, check_writable
 
 log = logging.getLogger("wonderverse.report")
 REPORT_NAME = "report.html"
@@ -863,6 +864,7 @@ def write_report(scene_dir: Path | str, params: ReportParams | None = None, *, o
     if only_if_stale and written_state(out) == state:
         log.debug("report %s is up to date", out)
         return out
+    check_writable(scene_dir, f"{REPORT_NAME} in {scene_dir}")  # before the seconds of drawing, not after
     content = gather(store, params)
     content.state = state
     text = render_html(content, params)
@@ -870,6 +872,9 @@ def write_report(scene_dir: Path | str, params: ReportParams | None = None, *, o
     try:
         tmp.write_text(text, encoding="utf-8")
         os.replace(tmp, out)
+    except OSError as e:  # a full disk: the old report (if any) stays as it was
+        raise StoreError(f"cannot write {REPORT_NAME} in {scene_dir}: {e.strerror or e}") from None
     finally:
-        tmp.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            tmp.unlink(missing_ok=True)
     return out

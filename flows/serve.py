@@ -119,12 +119,24 @@ def run_batch(
     """Run the `batch` flow in this process (on PREFECT_API_URL if set, else Prefect's ephemeral API)."""
     _check_until(until)
     find_specs(specs_dir)  # a missing folder is a user error before Prefect starts
+    _check_out_root(Path(out_root))
     args = (str(Path(specs_dir).resolve()), str(Path(out_root).resolve()), until, dask_address)
     state = batch_flow()(*args, return_state=True)
     summary = state.result(raise_on_failure=False)
     if isinstance(summary, BaseException):  # the flow itself broke (not a scene): that is a bug, show it
         raise summary
     return summary
+
+
+def _check_out_root(out_root: Path) -> None:
+    """WonderError before Prefect starts when `out_root` (the folder of the scenes' folders) is a file, or lies under
+    one, or cannot be created or written."""
+    from wonderverse.store import check_writable
+
+    existing = next(p for p in (out_root, *out_root.absolute().parents) if p.exists() or p == p.parent)
+    if not existing.is_dir():
+        raise WonderError(f"--out {out_root}: {existing} is not a folder (each scene goes to OUT/<spec file name>)")
+    check_writable(existing, f"--out {out_root}")
 
 
 def _check_until(until: str | None) -> None:

@@ -49,6 +49,34 @@ MAX_PROMPT_CHARS = 2000
 MAX_CONFIG_BYTES = 1_000_000
 MAX_CONFIG_VALUES = 100_000
 MAX_ERRORS_SHOWN = 5
+# Whitespace a user may type or paste into words (a tab, a line break): it becomes a single space, as any run of
+# whitespace does. Every other control character (C0, DEL, C1: ESC and CSI start terminal escapes, BEL rings, BS
+# and CR rewrite the line) is refused, so the words stored in a scene and echoed to a terminal are plain text.
+ALLOWED_CONTROLS = frozenset("\t\n\r")
+CONTROL_NAMES = {0x00: "NUL", 0x07: "BEL", 0x08: "BS", 0x0B: "VT", 0x0C: "FF", 0x1B: "ESC", 0x7F: "DEL", 0x9B: "CSI"}
+
+
+def control_character(text: str) -> str | None:
+    """What is wrong with `text` for words stored and shown (a prompt, an extension): the first control character
+    other than a tab or a line break, named with its code point and position ('U+001B (ESC) at character 3');
+    None when there is none."""
+    for i, c in enumerate(text):
+        code = ord(c)
+        if (code < 0x20 or 0x7F <= code < 0xA0) and c not in ALLOWED_CONTROLS:
+            name = f" ({CONTROL_NAMES[code]})" if code in CONTROL_NAMES else ""
+            return f"U+{code:04X}{name} at character {i + 1}"
+    return None
+
+
+def plain_words(text: str, what: str) -> str:
+    """`text` with every run of whitespace (tabs and line breaks included) as one space; ValueError naming `what`
+    when it holds any other control character (a terminal escape, a bell)."""
+    bad = control_character(text)
+    if bad is not None:
+        raise ValueError(
+            f"{what} holds the control character {bad}; control characters and terminal escapes are not allowed"
+        )
+    return " ".join(text.split())
 
 
 class Model(BaseModel):
@@ -146,12 +174,24 @@ class SceneSpec(Model):
     @field_validator("prompt")
     @classmethod
     def _prompt_ok(cls, v: str) -> str:
-        v = " ".join(v.split())
+        v = plain_words(v, "the prompt")
         if not v:
             raise ValueError("prompt is empty")
         if len(v) > MAX_PROMPT_CHARS:
             raise ValueError(f"prompt has {len(v)} characters; at most {MAX_PROMPT_CHARS} are allowed")
         return v
+
+    @model_validator(mode="after")
+    def _words_are_plain(self) -> SceneSpec:
+        """The user's extension words (`extensions.intents`, `extensions.added`) are stored and shown as the prompt
+        is: no control characters."""
+        for name in ("intents", "added"):
+            for i, words in enumerate(getattr(self.extensions, name)):
+                try:
+                    plain_words(words, "the extension")
+                except ValueError as e:
+                    raise field_error(("extensions", name, str(i)), str(e), words) from None
+        return self
 
 
 class CheckStepParams(Model):

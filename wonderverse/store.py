@@ -533,8 +533,21 @@ def check_scene_dir(scene_dir: Path | str) -> None:
     existing = next(p for p in (scene_dir, *scene_dir.absolute().parents) if p.exists() or p == p.parent)
     if not existing.is_dir():
         raise StoreError(f"cannot write to output folder {scene_dir}: {existing} is not a folder")
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise StoreError(f"cannot write to output folder {scene_dir}: permission denied on {existing}")
+    check_writable(existing, f"output folder {scene_dir}")
+
+
+def check_writable(folder: Path | str, what: str | None = None) -> None:
+    """StoreError, touching nothing, when no file can be created in the existing folder `folder` (a read-only file
+    system, or no permission); `what` names it in the message (default: the folder)."""
+    folder = Path(folder)
+    if os.access(folder, os.W_OK | os.X_OK):
+        return
+    try:
+        read_only = bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
+    except OSError:
+        read_only = False
+    why = f"{folder} is on a read-only file system" if read_only else f"permission denied on {folder}"
+    raise StoreError(f"cannot write to {what or folder}: {why}")
 
 
 @contextmanager
