@@ -531,7 +531,7 @@ def run_all(world: World, engine: str, tmp_path: Path) -> list[Case]:
     todo = [case for case in todo if AS_ROOT or case.read_only is None]  # read-only mounts need root
     with held(world.copies["locked"]), held(world.copies["lock-removed"]):
         (world.copies["lock-removed"] / LOCK_NAME).unlink()
-        with ThreadPoolExecutor(max_workers=2) as pool:
+        with ThreadPoolExecutor(max_workers=3) as pool:
             failures = [f for f in pool.map(lambda case: check(case, engine, env, tmp_path), todo) if f]
     assert not failures, f"{len(failures)} of {len(todo)} cases failed:\n" + "\n".join(failures)
     assert not (home / "prefect.db").exists()  # refused before Prefect started, every one
@@ -632,6 +632,7 @@ def test_a_chat_server_answering_nonsense_falls_back_to_the_rules_with_a_warning
         assert not _raw_controls(r.stderr + r.stdout), r.stderr
         plan = SceneStore.open(scene).attrs(PLAN.path)["plan"]
         assert plan["planner"] == "rules (fallback from chat)" and plan["fallback_reason"], plan
+        assert not _raw_controls(json.dumps(plan, ensure_ascii=False)), plan  # the answer's escapes are not kept
         assert httpd.calls >= 1  # type: ignore[attr-defined]
     finally:
         httpd.shutdown()
