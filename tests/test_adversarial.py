@@ -37,6 +37,7 @@ import yaml
 from conftest import ROOT, TINY_VIDEO, tiny_config, tree_digest
 
 from flows.pipeline import execute
+from wonderverse.config import RunConfig
 from wonderverse.schema import ATTEMPT, PLAN
 from wonderverse.store import LOCK_NAME, SceneStore
 
@@ -97,11 +98,25 @@ def _set_format(scene: Path, value: object) -> None:
     meta_file.write_text(json.dumps(meta))
 
 
+def _complete_config() -> RunConfig:
+    """tiny_config with one attempt per segment and short training: the whole scene in ~15 s."""
+    cfg = tiny_config()
+    overrides = {
+        "check": {"max_attempts": 1},
+        "splats": {"max_side_px": 96, "train": {"iterations": 60, "holdout_every": 0}},
+        "outputs": {"video_frames": 4, "quality_frames": 1},
+    }
+    dumped = cfg.steps.model_dump()
+    return cfg.model_copy(
+        update={"steps": cfg.steps.model_validate(dumped | {k: dumped[k] | v for k, v in overrides.items()})}
+    )
+
+
 @pytest.fixture(scope="module")
 def world(tmp_path_factory: pytest.TempPathFactory) -> World:
     root = tmp_path_factory.mktemp("adversarial")
     scene = root / "scene"
-    execute(scene, tiny_config(), until="generate_segments")
+    execute(scene, _complete_config())  # every step: view, report and preview have what they show
     copies: dict[str, Path] = {}
 
     def copy(name: str) -> Path:
@@ -374,9 +389,7 @@ def cases(world: World) -> list[Case]:
         found += [
             Case(f"{command} missing", (command, str(c["none"])), "no", c["none"]),
             Case(f"{command} foreign", (command, str(c["foreign"])), "no scene", c["foreign"]),
-            Case(f"{command} newer", (command, str(c["newer"])), "newer WonderVerse", c["newer"])
-            if command != "view"  # view looks for the splat files first
-            else Case(f"{command} newer", (command, str(c["newer"])), "has no splats yet", c["newer"]),
+            Case(f"{command} newer", (command, str(c["newer"])), "newer WonderVerse", c["newer"]),
         ]
     found += [
         Case("inspect a file", ("inspect", str(c["a-file"])), "holds no scene store", c["a-file"]),
@@ -404,7 +417,14 @@ def cases(world: World) -> list[Case]:
         ),
         Case("preview damaged", ("preview", str(c["damaged"])), "damaged scene data in segments/s000", c["damaged"]),
         Case("preview no segments", ("preview", str(c["no-run"])), "no rendered segments yet", c["no-run"]),
-        Case("view no splats", ("view", str(scene)), "has no splats yet", scene),
+        Case("view no splats", ("view", str(c["no-run"])), "has no splats yet", c["no-run"]),
+        Case(
+            "view read-only",
+            ("view", str(c["read-only"])),
+            "cannot write viewer.html",
+            c["read-only"],
+            read_only=c["read-only"],
+        ),
         Case("view port", ("view", str(scene), "--port", "70000"), "Invalid value for '--port'", scene),
         Case(
             "batch out a file", ("batch", str(world.specs), "--out", str(c["a-file"])), "is not a folder", c["a-file"]
@@ -454,11 +474,12 @@ def held(scene: Path) -> Iterator[subprocess.Popen]:
         proc.wait(timeout=10)
 
 
-# A private mount namespace for one call: $1 is mounted read-only on itself, or (full disk) a 4 MB tmpfs is mounted
+# A private mount namespace for one call: $1 is mounted read-only on itself, or (full disk) a small tmpfs is mounted
 # on $1, the scene $2 copied into it and the rest filled, and the scene's digest written to $3 before and after.
 READ_ONLY = 'mount --bind -o ro "$1" "$1" && shift 3 && exec "$@"'
-FULL_DISK = """mount -t tmpfs -o size=4m tmpfs "$1" && cp -a "$2" "$1/scene" || exit 99
-head -c 8000000 /dev/zero > "$1/fill" 2>/dev/null
+FULL_DISK = """size=$((2 * $(du -sm "$2" | cut -f1) + 4))m
+mount -t tmpfs -o size=$size tmpfs "$1" && cp -a "$2" "$1/scene" || exit 99
+cat /dev/zero > "$1/fill" 2>/dev/null
 digest() { (cd "$1/scene" && find . -type f | LC_ALL=C sort | xargs sha256sum | sha256sum); }
 digest "$1" > "$3"; m="$1"; d="$3"; shift 3
 "$@"; rc=$?
@@ -512,7 +533,8 @@ def check(case: Case, engine: str, env: dict[str, str], scratch: Path) -> str | 
     if _raw_controls(r.stderr + r.stdout):
         problems.append(f"raw control characters {_raw_controls(r.stderr + r.stdout)}")
     if case.full_disk:
-        digests = (scratch / f"{case.name}.digest").read_text().splitlines()
+        digest_file = scratch / f"{case.name}.digest"
+        digests = digest_file.read_text().splitlines() if digest_file.exists() else ["the full disk was not set up"]
         if len(digests) != 2 or digests[0] != digests[1]:
             problems.append(f"the scene on the full disk changed: {digests}")
     elif target is not None and not existed and target.exists():
