@@ -2,10 +2,12 @@
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import os
 import subprocess
 import sys
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -78,3 +80,45 @@ def data_dir() -> Path:
     if not DATA.is_dir():
         pytest.skip(f"shared data folder {DATA} is absent (tests with real footage need it)")
     return DATA
+
+
+def complete_config() -> RunConfig:
+    """tiny_config with one attempt per segment and short training: a whole scene, every step, in ~15-20 s."""
+    cfg = tiny_config()
+    overrides = {
+        "check": {"max_attempts": 1},
+        "splats": {"max_side_px": 96, "train": {"iterations": 60, "holdout_every": 0}},
+        "outputs": {"video_frames": 4, "quality_frames": 1},
+    }
+    dumped = cfg.steps.model_dump()
+    steps = cfg.steps.model_validate(dumped | {k: dumped[k] | v for k, v in overrides.items()})
+    return cfg.model_copy(update={"steps": steps})
+
+
+_LOCK_HOLDER = """
+import sys
+from wonderverse.store import scene_lock
+with scene_lock(sys.argv[1]):
+    print("locked", flush=True)
+    sys.stdin.readline()
+"""
+
+
+@contextlib.contextmanager
+def lock_held_elsewhere(scene: Path) -> Iterator[subprocess.Popen]:
+    """A separate process holding the scene's lock until its stdin closes or the block ends (then killed)."""
+    proc = subprocess.Popen(
+        [sys.executable, "-c", _LOCK_HOLDER, str(scene)],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+        env={**os.environ, "PYTHONPATH": str(ROOT)},
+    )
+    try:
+        assert proc.stdout is not None and proc.stdout.readline().strip() == "locked", "holder did not take the lock"
+        yield proc
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+        proc.wait(timeout=10)

@@ -14,7 +14,6 @@ nonsense falls back to the rules with a warning (exit 0, its own test)."""
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
 import re
@@ -23,7 +22,6 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
@@ -34,10 +32,9 @@ import imageio.v2 as imageio
 import numpy as np
 import pytest
 import yaml
-from conftest import ROOT, TINY_VIDEO, tiny_config, tree_digest
+from conftest import ROOT, TINY_VIDEO, complete_config, lock_held_elsewhere, tiny_config, tree_digest
 
 from flows.pipeline import execute
-from wonderverse.config import RunConfig
 from wonderverse.schema import ATTEMPT, PLAN
 from wonderverse.store import LOCK_NAME, SceneStore
 
@@ -98,25 +95,11 @@ def _set_format(scene: Path, value: object) -> None:
     meta_file.write_text(json.dumps(meta))
 
 
-def _complete_config() -> RunConfig:
-    """tiny_config with one attempt per segment and short training: the whole scene in ~15 s."""
-    cfg = tiny_config()
-    overrides = {
-        "check": {"max_attempts": 1},
-        "splats": {"max_side_px": 96, "train": {"iterations": 60, "holdout_every": 0}},
-        "outputs": {"video_frames": 4, "quality_frames": 1},
-    }
-    dumped = cfg.steps.model_dump()
-    return cfg.model_copy(
-        update={"steps": cfg.steps.model_validate(dumped | {k: dumped[k] | v for k, v in overrides.items()})}
-    )
-
-
 @pytest.fixture(scope="module")
 def world(tmp_path_factory: pytest.TempPathFactory) -> World:
     root = tmp_path_factory.mktemp("adversarial")
     scene = root / "scene"
-    execute(scene, _complete_config())  # every step: view, report and preview have what they show
+    execute(scene, complete_config())  # every step: view, report and preview have what they show
     copies: dict[str, Path] = {}
 
     def copy(name: str) -> Path:
@@ -446,34 +429,6 @@ def cases(world: World) -> list[Case]:
     return found
 
 
-HOLDER = """
-import sys
-from wonderverse.store import scene_lock
-with scene_lock(sys.argv[1]):
-    print("locked", flush=True)
-    sys.stdin.readline()
-"""
-
-
-@contextlib.contextmanager
-def held(scene: Path) -> Iterator[subprocess.Popen]:
-    """A separate process holding the scene's lock until the block ends."""
-    proc = subprocess.Popen(
-        [sys.executable, "-c", HOLDER, str(scene)],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        text=True,
-        cwd=ROOT,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-    )
-    try:
-        assert proc.stdout is not None and proc.stdout.readline().strip() == "locked", "holder did not take the lock"
-        yield proc
-    finally:
-        proc.kill()
-        proc.wait(timeout=10)
-
-
 # A private mount namespace for one call: $1 is mounted read-only on itself, or (full disk) a small tmpfs is mounted
 # on $1, the scene $2 copied into it and the rest filled, and the scene's digest written to $3 before and after.
 READ_ONLY = 'mount --bind -o ro "$1" "$1" && shift 3 && exec "$@"'
@@ -551,7 +506,7 @@ def run_all(world: World, engine: str, tmp_path: Path) -> list[Case]:
     env = _prefect_env(home)
     todo = [case for case in cases(world) if engine == "local" or case.takes_engine]
     todo = [case for case in todo if AS_ROOT or case.read_only is None]  # read-only mounts need root
-    with held(world.copies["locked"]), held(world.copies["lock-removed"]):
+    with lock_held_elsewhere(world.copies["locked"]), lock_held_elsewhere(world.copies["lock-removed"]):
         (world.copies["lock-removed"] / LOCK_NAME).unlink()
         with ThreadPoolExecutor(max_workers=3) as pool:
             failures = [f for f in pool.map(lambda case: check(case, engine, env, tmp_path), todo) if f]

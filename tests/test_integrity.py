@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import run_cli, tiny_config, tree_digest
+from conftest import complete_config, run_cli, tree_digest
 
 from flows.inspect import damaged_lines, summarize
 from flows.pipeline import StepFailed, _direct, execute
@@ -31,22 +31,9 @@ TARGETS = {  # array -> (the committed group it belongs to, the step that wrote 
 }
 
 
-def _config() -> RunConfig:
-    """The tiny scene, with one attempt per segment and short training (the fixture's run takes ~20 s)."""
-    cfg = tiny_config()
-    overrides = {
-        "check": {"max_attempts": 1},
-        "splats": {"max_side_px": 96, "train": {"iterations": 60, "holdout_every": 0}},
-        "outputs": {"video_frames": 4, "quality_frames": 1},
-    }
-    dumped = cfg.steps.model_dump()
-    steps = cfg.steps.model_validate(dumped | {k: dumped[k] | v for k, v in overrides.items()})
-    return cfg.model_copy(update={"steps": steps})
-
-
 @pytest.fixture(scope="module")
 def made(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, RunConfig]:
-    cfg = _config()
+    cfg = complete_config()
     scene = tmp_path_factory.mktemp("integrity") / "scene"
     assert [r.status for r in execute(scene, cfg)] == ["ran"] * 7
     return scene, cfg

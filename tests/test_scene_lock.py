@@ -4,41 +4,20 @@ lets no second run in (it did: the second run created a new file and locked that
 from __future__ import annotations
 
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from conftest import lock_held_elsewhere
 
 from wonderverse.store import LOCK_NAME, StoreError, scene_lock
-
-ROOT = Path(__file__).resolve().parents[1]
-HOLDER = """
-import sys
-from wonderverse.store import scene_lock
-with scene_lock(sys.argv[1]):
-    print("locked", flush=True)
-    sys.stdin.readline()
-"""
 
 
 @pytest.fixture
 def holder(tmp_path: Path):  # type: ignore[no-untyped-def]
     """A separate process holding the lock of `tmp_path/scene` until its stdin closes."""
     scene = tmp_path / "scene"
-    proc = subprocess.Popen(
-        [sys.executable, "-c", HOLDER, str(scene)],
-        stdin=subprocess.PIPE,
-        stdout=subprocess.PIPE,
-        text=True,
-        cwd=ROOT,
-        env={**os.environ, "PYTHONPATH": str(ROOT)},
-    )
-    assert proc.stdout is not None and proc.stdout.readline().strip() == "locked", "holder did not take the lock"
-    yield scene, proc
-    if proc.poll() is None:
-        proc.kill()
-    proc.wait(timeout=10)
+    with lock_held_elsewhere(scene) as proc:
+        yield scene, proc
 
 
 def test_removing_the_lock_file_lets_no_second_run_in(holder) -> None:  # type: ignore[no-untyped-def]
