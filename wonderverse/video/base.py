@@ -25,6 +25,27 @@ class GroundTruth:
 
 
 @dataclass
+class Guide:
+    """What is already known along a segment's planned path, for a guided video model to keep.
+
+    frames: (T,H,W,3) uint8 RGB of the known content rendered along the path (0 where unknown).
+    mask: (T,H,W) bool, True where nothing is known and the model must invent the pixel.
+    depth: (T,H,W) float32 camera-space z of the known content in scene units; +inf where unknown or sky.
+    source: what was rendered, e.g. "parent frames" or "splats".
+    """
+
+    frames: np.ndarray
+    mask: np.ndarray
+    depth: np.ndarray
+    source: str = "parent frames"
+
+    @property
+    def coverage(self) -> float:
+        """Share of pixels that are known."""
+        return float(1.0 - self.mask.mean()) if self.mask.size else 0.0
+
+
+@dataclass
 class Video:
     """frames: (T,H,W,3) uint8 RGB. K: (3,3) float64 pixel intrinsics, exact when `k_is_guess` is False
     (the renderer used them, or the user gave the clip's field of view), else from an assumed field of view."""
