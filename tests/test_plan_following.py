@@ -1,0 +1,350 @@
+"""The plan-following check: a segment's estimated path (the planned one seen through an arbitrary
+similarity, as SfM gives it, plus noise) against its plan. Ground truth: paths built with `move_path`
+from the move each test states, so what the camera did is known by construction."""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from pydantic import ValidationError
+from scipy.spatial.transform import Rotation
+
+from wonderverse.camera import Sim3, camera_centers, look_at, move_path, se3, so3_exp
+from wonderverse.plan_following import PlanFollowingParams, compare_to_plan
+
+T = 25
+START = look_at(np.array([1.0, 2.0, 1.5]), np.array([5.0, 3.0, 1.0]))  # looking slightly down
+STRAFE_M_PER_DEG = 0.04  # as the planner adds to a turn (tasks/generate_segments.py)
+FAST = settings(max_examples=150, deadline=None)
+
+
+def path(yaw_deg: float, pitch_deg: float = 0.0, forward: float = 0.0, strafe: float = 0.0, **kw) -> np.ndarray:
+    start = kw.pop("start", START)
+    return move_path(start, math.radians(yaw_deg), math.radians(pitch_deg), forward, strafe, kw.pop("n", T), **kw)
+
+
+def turn(yaw_deg: float, pitch_deg: float = 0.0, forward: float = 0.0) -> np.ndarray:
+    """A planned move as the planner makes it: a turn also strafes toward its side."""
+    return path(yaw_deg, pitch_deg, forward, STRAFE_M_PER_DEG * yaw_deg)
+
+
+def noisy(w2c: np.ndarray, rot_deg: float, trans: float, seed: int = 0) -> np.ndarray:
+    """Poses with each rotation perturbed by ~rot_deg and each centre by ~trans (world units)."""
+    rng = np.random.default_rng(seed)
+    R = so3_exp(rng.normal(0.0, math.radians(rot_deg), (len(w2c), 3))) @ w2c[:, :3, :3]
+    c = camera_centers(w2c) + rng.normal(0.0, trans, (len(w2c), 3))
+    out = np.stack([se3(r, -r @ ci) for r, ci in zip(R, c, strict=True)])
+    out[0] = w2c[0]
+    return out
+
+
+def similarity(seed: int, scale: float, offset: float = 1e5) -> Sim3:
+    rng = np.random.default_rng(seed)
+    return Sim3(scale, Rotation.random(random_state=seed).as_matrix(), rng.uniform(-offset, offset, 3))
+
+
+def as_sfm(w2c: np.ndarray, sim: Sim3) -> np.ndarray:
+    return sim.transform_w2c(w2c)
+
+
+# --------------------------------------------------------------------------------------------- followed
+
+MOVES = [(30, 0, 2), (-30, 0, 0), (0, 0, 2), (0, 0, -1.5), (30, 10, 2), (-45, -15, 1), (0, 20, 0), (90, 0, 3)]
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1.0, 1e3])
+@pytest.mark.parametrize("move", MOVES)
+def test_the_plan_seen_through_any_similarity_with_noise_is_followed(move: tuple, scale: float) -> None:
+    plan = turn(*move)
+    est = as_sfm(noisy(plan, rot_deg=0.3, trans=0.01, seed=MOVES.index(move)), similarity(7, scale))
+    for s in (None, 1 / scale):
+        r = compare_to_plan(est, plan, scale=s)
+        assert r.ok is True, r.reasons
+        assert r.reasons == []
+        assert r.estimated is not None and r.planned is not None
+        assert r.planned.yaw_left_deg == pytest.approx(move[0], abs=1e-6)
+        assert r.planned.pitch_up_deg == pytest.approx(move[1], abs=1e-6)
+        assert r.estimated.yaw_left_deg == pytest.approx(move[0], abs=1.5)
+        assert r.rotation_error_deg < 2.0
+        if r.planned.travel > 0.05:
+            assert r.translation_direction_error_deg < 5.0
+        if s is not None and r.planned.travel > 0.05:
+            assert r.size_ratio == pytest.approx(1.0, abs=0.05)
+        if s is None:
+            assert math.isnan(r.size_ratio)
+
+
+def test_eased_timing_and_an_arc_instead_of_a_straight_line_still_follow() -> None:
+    """Video models ease in and out and travel along their current heading while turning; neither is an
+    ignored instruction."""
+    plan = turn(30, 0, 2)
+    eased = path(30, 0, 2, STRAFE_M_PER_DEG * 30, ease=True)
+    assert compare_to_plan(as_sfm(eased, similarity(1, 0.01)), plan).ok is True
+    # An arc: each step goes forward along the camera's current heading while it turns.
+    steps = [START]
+    for _ in range(T - 1):
+        steps.append(move_path(steps[-1], math.radians(30 / (T - 1)), 0.0, 2 / (T - 1), 0.05, 2)[-1])
+    arc = np.stack(steps)
+    r = compare_to_plan(as_sfm(arc, similarity(2, 300.0)), plan)
+    assert r.ok is True, r.reasons
+    assert 5.0 < r.translation_direction_error_deg < 30.0  # the chord bends by about half the turn
+
+
+# ------------------------------------------------------------------------------------------ not followed
+
+WRONG = [
+    # (plan, what the segment did, words the reason must contain)
+    ((30, 0, 0), (-28, 0, 0), "turned right 28° where the plan said left 30°"),
+    ((30, 0, 0), (0, 0, 0), "did not turn (0°) where the plan said left 30°"),
+    ((30, 0, 0), (0, 30, 0), "turned up 30° where the plan said left 30°"),
+    ((-25, 0, 1), (0, 0, 1), "did not turn (0°) where the plan said right 25°"),
+    ((0, 0, 2), (0, 0, -2), "moved backward where the plan said forward 2"),
+    ((0, 15, 0), (0, -15, 0), "turned down 15° where the plan said up 15°"),
+]
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1e3])
+@pytest.mark.parametrize(("planned", "done", "words"), WRONG)
+def test_an_ignored_instruction_is_caught_and_said_in_words(
+    planned: tuple, done: tuple, words: str, scale: float
+) -> None:
+    plan, est = turn(*planned), turn(*done)
+    r = compare_to_plan(as_sfm(noisy(est, 0.2, 0.005, seed=3), similarity(11, scale)), plan)
+    assert r.ok is False
+    assert any(words in reason for reason in r.reasons), r.reasons
+
+
+def test_a_wrong_small_angle_beside_a_right_large_one_is_named() -> None:
+    r = compare_to_plan(path(30, -10), path(30, 10))
+    assert r.reasons == ["turned left 30°, down 10° where the plan said left 30°, up 10°"]
+    r = compare_to_plan(path(30, 0), path(30, 20))
+    assert r.reasons == ["turned left 30° where the plan said left 30°, up 20°"]
+
+
+def test_forward_instead_of_turning() -> None:
+    """The planned turn strafes toward its side (the planner's move); a segment that went straight ahead
+    did not turn and travelled the wrong way; with a known scale its travel is measured too."""
+    plan = turn(30)
+    est = as_sfm(path(0, 0, 2), similarity(5, 0.02))
+    r = compare_to_plan(est, plan)
+    assert r.ok is False
+    assert "did not turn (0°) where the plan said left 30°" in r.reasons
+    assert "moved forward where the plan said left 1.2" in r.reasons
+    pure_turn = path(30)
+    r = compare_to_plan(est, pure_turn, scale=50.0)
+    assert "moved forward 2 where the plan said no travel" in r.reasons
+    r = compare_to_plan(est, pure_turn)  # without a scale a travel's size is unknown: only the turn is judged
+    assert r.reasons == ["did not turn (0°) where the plan said left 30°"]
+
+
+def test_a_path_that_ends_right_but_went_the_wrong_way_first_is_caught() -> None:
+    first = path(-40, n=13)
+    wander = np.concatenate([first, path(70, start=first[-1], n=13)[1:]])  # right 40, then left 70: net left 30
+    r = compare_to_plan(as_sfm(wander, similarity(3, 1e-3)), path(30))
+    assert r.ok is False
+    assert r.estimated is not None and r.estimated.yaw_left_deg == pytest.approx(30.0, abs=1e-6)
+    assert r.reasons == ["turned right 40° on the way where the plan said left 30°"]
+    back = path(0, 0, -1.0, n=13)
+    there = np.concatenate([back, path(0, 0, 3.0, start=back[-1], n=13)[1:]])  # back 1, then forward 3: net +2
+    r = compare_to_plan(as_sfm(there, similarity(4, 1e3)), path(0, 0, 2))
+    assert r.ok is False
+    assert r.translation_direction_error_deg == pytest.approx(0.0, abs=1e-6)
+    assert r.reasons == ["moved backward on the way where the plan said forward 2"]
+
+
+def test_a_half_turn_the_other_way_round_is_not_the_same_turn() -> None:
+    """Left 180 and right 180 end in the same orientation; the path tells them apart."""
+    r = compare_to_plan(path(-180), path(180))
+    assert r.ok is False
+    assert r.reasons == ["turned right 180° where the plan said left 180°"]
+    assert compare_to_plan(noisy(path(180), 0.3, 0.0), path(180)).ok is True
+
+
+def test_roll_is_named() -> None:
+    plan = path(30, 0, 1)
+    # Roll each camera about its own optical axis, growing to 25°: +z-rotation in camera space drops its
+    # right side (y is down), a roll to the right.
+    rolled = plan.copy()
+    for k, a in enumerate(np.linspace(0.0, math.radians(25), T)):
+        rolled[k] = se3(so3_exp(np.array([0.0, 0.0, -a])), np.zeros(3)) @ plan[k]
+    r = compare_to_plan(rolled, plan)
+    assert r.estimated is not None and r.estimated.roll_left_deg == pytest.approx(-25.0, abs=0.5)
+    assert r.ok is False
+    assert any(reason.startswith("turned left 30° and rolled right 25°") for reason in r.reasons), r.reasons
+
+
+# ------------------------------------------------------------------------------------------- tolerances
+
+
+def test_rotation_tolerance_is_absolute_plus_a_share_of_the_plan() -> None:
+    params = PlanFollowingParams()
+    tol = params.rotation_tol_deg + params.rotation_tol_share * 30  # 17° for left 30
+    plan = path(30)
+    assert compare_to_plan(path(30 - tol + 1), plan).ok is True
+    assert compare_to_plan(path(30 + tol - 1), plan).ok is True
+    r = compare_to_plan(path(30 - tol - 1), plan)
+    assert r.ok is False and r.rotation_tol_deg == pytest.approx(tol)
+    strict = PlanFollowingParams(rotation_tol_deg=2.0, rotation_tol_share=0.0)
+    assert compare_to_plan(path(27), plan, strict).ok is False
+    assert compare_to_plan(path(29), plan, strict).ok is True
+
+
+def test_no_turn_planned_allows_a_wobble_below_the_still_limit() -> None:
+    plan = path(0, 0, 2)
+    assert compare_to_plan(path(8, 0, 2), plan).ok is True
+    r = compare_to_plan(path(12, 0, 2), plan)
+    assert r.reasons == ["turned left 12° where the plan said no turn"]
+    # A planned 0.5° turn counts as none: a turn of 5° the other way is within the wobble.
+    assert compare_to_plan(path(-5, 0, 2), path(0.5, 0, 2)).ok is True
+    out_and_back = np.concatenate([path(20, 0, 1, n=13), path(-20, 0, 1, start=path(20, 0, 1, n=13)[-1], n=13)[1:]])
+    r = compare_to_plan(out_and_back, path(0, 0, 2))
+    assert r.reasons == ["turned left 20° on the way where the plan said no turn"]
+
+
+def test_translation_direction_and_size_tolerances() -> None:
+    params = PlanFollowingParams()
+    plan = path(0, 0, 2)
+    ok_side = path(0, 0, 2 * math.cos(math.radians(40)), 2 * math.sin(math.radians(40)))  # 40° off
+    off_side = path(0, 0, 2 * math.cos(math.radians(60)), 2 * math.sin(math.radians(60)))  # 60° off
+    r = compare_to_plan(ok_side, plan)
+    assert r.ok is True and r.translation_direction_error_deg == pytest.approx(40.0, abs=1e-6)
+    r = compare_to_plan(off_side, plan)
+    assert r.ok is False and r.reasons == ["moved forward and left where the plan said forward 2"]
+    r = compare_to_plan(path(0, 0, 0.1, 2.0), plan)  # 87° off: only the main direction is named
+    assert r.reasons == ["moved left where the plan said forward 2"]
+    assert params.size_ratio_min == 0.5 and params.size_ratio_max == 2.0
+    sfm = similarity(9, 0.1)
+    assert compare_to_plan(as_sfm(path(0, 0, 1.2), sfm), plan, scale=10.0).ok is True
+    r = compare_to_plan(as_sfm(path(0, 0, 0.6), sfm), plan, scale=10.0)
+    assert r.size_ratio == pytest.approx(0.3)
+    assert r.reasons == ["moved forward 0.6 where the plan said forward 2"]
+    r = compare_to_plan(as_sfm(path(0, 0, 5.0), sfm), plan, scale=10.0)
+    assert r.reasons == ["moved forward 5 where the plan said forward 2"]
+    assert compare_to_plan(as_sfm(path(0, 0, 5.0), sfm), plan).ok is True  # no scale: direction only
+
+
+def test_a_pure_rotation_plan_does_not_judge_the_direction_of_travel() -> None:
+    plan = path(-30)
+    est = as_sfm(noisy(plan, 0.2, 0.02, seed=8), similarity(6, 1e-3))  # centres move only by noise
+    r = compare_to_plan(est, plan)
+    assert r.ok is True
+    assert math.isnan(r.translation_direction_error_deg)
+    assert "no travel planned: the direction of travel is not judged" in r.notes
+
+
+def test_a_planned_move_with_no_estimated_travel_did_not_move() -> None:
+    r = compare_to_plan(as_sfm(path(0), similarity(2, 1e3)), path(0, 0, 2))
+    assert r.reasons == ["did not move where the plan said forward 2"]
+
+
+# ------------------------------------------------------------------------------------------- degenerate
+
+
+def test_unregistered_frames_are_left_out() -> None:
+    plan = turn(30, 0, 2)
+    est = as_sfm(plan, similarity(12, 1e-3))
+    est[[0, 1, 7, 8, 24]] = np.nan
+    r = compare_to_plan(est, plan)
+    assert r.ok is True, r.reasons
+    assert r.frames == [2, 3, 4, 5, 6, *range(9, 24)]
+    assert r.notes[0] == "judged on the 20 registered frames of 25 (frames 2-23)"
+    # The plan is read over the same frames: from frame 2 to 23 it turns 21 of the 30 degrees.
+    assert r.planned is not None and r.planned.yaw_left_deg == pytest.approx(30 * 21 / 24)
+    wrong = as_sfm(turn(-30, 0, 2), similarity(12, 1e-3))
+    wrong[[0, 1, 7, 8, 24]] = np.nan
+    assert compare_to_plan(wrong, plan).ok is False
+    mask = np.ones(T, bool)
+    mask[:3] = False
+    assert compare_to_plan(as_sfm(plan, similarity(12, 1.0)), plan, registered=mask).frames[0] == 3
+
+
+def test_too_few_registered_frames_or_no_plan_is_not_judged() -> None:
+    plan = turn(30)
+    est = np.full_like(plan, np.nan)
+    est[5] = plan[5]
+    r = compare_to_plan(est, plan)
+    assert r.ok is None
+    assert r.reasons == ["not judged: only 1 frame(s) registered; at least 2 are needed"]
+    r = compare_to_plan(plan, np.full_like(plan, np.nan))  # a user's clip has no planned path
+    assert r.ok is None and r.reasons == ["not judged: the segment has no planned camera path"]
+    assert json.dumps(r.to_attrs(), allow_nan=False)
+
+
+def test_bad_input_raises() -> None:
+    plan = turn(30)
+    with pytest.raises(ValueError, match="both be"):
+        compare_to_plan(plan[:-1], plan)
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="scale"):
+            compare_to_plan(plan, plan, scale=bad)
+    with pytest.raises(ValidationError):
+        PlanFollowingParams(rotation_tol_degrees=3)  # type: ignore[call-arg]
+    with pytest.raises(ValidationError):
+        PlanFollowingParams().rotation_tol_deg = 1.0  # type: ignore[misc]
+    with pytest.raises(ValidationError, match="size_ratio_min"):
+        PlanFollowingParams(size_ratio_min=3.0)
+
+
+def test_to_attrs_is_json() -> None:
+    r = compare_to_plan(as_sfm(turn(-28), similarity(1, 1.0)), turn(30), scale=1.0)
+    attrs = json.loads(json.dumps(r.to_attrs(), allow_nan=False))
+    assert attrs["ok"] is False
+    assert attrs["reasons"] == r.reasons
+    assert attrs["planned"]["yaw_left_deg"] == pytest.approx(30.0)
+    assert attrs["estimated"]["yaw_left_deg"] == pytest.approx(-28.0)
+    assert attrs["size_ratio"] == pytest.approx(28 / 30)
+
+
+# ------------------------------------------------------------------------------------------- properties
+
+quats = st.lists(st.floats(-1, 1), min_size=4, max_size=4).filter(lambda q: np.linalg.norm(q) > 0.1)
+sims = st.builds(
+    lambda q, log_s, t: Sim3(10.0**log_s, Rotation.from_quat(q).as_matrix(), np.array(t)),
+    quats,
+    st.floats(-3, 3),
+    st.lists(st.floats(-1e5, 1e5), min_size=3, max_size=3),
+)
+moves = st.tuples(st.floats(-150, 150), st.floats(-40, 40), st.floats(-3, 3))
+
+
+@FAST
+@given(sims, moves, st.integers(0, 2**16))
+def test_property_the_plan_through_any_similarity_is_followed(sim: Sim3, move: tuple, seed: int) -> None:
+    plan = turn(*move)
+    travel = np.linalg.norm(camera_centers(plan[-1:]) - camera_centers(plan[:1]))
+    est = as_sfm(noisy(plan, 0.2, 0.005 * max(float(travel), 0.01), seed), sim)
+    for s in (None, 1.0 / sim.s):
+        r = compare_to_plan(est, plan, scale=s)
+        assert r.ok is True, (move, r.reasons)
+        assert r.rotation_error_deg < 2.0
+
+
+@FAST
+@given(sims, st.floats(15, 150), st.floats(-3, 3), st.booleans())
+def test_property_a_reversed_turn_is_caught_in_any_frame(sim: Sim3, yaw: float, fwd: float, left: bool) -> None:
+    yaw = yaw if left else -yaw
+    plan, wrong = turn(yaw, 0, fwd), turn(-yaw, 0, fwd)
+    seen = compare_to_plan(as_sfm(wrong, sim), plan)
+    direct = compare_to_plan(wrong, plan)
+    assert seen.ok is False and direct.ok is False
+    said = "right" if left else "left"
+    assert seen.reasons[0].startswith(f"turned {said} ")
+    digits = re.compile(r"\d+(\.\d+)?")
+    assert [digits.sub("#", x) for x in seen.reasons] == [digits.sub("#", x) for x in direct.reasons]
+    assert seen.rotation_error_deg == pytest.approx(2 * abs(yaw), abs=1e-6)
+
+
+@FAST
+@given(sims, st.floats(0.5, 3), st.floats(-20, 20))
+def test_property_backward_instead_of_forward_is_caught_in_any_frame(sim: Sim3, fwd: float, yaw: float) -> None:
+    plan, wrong = path(yaw, 0, fwd), path(yaw, 0, -fwd)
+    r = compare_to_plan(as_sfm(wrong, sim), plan)
+    assert r.ok is False
+    assert r.translation_direction_error_deg == pytest.approx(180.0, abs=1e-4)
+    assert r.reasons[-1].startswith("moved backward where the plan said forward")
