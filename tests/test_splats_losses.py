@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -13,11 +14,13 @@ from wonderverse.metrics import ssim as ssim_metric
 from wonderverse.splats.losses import (
     LossParams,
     depth_loss,
+    depth_normals,
     fit_scale_shift,
     normal_loss,
     normal_tv,
     ssim,
     ssim_map,
+    texture_weight,
     total_loss,
 )
 
@@ -185,3 +188,103 @@ def test_loss_params_are_strict() -> None:
     p = LossParams()
     with pytest.raises(ValidationError):
         p.lambda_depth = 2.0  # type: ignore[misc]
+
+
+def _plane_depth(normal_cam: np.ndarray, d0: float, K: np.ndarray, h: int, w: int) -> np.ndarray:
+    """Camera z of the plane n·X = -d0 (n facing the camera) seen through K, per pixel centre."""
+    v, u = np.mgrid[0:h, 0:w] + 0.5
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones_like(u)], -1)
+    return -d0 / (rays @ normal_cam)
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1.0, 1e3])
+def test_depth_normals_of_a_tilted_plane_at_any_scale(scale: float) -> None:
+    K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+    n = np.array([0.3, -0.4, -1.0])
+    n /= np.linalg.norm(n)
+    z = _plane_depth(n, 5.0 * scale, K, 48, 64)
+    normals, ok = depth_normals(torch.tensor(z), torch.tensor(K), torch.ones(48, 64, dtype=torch.bool))
+    assert ok[1:-1, 1:-1].all() and not ok[0].any() and not ok[:, -1].any()
+    err = np.degrees(np.arccos(np.clip(normals[ok].numpy() @ n, -1, 1)))
+    assert err.max() < 0.01
+
+
+def test_depth_normals_skip_occluding_edges_and_invalid_pixels() -> None:
+    K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+    z = np.full((48, 64), 4.0)
+    z[:, 32:] = 9.0  # a step: the pixels beside it span two surfaces
+    valid = torch.ones(48, 64, dtype=torch.bool)
+    valid[10, 10] = False
+    _, ok = depth_normals(torch.tensor(z), torch.tensor(K), valid)
+    assert not ok[:, 31].any() and not ok[:, 32].any() and ok[1:-1, 20].all()
+    assert not ok[10, 9:12].any() and not ok[9:12, 10].any() and ok[9, 9] and ok[20, 20]
+
+
+def test_texture_weight_is_one_on_plain_surfaces_and_small_on_texture() -> None:
+    rng = np.random.default_rng(0)
+    frame = np.full((32, 48, 3), 0.4)
+    frame[:, 24:] = rng.uniform(0, 1, (32, 24, 3))
+    wt = texture_weight(torch.tensor(frame), 0.02).numpy()
+    assert np.allclose(wt[:, :20], 1.0)
+    assert np.median(wt[:, 28:]) < 0.1
+
+
+def test_normal_target_depth_moves_the_surface_and_weights_scale_the_terms() -> None:
+    K = torch.tensor([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+    h, w = 48, 64
+    n_true = np.array([0.0, -0.5, -1.0])
+    n_true /= np.linalg.norm(n_true)
+    prior_n = torch.tensor(np.broadcast_to(n_true, (h, w, 3)).copy(), dtype=torch.float32)
+    depth = torch.full((h, w, 1), 5.0, requires_grad=True)  # fronto-parallel: wrong against the prior
+    alpha = torch.ones(h, w, 1)
+    rendered_n = torch.zeros(h, w, 3)
+    rendered_n[..., 2] = -1.0
+    rgb = torch.zeros(h, w, 3)
+    params = LossParams(lambda_depth=0.0, lambda_normal=1.0, lambda_normal_tv=0.0, normal_target="depth")
+    loss, terms = total_loss(rgb, rgb, depth, alpha, rendered_n, params, None, prior_n, K=K)
+    loss.backward()
+    assert terms["normal_l1"] > 0.3 and depth.grad.abs().sum() > 0  # the rendered depth gets the gradient
+    rendered_only = params.model_copy(update={"normal_target": "rendered"})
+    loss_r, _ = total_loss(rgb, rgb, depth.detach(), alpha, rendered_n, rendered_only, None, prior_n, K=K)
+    half = torch.full((h, w), 0.5)
+    loss_h, _ = total_loss(
+        rgb, rgb, depth.detach(), alpha, rendered_n, rendered_only, None, prior_n, K=K, prior_weight=half
+    )
+    assert loss_h.item() == pytest.approx(0.5 * loss_r.item(), rel=1e-5)
+    loss_s, _ = total_loss(
+        rgb, rgb, depth.detach(), alpha, rendered_n, rendered_only, None, prior_n, K=K, prior_scale=0.1
+    )
+    assert loss_s.item() == pytest.approx(0.1 * loss_r.item(), rel=1e-5)
+
+
+@pytest.mark.parametrize("scale", [1e-3, 1e3])
+def test_new_terms_are_finite_at_the_extremes(scale: float) -> None:
+    """Constant-depth prior, all-sky view (nothing valid), tiny/huge scene scales: finite losses and gradients."""
+    K = torch.tensor([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+    h, w = 48, 64
+    params = LossParams(normal_target="both", lambda_depth_normal=0.1, prior_texture_ref=0.02)
+    rgb = torch.rand(h, w, 3)
+    for alpha_value in (1.0, 0.0):  # a surface everywhere, then all sky
+        depth = torch.full((h, w, 1), 3.0 * scale, requires_grad=True)
+        normals = torch.zeros(h, w, 3, requires_grad=True)
+        alpha = torch.full((h, w, 1), alpha_value)
+        prior_d = torch.full((h, w), 2.0 * scale)
+        prior_n = torch.zeros(h, w, 3)
+        prior_n[..., 2] = -1.0
+        loss, _ = total_loss(
+            rgb, rgb, depth, alpha, normals, params, prior_d, prior_n, K=K, prior_weight=texture_weight(rgb, 0.02)
+        )
+        loss.backward()
+        assert torch.isfinite(loss) and torch.isfinite(depth.grad).all() and torch.isfinite(normals.grad).all()
+
+
+def test_prior_schedule_decays_log_linearly_after_its_start() -> None:
+    from wonderverse.splats.params import TrainParams
+    from wonderverse.splats.trainer import prior_schedule
+
+    tp = TrainParams(iterations=1001, loss=LossParams(prior_decay_start_frac=0.5, prior_final_ratio=0.01))
+    values = [prior_schedule(tp, s) for s in range(1001)]
+    assert values[0] == values[500] == 1.0
+    assert values[-1] == pytest.approx(0.01)
+    assert all(a >= b for a, b in itertools.pairwise(values))
+    assert prior_schedule(TrainParams(iterations=100), 99) == 1.0  # off by default

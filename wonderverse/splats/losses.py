@@ -88,9 +88,53 @@ def fit_scale_shift(prior: Tensor, target: Tensor, mask: Tensor) -> tuple[Tensor
     return torch.where(few, 1.0, a), torch.where(few, 0.0, b)
 
 
-def masked_mean(x: Tensor, mask: Tensor) -> Tensor:
-    """Mean of x over mask (0 when the mask is empty), without indexing (no host sync, fixed shapes)."""
-    return torch.where(mask, x, 0).sum() / mask.sum().clamp_min(1)
+def masked_mean(x: Tensor, mask: Tensor, weight: Tensor | None = None) -> Tensor:
+    """Mean of x (times `weight` where given) over mask, 0 when the mask is empty; without indexing (no host
+    sync, fixed shapes). The weights are not renormalised: a view whose pixels all weigh little adds little."""
+    w = x if weight is None else x * weight
+    return torch.where(mask, w, 0).sum() / mask.sum().clamp_min(1)
+
+
+def texture_weight(frame: Tensor, ref: float) -> Tensor:
+    """(H,W) prior weights of an (H,W,3) frame in [0,1]: 1 / (1 + (g / ref)²), g the grey-level gradient magnitude
+    (Sobel / 8, replicated borders). Near 1 on plain surfaces, where colours say nothing about depth and the
+    priors are all there is; small on texture, where the photometric loss pins the surface down across views
+    better than a monocular prior can."""
+    grey = frame.mean(-1)[None, None]
+    kx = torch.tensor([[-1.0, 0.0, 1.0], [-2.0, 0.0, 2.0], [-1.0, 0.0, 1.0]], dtype=grey.dtype, device=grey.device)
+    padded = F.pad(grey, (1, 1, 1, 1), mode="replicate")
+    gx = F.conv2d(padded, (kx / 8)[None, None])[0, 0]
+    gy = F.conv2d(padded, (kx.T / 8)[None, None])[0, 0]
+    g2 = gx * gx + gy * gy
+    return 1.0 / (1.0 + g2 / (ref * ref))
+
+
+def depth_normals(depth: Tensor, K: Tensor, valid: Tensor, max_rel_step: float = 0.1) -> tuple[Tensor, Tensor]:
+    """Camera-space unit normals (H,W,3) of a depth map (H,W) camera z with intrinsics K (3,3), from central
+    differences of the back-projected points, turned to face the camera; and where they are defined (H,W):
+    the pixel and its four neighbours `valid`, and no neighbour step |Δz| above `max_rel_step` × z (an occluding
+    edge, where a difference spans two surfaces). Border pixels are invalid. Differentiable in depth."""
+    h, w = depth.shape
+    v, u = torch.meshgrid(
+        torch.arange(h, device=depth.device, dtype=depth.dtype) + 0.5,
+        torch.arange(w, device=depth.device, dtype=depth.dtype) + 0.5,
+        indexing="ij",
+    )
+    z = torch.where(valid, depth, 1.0)
+    pts = torch.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], -1)
+    dx = F.pad((pts[:, 2:] - pts[:, :-2]).permute(2, 0, 1), (1, 1, 0, 0)).permute(1, 2, 0)
+    dy = F.pad((pts[2:] - pts[:-2]).permute(2, 0, 1), (0, 0, 1, 1)).permute(1, 2, 0)
+    n = torch.cross(dy, dx, dim=-1)
+    n = n / n.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    n = torch.where((n * pts).sum(-1, keepdim=True) > 0, -n, n)
+    ok = valid.clone()
+    ok[0, :] = ok[-1, :] = False
+    ok[:, 0] = ok[:, -1] = False
+    ok[1:-1, 1:-1] &= valid[:-2, 1:-1] & valid[2:, 1:-1] & valid[1:-1, :-2] & valid[1:-1, 2:]
+    zd = z.detach()
+    step = torch.maximum((dx[..., 2].detach()).abs(), (dy[..., 2].detach()).abs()) / 2
+    ok &= step <= max_rel_step * zd.abs()
+    return n, ok
 
 
 def depth_loss(
@@ -99,6 +143,7 @@ def depth_loss(
     prior_depth: Tensor,
     valid: Tensor | None,
     params: LossParams,
+    weight: Tensor | None = None,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """L_depth (see the module docstring) for depth, alpha (H,W,1), prior (H,W) or (H,W,1), valid (H,W) bool.
     Fewer than `depth_min_valid_px` valid pixels: the term is 0 (and the fit NaN)."""
@@ -116,7 +161,7 @@ def depth_loss(
     err = (rendered - aligned).abs()
     if params.depth_units == "median":
         err = err / torch.nanmedian(torch.where(mask, aligned, torch.nan)).nan_to_num(1.0).clamp_min(1e-8)
-    loss = torch.where(enough, masked_mean(torch.log1p(err), mask), 0.0)
+    loss = torch.where(enough, masked_mean(torch.log1p(err), mask, weight), 0.0)
     nan = torch.full_like(scale, torch.nan)
     return loss, {
         "depth_scale": torch.where(enough, scale, nan),
@@ -141,15 +186,23 @@ def normal_loss(
     prior_normals: Tensor,
     valid: Tensor | None,
     params: LossParams,
+    weight: Tensor | None = None,
+    surface: tuple[Tensor, Tensor] | None = None,
 ) -> tuple[Tensor, dict[str, Tensor]]:
-    """L_normal = mean_valid ||N̂ - N||_1 + λ_s TV(N̂) for normals (H,W,3), alpha (H,W,1), prior (H,W,3)."""
+    """L_normal = mean_valid ||N - N_prior||_1 + λ_s TV(N̂) for rendered normals N̂ (H,W,3), alpha (H,W,1) and prior
+    (H,W,3); N is N̂, or the rendered depth's normals `surface` = (normals, defined) (`normal_target`)."""
     prior = prior_normals.to(normals.dtype)
     norm = prior.norm(dim=-1)
     mask = torch.isfinite(norm) & (norm > 0.5) & (alpha[..., 0].detach() > params.alpha_threshold)
     if valid is not None:
         mask &= valid.reshape(mask.shape).bool()
+    target = torch.nan_to_num(prior)
     tv = normal_tv(normals)
-    l1 = masked_mean((normals - torch.nan_to_num(prior)).abs().sum(-1), mask)
+    l1 = masked_mean((normals - target).abs().sum(-1), mask, weight)
+    if surface is not None and params.normal_target != "rendered":
+        n_d, ok = surface
+        l1_d = masked_mean((n_d - target).abs().sum(-1), mask & ok, weight)
+        l1 = l1_d if params.normal_target == "depth" else 0.5 * (l1 + l1_d)
     return l1 + params.lambda_normal_tv * tv, {
         "normal_l1": l1.detach(),
         "normal_tv": tv.detach(),
@@ -168,23 +221,43 @@ def total_loss(
     prior_normals: Tensor | None = None,
     depth_valid: Tensor | None = None,
     normal_valid: Tensor | None = None,
+    K: Tensor | None = None,
+    prior_weight: Tensor | None = None,
+    prior_scale: Tensor | float = 1.0,
 ) -> tuple[Tensor, dict[str, Tensor]]:
-    """L = L_rgb + λ_d L_depth + λ_n L_normal for one view. Images (H,W,C) float in [0,1]; see the module
-    docstring for every term. A missing prior drops its term. Returns (total, {term: float}) with keys
-    rgb_l1, ssim, rgb, depth, normal, total and the fit/validity diagnostics, all detached 0-d tensors: nothing
-    here waits for the device, so a training step runs without host syncs."""
+    """L = L_rgb + s (λ_d L_depth + λ_n L_normal) + λ_dn L_dn for one view. Images (H,W,C) float in [0,1]; see the
+    module docstring for every term. A missing prior drops its term. K (3,3) is needed for the rendered depth's
+    normals (`normal_target` other than "rendered", `lambda_depth_normal`); prior_weight (H,W) weighs the prior
+    terms per pixel (`texture_weight`); s = prior_scale, the schedule's factor. Returns (total, {term: float})
+    with keys rgb_l1, ssim, rgb, depth, normal, total and the fit/validity diagnostics, all detached 0-d tensors:
+    nothing here waits for the device, so a training step runs without host syncs."""
     l1 = (rgb - gt_rgb).abs().mean()
     s = ssim(rgb, gt_rgb, params.ssim_window_px, params.ssim_sigma_px)
     l_rgb = (1.0 - params.lambda_ssim) * l1 + params.lambda_ssim * (1.0 - s)
     terms = {"rgb_l1": l1.detach(), "ssim": s.detach(), "rgb": l_rgb.detach()}
     total = l_rgb
+    surface = None
+    wants_surface = params.lambda_depth_normal > 0 or (
+        params.normal_target != "rendered" and prior_normals is not None and params.lambda_normal > 0
+    )
+    if K is not None and wants_surface:
+        a = alpha[..., 0]
+        defined = a.detach() > params.alpha_threshold
+        if normal_valid is not None:
+            defined &= normal_valid.reshape(defined.shape).bool()
+        surface = depth_normals(depth[..., 0] / a.clamp_min(1e-10), K.to(depth.dtype), defined)
     if prior_depth is not None and params.lambda_depth > 0:
-        l_d, extra = depth_loss(depth, alpha, prior_depth, depth_valid, params)
-        total = total + params.lambda_depth * l_d
+        l_d, extra = depth_loss(depth, alpha, prior_depth, depth_valid, params, prior_weight)
+        total = total + prior_scale * params.lambda_depth * l_d
         terms.update(extra, depth=l_d.detach())
     if prior_normals is not None and params.lambda_normal > 0:
-        l_n, extra = normal_loss(normals, alpha, prior_normals, normal_valid, params)
-        total = total + params.lambda_normal * l_n
+        l_n, extra = normal_loss(normals, alpha, prior_normals, normal_valid, params, prior_weight, surface)
+        total = total + prior_scale * params.lambda_normal * l_n
         terms.update(extra, normal=l_n.detach())
+    if surface is not None and params.lambda_depth_normal > 0:
+        n_d, ok = surface
+        l_dn = masked_mean(1.0 - (normals * n_d).sum(-1), ok)
+        total = total + params.lambda_depth_normal * l_dn
+        terms["depth_normal"] = l_dn.detach()
     terms["total"] = total.detach()
     return total, terms

@@ -26,6 +26,26 @@ class LossParams(BaseModel):
         description="units of |D̂ - (aD+b)| inside the log: the scene's, or the frame's median aligned prior "
         "depth (scale-free: the same loss for a room and a valley)",
     )
+    prior_texture_ref: float | None = Field(
+        None,
+        gt=0,
+        description="texture-aware prior weights: a pixel's depth/normal prior weight is 1 / (1 + (g / ref)²) with "
+        "g its grey-level gradient magnitude (Sobel / 8, grey in [0, 1], per pixel); None: every pixel weighs 1",
+    )
+    prior_decay_start_frac: float = Field(
+        1.0, ge=0, le=1, description="share of the iterations after which λ_d and λ_n start to decay (1: never)"
+    )
+    prior_final_ratio: float = Field(
+        1.0, gt=0, le=1, description="λ_d and λ_n at the last iteration / their value before the decay (log-linear)"
+    )
+    normal_target: Literal["rendered", "depth", "both"] = Field(
+        "rendered",
+        description="normals the normal prior supervises: the rendered Σ w n (the paper's), the normals of the "
+        "rendered depth (they move the surface itself), or the mean of both terms",
+    )
+    lambda_depth_normal: float = Field(
+        0.0, ge=0, description="weight of mean (1 - cos) between rendered normals and rendered-depth normals"
+    )
 
 
 class DensifyParams(BaseModel):

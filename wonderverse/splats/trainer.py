@@ -36,7 +36,7 @@ import torch
 
 from wonderverse.progress import ProgressFn, no_progress
 from wonderverse.splats.compiled import Compiled
-from wonderverse.splats.losses import masked_mean, total_loss
+from wonderverse.splats.losses import masked_mean, texture_weight, total_loss
 from wonderverse.splats.model import GaussianModel
 from wonderverse.splats.params import LossParams, TrainParams
 from wonderverse.splats.renderer import Renderer
@@ -182,6 +182,19 @@ def continuation_params(params: TrainParams, frac: float) -> TrainParams:
     )
 
 
+def prior_schedule(params: TrainParams, step: int) -> float:
+    """The factor on λ_d and λ_n at `step`: 1 until `prior_decay_start_frac` of the iterations, then log-linear
+    down to `prior_final_ratio` at the last one. Priors shape the surfaces while the Gaussians find them; later
+    the photometric loss across views, sharper than any monocular prior where there is texture, has the last word
+    (where there is none, nothing pulls the surfaces away from where the priors put them)."""
+    lp = params.loss
+    start = lp.prior_decay_start_frac * params.iterations
+    if step < start or lp.prior_final_ratio >= 1.0:
+        return 1.0
+    t = (step - start) / max(params.iterations - 1 - start, 1.0)
+    return float(lp.prior_final_ratio ** min(t, 1.0))
+
+
 def _lr_means(params: TrainParams, scene_scale: float, step: int) -> float:
     t = min(step / max(params.iterations, 1), 1.0)
     return params.lr_means * scene_scale * params.lr_means_final_ratio**t
@@ -211,6 +224,10 @@ class _Data:
         if self.normals is not None:
             self.normals = self.normals.to(device)
         self.height, self.width = h, w
+        self.prior_weight = None
+        ref = params.loss.prior_texture_ref
+        if ref is not None and (self.depth is not None or self.normals is not None):
+            self.prior_weight = torch.stack([texture_weight(f, ref) for f in self.frames])
 
     def sky_colour(self) -> np.ndarray | None:
         if not bool(self.sky.any()):
@@ -259,6 +276,9 @@ def loss_and_grads(
     valid: torch.Tensor,
     sky: torch.Tensor,
     sky_alpha_weight: float,
+    K: torch.Tensor | None = None,
+    prior_weight: torch.Tensor | None = None,
+    prior_scale: torch.Tensor | float = 1.0,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor], tuple[torch.Tensor, ...]]:
     """(loss, its terms, its gradients with respect to rgb, depth, alpha and normals) of a training step:
     `total_loss` plus `sky_alpha_weight` x the mean alpha over the `sky` pixels (0 on a view without sky).
@@ -268,7 +288,21 @@ def loss_and_grads(
     training step then back-propagates these gradients through the render."""
 
     def loss_of(rgb: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor, normals: torch.Tensor):
-        loss, terms = total_loss(rgb, gt_rgb, depth, alpha, normals, params, prior_depth, prior_normals, valid, valid)
+        loss, terms = total_loss(
+            rgb,
+            gt_rgb,
+            depth,
+            alpha,
+            normals,
+            params,
+            prior_depth,
+            prior_normals,
+            valid,
+            valid,
+            K,
+            prior_weight,
+            prior_scale,
+        )
         if sky_alpha_weight > 0:
             terms["sky_alpha"] = masked_mean(alpha[..., 0], sky)
             loss = loss + sky_alpha_weight * terms["sky_alpha"]
@@ -491,6 +525,7 @@ def train(
         }
 
     has_sky = bool(data.sky.any())
+    prior_scale = torch.ones((), device=device)  # a tensor, so the compiled loss is not re-traced as it changes
     # CUDA graphs: the loss sees image-sized tensors only, whose shapes never change during a run
     loss_fn = Compiled(
         loss_and_grads, enabled=params.compile_loss and torch.device(device).type == "cuda", cuda_graphs=True
@@ -530,6 +565,9 @@ def train(
             valid=data.valid[i],
             sky=data.sky[i],
             sky_alpha_weight=params.sky_alpha_weight if has_sky else 0.0,
+            K=data.K[i],
+            prior_weight=None if data.prior_weight is None else data.prior_weight[i],
+            prior_scale=prior_scale.fill_(prior_schedule(params, step)),
         )
         # back-propagate the loss's gradients through the render (and the strategy's own terms)
         renders = (rgb, depth, alpha, normals)

@@ -1,0 +1,290 @@
+"""The paper's ablation of the geometric enhancement: RGB only, + depth, + normal, + both, on procedural scenes
+with and without the defects of real AI video.
+
+- Scenes: two worlds (outdoor "a small house decorated for Christmas", indoor "a cosy reading room with shelves and
+  armchairs") × three conditions of the procedural backend: `clean` (defects "none"), `texture_poor` and
+  `ai_like` (the named defect levels, `wonderverse.video.procedural_options.DEFECT_LEVELS`). Each is two segments
+  (turn left 30° while moving forward, then 35° more), rendered at the preset's video size and downscaled to its
+  training size as the splat step does.
+- What varies is the reconstruction alone, as in the paper's ablation: true poses; initial points and the prior's
+  alignment references are the true depth at the pixels where a feature detector would fire (Shi-Tomasi corner
+  response in the top `FEATURE_SHARE` of the frame, every `FEATURE_FRAME_STRIDE`-th frame) — a stand-in for SfM
+  points, which are as scarce on texture-poor surfaces. Priors: the oracle at the "realistic" level (the error of
+  Depth Anything V2 / Omnidata on real benchmarks) aligned per frame to those references by the priors step's
+  method; normals from that depth (`NormalsFromDepth`), as the priors step computes them.
+- Training: the preset's `steps.splats` (its loss as shipped for "both"; λ_d = 0 and/or λ_n = 0 for the others),
+  every 8th view held out.
+- Scores, against the procedural truth: `psnr` held-out PSNR (dB); `absrel` the rendered depth (D̂/alpha, where
+  alpha > 0.5) of the held-out views vs the true depth; `normal_deg` mean angle between the rendered normals and the
+  true normals there; `f1` mesh F-score at 1 % of the scene extent (`camera.scene_extent` of the true cameras and
+  depths) and `chamfer_m` (m): the preset's mesh (TSDF of every view's rendered depth, the preset's `MeshParams`,
+  clean-up) against points sampled on the world's triangles that a training camera sees at ANY distance (not only
+  within the fusion's reach: a mesh that covers only the nearer half loses recall).
+
+Usage: `python -m benchmarks.enhancement [--quick] [--preset preview|standard] [--worlds outdoor indoor]
+[--conditions clean texture_poor ai_like] [--variants rgb depth normal both] [--loss KEY=VALUE ...]`;
+`--quick` shrinks the video to 160x112 and 9 frames per segment with 120 iterations (a smoke run).
+Last-line keys: `fscore_gain_lowtex`, `fscore_gain_ai` (F@1 % of "both" minus "rgb", mean over worlds, texture-poor
+and AI-like conditions), `depth_gain_ai` (1 - AbsRel both / AbsRel rgb, AI-like), `psnr_cost_clean_db` (PSNR rgb
+minus both, clean), `fscore_rgb_clean`, `fscore_both_clean` and, with --preset standard/high, `fscore_standard` /
+`fscore_high` (F@1 % of the shipped loss, mean over worlds and conditions).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import time
+from typing import Any
+
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads
+
+import numpy as np
+
+from benchmarks.common import machine, report
+
+WORLDS = {
+    "outdoor": ("a small house decorated for Christmas", 2.0),  # prompt, forward metres per segment
+    "indoor": ("a cosy reading room with shelves and armchairs", 1.0),
+}
+CONDITIONS = ("clean", "texture_poor", "ai_like")
+DEFECTS = {"clean": "none", "texture_poor": "texture_poor", "ai_like": "ai_like"}
+VARIANTS = {"rgb": (False, False), "depth": (True, False), "normal": (False, True), "both": (True, True)}
+HOLDOUT = 8
+FEATURE_SHARE = 0.02  # share of a frame's pixels that count as features (strongest corner response)
+FEATURE_FRAME_STRIDE = 2
+GT_SAMPLES = 1_000_000
+PRED_SAMPLES = 300_000
+VISIBLE_REL_TOL = 0.01
+
+
+def corner_mask(frame: np.ndarray, share: float) -> np.ndarray:
+    """(H,W) bool: the `share` of pixels with the strongest Shi-Tomasi response (minimum eigenvalue of the
+    structure tensor of the grey image, 5x5 window), where a feature detector would fire."""
+    from scipy import ndimage
+
+    grey = frame.astype(np.float32).mean(-1) / 255.0
+    gx, gy = ndimage.sobel(grey, 1), ndimage.sobel(grey, 0)
+    a, b, c = (ndimage.uniform_filter(x, 5) for x in (gx * gx, gx * gy, gy * gy))
+    response = 0.5 * (a + c) - np.sqrt(0.25 * (a - c) ** 2 + b * b)
+    cut = np.quantile(response, 1.0 - share)
+    return (response >= cut) & (response > 1e-6)
+
+
+def prepare(world: str, condition: str, cfg: Any, seed: int = 0) -> dict[str, Any]:
+    """Frames, true poses, K, priors and ground truth of one scene at the preset's training size."""
+    from wonderverse.camera import move_path
+    from wonderverse.priors import align_scale_shift
+    from wonderverse.priors.from_depth import NormalsFromDepth
+    from wonderverse.priors.oracle import OracleDepth
+    from wonderverse.splats.data import _resize, downscale_views
+    from wonderverse.splats.trainer import Views
+    from wonderverse.video import initial_pose
+    from wonderverse.video.procedural import ProceduralVideo
+
+    prompt, forward = WORLDS[world]
+    v = cfg.scene.video
+    options: dict[str, Any] = {"fault_probability": 0.0}
+    if condition != "clean":
+        options["defects"] = DEFECTS[condition]
+    model = ProceduralVideo(prompt, seed, v.width, v.height, v.fov_deg, options)
+    n = v.frames_per_segment
+    p0 = move_path(initial_pose(model), np.radians(-30), 0.0, forward, -0.6 * forward, n)
+    path = np.concatenate([p0, move_path(p0[-1], np.radians(-35), 0.0, 0.25 * forward, -0.7 * forward, n)[1:]])
+    video = model.generate(prompt, path, 0, None)
+    gt = video.gt
+    views = downscale_views(Views(frames=video.frames, w2c=gt.poses, K=video.K), cfg.steps.splats.max_side_px)
+    h, w = views.frames.shape[1:3]
+    depth = _resize(gt.depth, (w, h), True)
+    normals = _resize(gt.normals, (w, h), True)
+    pred = OracleDepth(depth, "realistic", "inverse_depth", seed=seed + 1).predict(views.frames)
+    prior = np.empty_like(depth)
+    points, colors = [], []
+    for t in range(len(depth)):
+        feats = corner_mask(views.frames[t], FEATURE_SHARE) & np.isfinite(depth[t])
+        ref = np.where(feats, depth[t], np.nan)
+        prior[t] = align_scale_shift(pred.depth[t], ref, space=pred.kind).aligned_depth
+        if t % FEATURE_FRAME_STRIDE == 0:
+            pts, cols = _backproject(depth[t], views.frames[t], views.K, gt.poses[t], feats)
+            points.append(pts)
+            colors.append(cols)
+    prior[~np.isfinite(depth)] = np.inf  # the oracle's sky is far; the priors step marks sky invalid alike
+    prior_normals = NormalsFromDepth().predict(views.frames, K=views.K, depth=prior).normals
+    return {
+        "views": views.replace(prior_depth=prior, prior_normals=prior_normals),
+        "points": np.concatenate(points),
+        "colors": np.concatenate(colors),
+        "gt_depth": depth,
+        "gt_normals": normals,
+        "world": model.world,
+    }
+
+
+def _backproject(
+    z: np.ndarray, frame: np.ndarray, K: np.ndarray, w2c: np.ndarray, mask: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    v, u = np.nonzero(mask)
+    d = z[v, u].astype(np.float64)
+    cam = np.stack([(u + 0.5 - K[0, 2]) / K[0, 0] * d, (v + 0.5 - K[1, 2]) / K[1, 1] * d, d], -1)
+    return (cam - w2c[:3, 3]) @ w2c[:3, :3], frame[v, u]
+
+
+def train_variant(data: dict[str, Any], cfg: Any, variant: str, loss_update: dict[str, Any]) -> dict[str, Any]:
+    """Train one loss variant from the scene's start; returns the model arrays, normalisation and metrics."""
+    from wonderverse.splats.model import normalization_from_cameras
+    from wonderverse.splats.renderer import make_renderer
+    from wonderverse.splats.seeding import initial_model
+    from wonderverse.splats.trainer import normalize_views, train
+
+    p = cfg.steps.splats
+    use_depth, use_normal = VARIANTS[variant]
+    loss = p.train.loss.model_copy(update=loss_update)
+    loss = loss.model_copy(
+        update={
+            "lambda_depth": loss.lambda_depth if use_depth else 0.0,
+            "lambda_normal": loss.lambda_normal if use_normal else 0.0,
+        }
+    )
+    tp = p.train.model_copy(update={"loss": loss, "holdout_every": HOLDOUT, "checkpoint_every_iters": 10**9})
+    views = data["views"]
+    norm = normalization_from_cameras(views.w2c, data["points"])
+    nviews = normalize_views(views, norm)
+    model = initial_model(nviews, norm.apply(data["points"]), data["colors"], p)
+    renderer = make_renderer("auto")
+    t0 = time.perf_counter()
+    model, _, metrics = train(model, nviews, tp, renderer)
+    return {
+        "arrays": model.to_numpy(),
+        "norm": norm,
+        "psnr": metrics.get("test_psnr", float("nan")),
+        "seconds": time.perf_counter() - t0,
+        "gaussians": model.num_gaussians,
+        "renderer": renderer,
+    }
+
+
+def score(data: dict[str, Any], run: dict[str, Any], cfg: Any) -> dict[str, float]:
+    """Held-out depth and normal errors, and the mesh against the world (module docstring)."""
+    from wonderverse.metrics import depth_errors
+    from wonderverse.splats.trainer import split_views
+    from wonderverse.splats.views import render_views
+
+    views = data["views"]
+    h, w = views.frames.shape[1:3]
+    rendered = list(render_views(run["arrays"], run["norm"], views.w2c, views.K, w, h, run["renderer"]))
+    _, held = split_views(len(views), HOLDOUT)
+    pred = np.stack([rendered[i].depth for i in held])
+    absrel = depth_errors(pred, data["gt_depth"][held], mask=np.isfinite(pred))["absrel"]
+    angles = []
+    for i in held:
+        n_hat, n_gt = rendered[i].normals, data["gt_normals"][i]
+        ok = np.isfinite(rendered[i].depth) & (np.linalg.norm(n_gt, axis=-1) > 0.5)
+        ok &= np.linalg.norm(n_hat, axis=-1) > 1e-6
+        cos = np.clip((n_hat[ok] * n_gt[ok]).sum(-1), -1.0, 1.0)
+        angles.append(np.degrees(np.arccos(cos)))
+    mesh = mesh_scores(data, [(r.rgb, r.depth) for r in rendered], cfg)
+    return {
+        "absrel": float(absrel),
+        "normal_deg": float(np.mean(np.concatenate(angles))) if angles else float("nan"),
+        **mesh,
+    }
+
+
+def mesh_scores(data: dict[str, Any], images: list[tuple[np.ndarray, np.ndarray]], cfg: Any) -> dict[str, float]:
+    """F@1 % and Chamfer (m) of the preset's mesh fused from (rgb, depth) at every view, against the world."""
+    from benchmarks.mesh import visible_gt_points
+    from wonderverse.camera import scene_extent
+    from wonderverse.mesh import TsdfFusion, clean_mesh
+    from wonderverse.metrics import chamfer_fscore, sample_mesh_points
+
+    views = data["views"]
+    extent = scene_extent(views.w2c, data["gt_depth"])
+    mesh_params = cfg.steps.outputs.mesh
+    fusion = TsdfFusion(extent, mesh_params)
+    for (rgb, depth), pose in zip(images, views.w2c, strict=True):
+        fusion.integrate(rgb, depth, views.K, pose)
+    mesh = clean_mesh(fusion.extract(), mesh_params)
+    if "gt_points" not in data:
+        data["gt_points"] = visible_gt_points(data["world"], views.K, views.w2c, data["gt_depth"], np.inf)
+    pred_pts = sample_mesh_points(mesh.vertices, mesh.triangles, PRED_SAMPLES, seed=1)
+    m = chamfer_fscore(pred_pts, data["gt_points"], [0.01 * extent])
+    return {"f1": float(m["fscore"][0]), "chamfer_m": float(m["chamfer"])}
+
+
+def ceiling(data: dict[str, Any], cfg: Any) -> dict[str, float]:
+    """The fusion's ceiling: the same mesh from the true depth at every view."""
+    frames = data["views"].frames
+    return mesh_scores(data, [(f, d) for f, d in zip(frames, data["gt_depth"], strict=True)], cfg)
+
+
+def parse_loss(items: list[str]) -> dict[str, Any]:
+    """KEY=VALUE overrides of LossParams (values parsed as JSON, else kept as strings)."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, _, value = item.partition("=")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
+
+
+def headline(rows: list[dict[str, Any]], preset: str) -> dict[str, float]:
+    def mean(cond: str, variant: str, key: str) -> float:
+        vals = [r[key] for r in rows if r["condition"] == cond and r["variant"] == variant]
+        return float(np.mean(vals)) if vals else float("nan")
+
+    head = {
+        "fscore_gain_lowtex": mean("texture_poor", "both", "f1") - mean("texture_poor", "rgb", "f1"),
+        "fscore_gain_ai": mean("ai_like", "both", "f1") - mean("ai_like", "rgb", "f1"),
+        "depth_gain_ai": 1.0 - mean("ai_like", "both", "absrel") / mean("ai_like", "rgb", "absrel"),
+        "psnr_cost_clean_db": mean("clean", "rgb", "psnr") - mean("clean", "both", "psnr"),
+        "fscore_rgb_clean": mean("clean", "rgb", "f1"),
+        "fscore_both_clean": mean("clean", "both", "f1"),
+    }
+    if preset in ("standard", "high"):
+        head[f"fscore_{preset}"] = float(np.mean([r["f1"] for r in rows if r["variant"] == "both"]))
+    return {k: round(v, 4) for k, v in head.items()}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--quick", action="store_true", help="160x112 frames, 9 per segment, 120 iterations")
+    ap.add_argument("--preset", default="preview", choices=["preview", "standard", "high"])
+    ap.add_argument("--worlds", nargs="*", default=list(WORLDS), choices=list(WORLDS))
+    ap.add_argument("--conditions", nargs="*", default=list(CONDITIONS), choices=list(CONDITIONS))
+    ap.add_argument("--variants", nargs="*", default=list(VARIANTS), choices=list(VARIANTS))
+    ap.add_argument("--loss", nargs="*", default=[], help="LossParams overrides KEY=VALUE for every variant")
+    args = ap.parse_args()
+    from wonderverse.config import build_config
+
+    overrides: dict[str, Any] = {}
+    if args.quick:
+        overrides = {
+            "scene": {"video": {"width": 160, "height": 112, "frames_per_segment": 9}},
+            "steps": {"splats": {"max_side_px": 160, "train": {"iterations": 120}}},
+        }
+    cfg = build_config("benchmark", preset=args.preset, overrides=overrides)
+    loss_update = parse_loss(args.loss)
+    rows = []
+    for world in args.worlds:
+        for condition in args.conditions:
+            t0 = time.perf_counter()
+            data = prepare(world, condition, cfg)
+            prep_s = time.perf_counter() - t0
+            top = ceiling(data, cfg)
+            print(json.dumps({"world": world, "condition": condition, "ceiling_f1": round(top["f1"], 4)}), flush=True)
+            for variant in args.variants:
+                run = train_variant(data, cfg, variant, loss_update)
+                row = {"world": world, "condition": condition, "variant": variant}
+                row |= {"psnr": run["psnr"], **score(data, run, cfg), "gaussians": run["gaussians"]}
+                row |= {"ceiling_f1": top["f1"], "train_s": run["seconds"], "prepare_s": prep_s}
+                rows.append(row)
+                print(json.dumps({k: round(x, 4) if isinstance(x, float) else x for k, x in row.items()}), flush=True)
+    title = f"Geometric enhancement ablation, {args.preset}, {machine()}, loss overrides {loss_update or 'none'}"
+    report(title, rows, headline(rows, args.preset))
+
+
+if __name__ == "__main__":
+    main()
