@@ -34,7 +34,7 @@ HAS_FTFY = importlib.util.find_spec("ftfy") is not None
 
 @pytest.fixture(scope="module")
 def tiny(tmp_path_factory: pytest.TempPathFactory) -> dict[str, dict[str, Path]]:
-    families = ("cogvideox", "wan") if HAS_FTFY else ("cogvideox",)
+    families = ("cogvideox", "wan", "wan_vace") if HAS_FTFY else ("cogvideox",)
     return save_tiny_pipelines(tmp_path_factory.mktemp("tiny-pipelines"), families)
 
 
@@ -211,6 +211,10 @@ def test_gpu_check_script_runs_on_cpu(tiny: dict[str, dict[str, Path]], capsys: 
     for r in out["runs"]:
         assert r["t2v_shape"] == r["i2v_shape"] == [9, 32, 32, 3]
         assert r["finite"] is True and r["same_seed_identical"] is True and r["pipeline_dtype"] == "float32"
+        assert r["takes_guide"] is (r["family"] == "wan_vace")
+        if r["takes_guide"]:
+            assert r["guided_shape"] == [9, 32, 32, 3]
+            assert r["guide_changes_output"] is True and r["guided_same_seed_identical"] is True
 
 
 def test_importing_the_backend_stays_light() -> None:

@@ -1,6 +1,6 @@
 """Tiny, randomly initialised diffusers video pipelines, saved with `save_pretrained` for offline tests.
 
-Every component is a real diffusers/transformers class (CogVideoX, Wan) with a few layers and a few
+Every component is a real diffusers/transformers class (CogVideoX, Wan, Wan VACE) with a few layers and a few
 channels, so a CPU run of a couple of denoising steps takes well under a second. The tokenizer is a
 byte-level BPE trained here on a few sentences (no sentencepiece file can be downloaded), wrapped in
 `PreTrainedTokenizerFast`; it can encode any text, so different prompts give different token ids.
@@ -125,29 +125,81 @@ def wan_components(image_to_video: bool) -> dict[str, Any]:
     return dict(tokenizer=tokenizer, text_encoder=text_encoder, vae=vae, transformer=transformer, scheduler=scheduler)
 
 
-def save_tiny_pipelines(root: Path, families: tuple[str, ...] = ("cogvideox", "wan")) -> dict[str, dict[str, Path]]:
-    """Save a text-to-video and an image-to-video pipeline per family under `root`.
+def wan_vace_components() -> dict[str, Any]:
+    """Components of a tiny Wan 2.1 VACE: the tiny Wan VAE and text encoder, and a one-layer VACE transformer whose
+    control branch reads 96 channels per latent pixel (the known and unknown parts' latents, 2 x 16, and the mask
+    folded from the VAE's 8x8 pixel cells, 64)."""
+    import torch
+    from diffusers import AutoencoderKLWan, WanVACETransformer3DModel
 
-    Returns {family: {"t2v": folder, "i2v": folder}}; each folder loads with `from_pretrained`.
+    parts = wan_components(image_to_video=False)
+    z = 16
+    # the same tiny VAE, with latent statistics measured on it (mean ~0, std ~0.1 for inputs in [-1, 1]) instead of
+    # the real Wan VAE's: normalised by the real ones, the encoded guide frames would barely vary with their pixels
+    torch.manual_seed(SEED)
+    parts["vae"] = AutoencoderKLWan(
+        base_dim=4,
+        z_dim=z,
+        dim_mult=[1, 1, 1, 1],
+        num_res_blocks=1,
+        temperal_downsample=[False, True, True],
+        latents_mean=[0.0] * z,
+        latents_std=[0.1] * z,
+    ).eval()
+    torch.manual_seed(SEED)
+    parts["transformer"] = WanVACETransformer3DModel(
+        patch_size=(1, 2, 2),
+        num_attention_heads=2,
+        attention_head_dim=12,
+        in_channels=z,
+        out_channels=z,
+        text_dim=TEXT_DIM,
+        freq_dim=32,
+        ffn_dim=32,
+        num_layers=1,
+        rope_max_seq_len=32,
+        vace_layers=[0],
+        vace_in_channels=2 * z + 8 * 8,
+    ).eval()
+    return parts
+
+
+# the modes each family's tiny pipelines are saved for (folder `<family>-<mode>`)
+FAMILY_MODES: dict[str, tuple[str, ...]] = {"cogvideox": ("t2v", "i2v"), "wan": ("t2v", "i2v"), "wan_vace": ("guided",)}
+
+
+def save_tiny_pipelines(root: Path, families: tuple[str, ...] = ("cogvideox", "wan")) -> dict[str, dict[str, Path]]:
+    """Save each family's pipelines under `root`: text-to-video and image-to-video for cogvideox and wan, the
+    guided pipeline for wan_vace.
+
+    Returns {family: {mode: folder}} (modes as in FAMILY_MODES); each folder loads with `from_pretrained`.
     """
     from diffusers import (
         CogVideoXImageToVideoPipeline,
         CogVideoXPipeline,
         WanImageToVideoPipeline,
         WanPipeline,
+        WanVACEPipeline,
     )
 
-    builders = {
-        "cogvideox": (cogvideox_components, CogVideoXPipeline, CogVideoXImageToVideoPipeline),
-        "wan": (wan_components, WanPipeline, WanImageToVideoPipeline),
+    builders: dict[str, dict[str, tuple[Any, Any]]] = {
+        "cogvideox": {
+            "t2v": (lambda: cogvideox_components(False), CogVideoXPipeline),
+            "i2v": (lambda: cogvideox_components(True), CogVideoXImageToVideoPipeline),
+        },
+        "wan": {
+            "t2v": (lambda: wan_components(False), WanPipeline),
+            "i2v": (lambda: wan_components(True), WanImageToVideoPipeline),
+        },
+        "wan_vace": {"guided": (wan_vace_components, WanVACEPipeline)},
     }
     out: dict[str, dict[str, Path]] = {}
     for family in families:
-        build, t2v_cls, i2v_cls = builders[family]
         out[family] = {}
-        for mode, cls in (("t2v", t2v_cls), ("i2v", i2v_cls)):
+        for mode in FAMILY_MODES[family]:
+            build, cls = builders[family][mode]
             folder = Path(root) / f"{family}-{mode}"
-            cls(**build(image_to_video=mode == "i2v")).save_pretrained(folder)
+            cls(**build()).save_pretrained(folder)
             out[family][mode] = folder
     return out
 
