@@ -25,7 +25,7 @@ from wonderverse.schema import ATTEMPT, CHECK, SEGMENT
 from wonderverse.store import SceneStore, cache_key, write_array
 
 log = logging.getLogger("wonderverse.check")
-VERSION = 3  # 2: keyed by the step's params model; 3: guessed K self-calibrated, parallax looked at first
+VERSION = 4  # 2: keyed by the step's params model; 3: guessed K self-calibrated, parallax looked at first; 4: plan
 THIS_RUN = "this_run"  # the key of what `check_segment` did in this run (returned, never stored)
 
 
@@ -55,6 +55,7 @@ def _judge(store: SceneStore, p: CheckStepParams, seg: str, k: int, key: str) ->
     K, known = intrinsics(store, seg)
     sfm = reconstruct(store.array(ap.frames), p.sfm, K_prior=K, K_known=known, K_guessed=not known)
     result = check_trajectory(sfm.poses, sfm.registered, p.rules, sfm.problems, points=sfm.points, stopped=sfm.stopped)
+    verdict = _with_plan_verdict(result.to_attrs(), store.array(SEGMENT.at(seg=seg).path), sfm, p)
     with store.staged(
         ap.sfm,
         key,
@@ -72,9 +73,25 @@ def _judge(store: SceneStore, p: CheckStepParams, seg: str, k: int, key: str) ->
         write_array(g, ap.sfm.K, sfm.K)
         write_array(g, ap.sfm.points, sfm.points.reshape(-1, 3))
         write_array(g, ap.sfm.colors, sfm.colors.reshape(-1, 3))
-    with store.staged(ap.check, key, **result.to_attrs(), sfm_seconds=sfm.timings.get("total", 0.0)):
+    with store.staged(ap.check, key, **verdict, sfm_seconds=sfm.timings.get("total", 0.0)):
         pass
     return store.attrs(ap.check)
+
+
+def _with_plan_verdict(verdict: dict[str, Any], planned: np.ndarray, sfm: Any, p: CheckStepParams) -> dict[str, Any]:
+    """The check's `verdict` with the plan-following test of the attempt's SfM path against its planned path
+    (`plan_following`) added: its figures, and, when the camera ignored its instruction, a rejection with the
+    reasons in words. A user's clip has no plan (NaN path) and is not judged; nor is a path SfM did not map."""
+    if p.plan_following is None or not np.isfinite(planned).all() or not sfm.registered.any():
+        return verdict
+    from wonderverse.plan_following import compare_to_plan
+
+    pf = compare_to_plan(sfm.poses, planned, p.plan_following, registered=sfm.registered)
+    verdict = verdict | {"plan_following": pf.to_attrs()}
+    if pf.ok is False:
+        reasons = [f"ignored its camera instruction: {r}" for r in pf.reasons]
+        verdict |= {"accepted": False, "reasons": [*verdict["reasons"], *reasons]}
+    return verdict
 
 
 def check_segment(seg: str, scene_dir: str, p: Params) -> dict[str, Any]:

@@ -120,10 +120,14 @@ def test_an_ignored_instruction_is_caught_and_said_in_words(
     assert any(words in reason for reason in r.reasons), r.reasons
 
 
+# Tighter than the defaults (which allow for SfM of short, small clips), to reach the wording of small errors.
+TIGHT = PlanFollowingParams(rotation_tol_deg=5.0, rotation_tol_share=0.4, translation_direction_tol_deg=50.0)
+
+
 def test_a_wrong_small_angle_beside_a_right_large_one_is_named() -> None:
-    r = compare_to_plan(path(30, -10), path(30, 10))
+    r = compare_to_plan(path(30, -10), path(30, 10), TIGHT)
     assert r.reasons == ["turned left 30°, down 10° where the plan said left 30°, up 10°"]
-    r = compare_to_plan(path(30, 0), path(30, 20))
+    r = compare_to_plan(path(30, 0), path(30, 20), TIGHT)
     assert r.reasons == ["turned left 30° where the plan said left 30°, up 20°"]
 
 
@@ -173,7 +177,7 @@ def test_roll_is_named() -> None:
     rolled = plan.copy()
     for k, a in enumerate(np.linspace(0.0, math.radians(25), T)):
         rolled[k] = se3(so3_exp(np.array([0.0, 0.0, -a])), np.zeros(3)) @ plan[k]
-    r = compare_to_plan(rolled, plan)
+    r = compare_to_plan(rolled, plan, TIGHT)
     assert r.estimated is not None and r.estimated.roll_left_deg == pytest.approx(-25.0, abs=0.5)
     assert r.ok is False
     assert any(reason.startswith("turned left 30° and rolled right 25°") for reason in r.reasons), r.reasons
@@ -208,25 +212,25 @@ def test_no_turn_planned_allows_a_wobble_below_the_still_limit() -> None:
 
 
 def test_translation_direction_and_size_tolerances() -> None:
-    params = PlanFollowingParams()
+    params = TIGHT
     plan = path(0, 0, 2)
     ok_side = path(0, 0, 2 * math.cos(math.radians(40)), 2 * math.sin(math.radians(40)))  # 40° off
     off_side = path(0, 0, 2 * math.cos(math.radians(60)), 2 * math.sin(math.radians(60)))  # 60° off
-    r = compare_to_plan(ok_side, plan)
+    r = compare_to_plan(ok_side, plan, params)
     assert r.ok is True and r.translation_direction_error_deg == pytest.approx(40.0, abs=1e-6)
-    r = compare_to_plan(off_side, plan)
+    r = compare_to_plan(off_side, plan, params)
     assert r.ok is False and r.reasons == ["moved forward and left where the plan said forward 2"]
-    r = compare_to_plan(path(0, 0, 0.1, 2.0), plan)  # 87° off: only the main direction is named
+    r = compare_to_plan(path(0, 0, 0.1, 2.0), plan, params)  # 87° off: only the main direction is named
     assert r.reasons == ["moved left where the plan said forward 2"]
     assert params.size_ratio_min == 0.5 and params.size_ratio_max == 2.0
     sfm = similarity(9, 0.1)
-    assert compare_to_plan(as_sfm(path(0, 0, 1.2), sfm), plan, scale=10.0).ok is True
-    r = compare_to_plan(as_sfm(path(0, 0, 0.6), sfm), plan, scale=10.0)
+    assert compare_to_plan(as_sfm(path(0, 0, 1.2), sfm), plan, params, scale=10.0).ok is True
+    r = compare_to_plan(as_sfm(path(0, 0, 0.6), sfm), plan, params, scale=10.0)
     assert r.size_ratio == pytest.approx(0.3)
     assert r.reasons == ["moved forward 0.6 where the plan said forward 2"]
-    r = compare_to_plan(as_sfm(path(0, 0, 5.0), sfm), plan, scale=10.0)
+    r = compare_to_plan(as_sfm(path(0, 0, 5.0), sfm), plan, params, scale=10.0)
     assert r.reasons == ["moved forward 5 where the plan said forward 2"]
-    assert compare_to_plan(as_sfm(path(0, 0, 5.0), sfm), plan).ok is True  # no scale: direction only
+    assert compare_to_plan(as_sfm(path(0, 0, 5.0), sfm), plan, params).ok is True  # no scale: direction only
 
 
 def test_a_pure_rotation_plan_does_not_judge_the_direction_of_travel() -> None:

@@ -31,6 +31,7 @@ from wonderverse.camera import DEFAULT_FOV_DEG
 from wonderverse.check import CheckParams
 from wonderverse.errors import ConfigError, shown
 from wonderverse.mesh import MeshParams
+from wonderverse.plan_following import PlanFollowingParams
 from wonderverse.planning.params import ExtensionSpec, PlannerSpec, PlanParams
 from wonderverse.priors.params import PriorsParams
 from wonderverse.quality.params import QualityParams
@@ -202,6 +203,11 @@ class CheckStepParams(Model):
     max_attempts: int = Field(4, ge=1, le=50, description="attempts per segment, the first included")
     on_failure: Literal["fail", "drop", "keep_best"] = Field(
         "keep_best", description="when every attempt fails: stop the run, drop the segment, or keep the best"
+    )
+    plan_following: PlanFollowingParams | None = Field(
+        PlanFollowingParams(),
+        description="tolerances of the plan-following test (an attempt that ignored its camera instruction is "
+        "regenerated); null: not judged",
     )
 
 

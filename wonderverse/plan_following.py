@@ -49,14 +49,14 @@ class PlanFollowingParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    rotation_tol_deg: float = Field(5.0, ge=0, description="allowed rotation error, absolute part ...")
-    rotation_tol_share: float = Field(0.4, ge=0, description="... plus this share of the planned rotation")
+    rotation_tol_deg: float = Field(8.0, ge=0, description="allowed rotation error, absolute part ...")
+    rotation_tol_share: float = Field(0.6, ge=0, description="... plus this share of the planned rotation")
     min_rotation_deg: float = Field(3.0, ge=0, description="a planned rotation below this is 'no turn'")
     still_rotation_max_deg: float = Field(
         10.0, gt=0, description="a planned no-turn must not rotate more than this anywhere on the path"
     )
     translation_direction_tol_deg: float = Field(
-        50.0, gt=0, le=180, description="allowed angle between estimated and planned travel (arcs: ~yaw/2)"
+        80.0, gt=0, le=180, description="allowed angle between estimated and planned travel (arcs: ~yaw/2)"
     )
     min_translation_m: float = Field(0.05, ge=0, description="a planned travel below this is 'no travel'")
     size_ratio_min: float = Field(0.5, gt=0, description="travel ÷ planned travel, lower bound (scale known)")
