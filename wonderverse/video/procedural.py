@@ -3,7 +3,10 @@
 Every frame is a pure function of (world, pose, K): surfaces carry a solid 3D texture evaluated at
 the hit point, so what SIFT finds on a surface stays put when the camera moves. Like a real video
 model, a generation attempt sometimes goes wrong (`fault_probability`): the camera teleports or
-snaps round, objects move, or frames freeze; `GroundTruth.faults` says what and where.
+snaps round, objects move, frames freeze, or the camera ignores its instruction and takes another smooth
+path; `GroundTruth.faults` says what and where. The defects of real AI video (`ProceduralOptions.defects`:
+texture-poor surfaces, exposure and white-balance drift, flickering detail, geometric drift, blur,
+compression, low parallax; see defects.py) are off by default; ground truth stays the truth under them.
 """
 
 from __future__ import annotations
@@ -19,9 +22,18 @@ from typing import Any
 
 import numpy as np
 
-from wonderverse.camera import camera_centers, intrinsics, look_at, rot_x, rot_z
-from wonderverse.video.base import GroundTruth, Video
-from wonderverse.video.procedural_options import FaultType, ProceduralOptions
+from wonderverse.camera import camera_centers, geodesic_angle, heading_pitch, intrinsics, look_at, rot_x, rot_z
+from wonderverse.video.base import GroundTruth, Guide, Video
+from wonderverse.video.defects import (
+    DriftField,
+    FrameLook,
+    SurfaceLook,
+    degrade_frames,
+    plan_segment,
+    scale_parallax,
+    surface_look,
+)
+from wonderverse.video.procedural_options import FaultType, ProceduralOptions, resolved_defects
 from wonderverse.video.shadows import build_cascades
 from wonderverse.video.texture import (
     Noise,
@@ -44,8 +56,9 @@ DEMO_PROMPT = "a quiet village with houses and trees"
 
 @dataclass(frozen=True)
 class FaultPlan:
-    """One drawn fault. frame: first affected frame k; magnitude in metres (teleport, morph), degrees
-    (rotation) or frames (freeze); detail_seed seeds the remaining choices (directions, objects)."""
+    """One drawn fault. frame: first affected frame k (1 for ignore); magnitude in metres (teleport, morph),
+    degrees (rotation; ignore: the turn a camera told to stay still makes instead) or frames (freeze);
+    detail_seed seeds the remaining choices (directions, objects, the wrong path)."""
 
     type: FaultType
     frame: int
@@ -53,9 +66,12 @@ class FaultPlan:
     detail_seed: int
 
     def frames(self, n_frames: int) -> list[int]:
-        """Frames where the video departs from the path: k for a jump, k..k+F-1 for a freeze."""
+        """Frames where the video departs from the path: k for a jump, k..k+F-1 for a freeze, 1..T-1 when
+        the instruction is ignored (frame 0 is the reference the segment continues from)."""
         if self.type == "freeze":
             return list(range(self.frame, min(n_frames, self.frame + int(self.magnitude))))
+        if self.type == "ignore":
+            return list(range(1, n_frames))
         return [self.frame]
 
 
@@ -85,6 +101,8 @@ def draw_fault(scene_seed: int, seed: int, n_frames: int, opts: ProceduralOption
         magnitude = float(rng.uniform(*opts.sudden_rotation_deg))
     elif kind == "morph":
         magnitude = float(rng.uniform(*opts.morph_m))
+    elif kind == "ignore":  # the whole segment takes the wrong path
+        k, magnitude = 1, float(rng.uniform(*opts.ignore_turn_deg))
     else:  # freeze frames k..k+F-1; short clips move k earlier so the whole freeze fits
         span = min(opts.freeze_frames, n_frames)
         k = min(k, n_frames - span)
@@ -125,9 +143,119 @@ def apply_pose_fault(path: np.ndarray, plan: FaultPlan | None, opts: ProceduralO
         frames = record["frames"]
         poses[frames] = poses[frames[0]]
         record["unit"] = "frames"
+    elif plan.type == "ignore":
+        poses, mode = ignored_path(poses, plan.magnitude, rng, opts)
+        del record["magnitude"]
+        record |= ignore_details(path, poses, mode)
     else:
         record["unit"] = "m"
     return poses, record
+
+
+def ignored_path(
+    path: np.ndarray, turn_deg: float, rng: np.random.Generator, opts: ProceduralOptions
+) -> tuple[np.ndarray, str]:
+    """A smooth, plausible but wrong path (T,4,4) W2C in place of `path`, starting at its first pose, and its
+    mode in words. Modes, one drawn (rng) among those that differ from the plan:
+    - "reverse_turn" (a plan that turns by >= ignore_min_turn_deg): heading and pitch change the other way,
+      centres as planned;
+    - "no_turn" (same plans): no rotation at all; the centre goes straight along the start's level heading,
+      as far per frame as the plan's centre did;
+    - "turned_move" (a plan that moves >= ignore_min_move_m): the centre's displacement turned about the world
+      up by ±ignore_move_turn_deg, rotations as planned;
+    - "unplanned_turn" (a still plan): a steady yaw of ±turn_deg over the segment.
+    Every mode keeps the plan's step sizes (or, still, an even turn), so nothing jumps."""
+    T = len(path)
+    R, c = path[:, :3, :3], camera_centers(path)
+    c2w = np.swapaxes(R, 1, 2)
+    rot_deg = float(np.degrees(geodesic_angle(R[0], R)).max())
+    move = float(np.linalg.norm(c - c[0], axis=1).max())
+    modes = (["reverse_turn", "no_turn"] if rot_deg >= opts.ignore_min_turn_deg else []) + (
+        ["turned_move"] if move >= opts.ignore_min_move_m else []
+    )
+    mode = modes[int(rng.integers(len(modes)))] if modes else "unplanned_turn"
+    u = np.linspace(0.0, 1.0, T)
+    if mode == "reverse_turn":
+        yaw = np.atleast_1d(heading_pitch(path)[0])
+        dpsi = np.unwrap(yaw) - yaw[0]
+        # planned c2w_i = rot_z(dpsi_i) R0^T Q_i, with Q_i the rotation left in the first camera's frame (pitch)
+        Q = R[0] @ rot_z(-dpsi) @ c2w
+        c2w = rot_z(-dpsi) @ R[0].T @ np.swapaxes(Q, 1, 2)
+    elif mode == "no_turn":
+        f = R[0, 2].copy()
+        f[2] = 0.0
+        heading = f / max(float(np.linalg.norm(f)), 1e-12)
+        along = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(c, axis=0), axis=1))])
+        c2w = np.broadcast_to(R[0].T, (T, 3, 3))
+        c = c[0] + along[:, None] * heading
+    elif mode == "turned_move":
+        theta = np.radians(rng.uniform(*opts.ignore_move_turn_deg)) * rng.choice([-1.0, 1.0])
+        c = c[0] + (c - c[0]) @ rot_z(theta).T
+    else:
+        c2w = rot_z(np.radians(turn_deg) * rng.choice([-1.0, 1.0]) * u) @ c2w
+    out = np.zeros_like(path)
+    out[:, :3, :3] = np.swapaxes(c2w, 1, 2)
+    out[:, :3, 3] = -np.einsum("tij,tj->ti", out[:, :3, :3], c)
+    out[:, 3, 3] = 1.0
+    out[0] = path[0]  # exactly: the segment continues from its reference
+    return out, mode
+
+
+def describe_move(poses: np.ndarray) -> dict[str, Any]:
+    """A camera path (T,4,4 W2C) from its first to its last pose, in figures and words: turn_left_deg (heading
+    change about the world up, positive = left), look_up_deg (pitch change), rotation_deg (geodesic angle),
+    forward_m, left_m, up_m (the centre's displacement along the first camera's level heading, its left and
+    the world up, in the path's units), path_m (summed centre steps), words ("turn right 20 deg, move
+    forward 1")."""
+    yaw, pitch = heading_pitch(poses)
+    yaw, pitch = np.atleast_1d(yaw), np.atleast_1d(pitch)
+    turn = float(np.degrees(np.unwrap(yaw)[-1] - yaw[0]))
+    look_up = float(np.degrees(pitch[-1] - pitch[0]))
+    rotation = float(np.degrees(geodesic_angle(poses[0, :3, :3], poses[-1, :3, :3])))
+    c = camera_centers(poses)
+    f = poses[0, 2, :3].copy()
+    f[2] = 0.0
+    heading = f / max(float(np.linalg.norm(f)), 1e-12)
+    left = np.cross([0.0, 0.0, 1.0], heading)
+    d = c[-1] - c[0]
+    fwd, lft, up = float(d @ heading), float(d @ left), float(d[2])
+    path_m = float(np.linalg.norm(np.diff(c, axis=0), axis=1).sum())
+    words = []
+    if abs(turn) >= 0.5:
+        words.append(f"turn {'left' if turn > 0 else 'right'} {abs(turn):.0f} deg")
+    if abs(look_up) >= 0.5:
+        words.append(f"look {'up' if look_up > 0 else 'down'} {abs(look_up):.0f} deg")
+    big = max(abs(fwd), abs(lft), abs(up))
+    parts = [
+        f"{name} {abs(x):.3g}"
+        for x, name in ((fwd, "forward" if fwd > 0 else "back"), (lft, "left" if lft > 0 else "right"),
+                        (up, "up" if up > 0 else "down"))
+        if big > 0 and abs(x) >= 0.1 * big
+    ]  # fmt: skip
+    if parts:
+        words.append("move " + " and ".join(parts))
+    return {
+        "turn_left_deg": turn,
+        "look_up_deg": look_up,
+        "rotation_deg": rotation,
+        "forward_m": fwd,
+        "left_m": lft,
+        "up_m": up,
+        "path_m": path_m,
+        "words": ", ".join(words) or "stay still",
+    }
+
+
+def ignore_details(planned: np.ndarray, rendered: np.ndarray, mode: str) -> dict[str, Any]:
+    """The record of an ignored instruction: mode, the planned and the rendered move (`describe_move`, in the
+    paths' units) and a summary in words."""
+    a, b = describe_move(planned), describe_move(rendered)
+    return {
+        "mode": mode,
+        "planned": a,
+        "rendered": b,
+        "summary": f"asked to {a['words']}; rendered: {b['words']}",
+    }
 
 
 # ---------------------------------------------------------------- rendering
@@ -208,16 +336,17 @@ class Morph:
     cache: dict[Any, Any] = field(default_factory=dict)
 
 
-def cast(scene: Any, rays: np.ndarray, nthreads: int = 0) -> dict[str, np.ndarray]:
+def cast(scene: Any, rays: np.ndarray, nthreads: int = 0, uvs: bool = False) -> dict[str, np.ndarray]:
     """Open3D first hits of rays (n,6) [origin, direction]: t_hit (inf on a miss) in units of the
-    direction's length, primitive_ids, primitive_normals (world, by winding). nthreads: Open3D's
-    threads (0: all cores)."""
+    direction's length, primitive_ids, primitive_normals (world, by winding), and with `uvs`
+    primitive_uvs (n,2) (the hit is (1-u-v) v0 + u v1 + v v2). nthreads: Open3D's threads (0: all cores)."""
     import open3d as o3d
 
     rays = o3d.core.Tensor.from_numpy(np.ascontiguousarray(rays, dtype=np.float32))
     ans = scene.cast_rays(rays, nthreads=nthreads)
+    keys = ("t_hit", "primitive_ids", "primitive_normals") + (("primitive_uvs",) if uvs else ())
     # copies: the arrays then own their memory, whatever Open3D does with its tensors
-    return {k: np.array(ans[k].numpy()) for k in ("t_hit", "primitive_ids", "primitive_normals")}
+    return {k: np.array(ans[k].numpy()) for k in keys}
 
 
 def render_view(
@@ -228,15 +357,49 @@ def render_view(
     height: int,
     opts: ProceduralOptions,
     morph: Morph | None = None,
+    look: SurfaceLook | None = None,
+    frame: FrameLook | None = None,
+    drift: Drift | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Render one view with a real ray caster. Returns rgb (H,W,3) uint8, depth (H,W) float32 camera z
     in metres (+inf for sky) and normals (H,W,3) float32 unit, camera space (OpenCV axes), facing the
-    camera, 0 for sky."""
+    camera, 0 for sky. look, frame, drift: the defects of this view (see `_view_chunks`), None for none."""
     rgb = np.empty((height, width, 3), dtype=np.uint8)
     depth = np.empty((height, width), dtype=np.float32)
     normals = np.zeros((height, width, 3), dtype=np.float32)
-    _run(_view_chunks(world, K, w2c, width, height, opts, morph, (rgb, depth, normals)), opts.shading_threads)
+    out = (rgb, depth, normals)
+    _run(_view_chunks(world, K, w2c, width, height, opts, morph, out, look, frame, drift), opts.shading_threads)
     return rgb, depth, normals
+
+
+@dataclass(frozen=True)
+class Drift:
+    """The world deformed by the geometric drift for one frame: the deformed mesh's scene (what the frame
+    shows) and the undeformed vertices (V,3) float32, where a hit's barycentric coordinates find the point
+    the surface had before the deformation."""
+
+    scene: Any
+    vertices: np.ndarray
+
+
+def drifted(world: World, morph: Morph | None, field: DriftField, amount_m: float) -> Drift:
+    """The world (morphed, if a morph fault is on) with every vertex moved by the drift field at `amount_m`."""
+    verts = world.vertices if morph is None else morph.vertices
+    moved = verts + field.displacement(np.ascontiguousarray(verts.T), amount_m).T
+    return Drift(make_scene(moved, world.triangles), verts)
+
+
+def _undeformed(drift: Drift, triangles: np.ndarray, tri: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """(3,n) float32 points of the undeformed surface at the hits on triangles tri (n,) with barycentric
+    coordinates uv (n,2) on the deformed one."""
+    corners = triangles.take(tri, axis=0)  # (n,3) vertex ids
+    u, v = uv[:, 0], uv[:, 1]
+    w = np.float32(1.0) - u - v
+    out = np.empty((3, len(tri)), dtype=np.float32)
+    for j in range(3):
+        col = drift.vertices[:, j]
+        out[j] = w * col.take(corners[:, 0]) + u * col.take(corners[:, 1]) + v * col.take(corners[:, 2])
+    return out
 
 
 def _view_chunks(
@@ -248,10 +411,18 @@ def _view_chunks(
     opts: ProceduralOptions,
     morph: Morph | None,
     out: tuple[np.ndarray, np.ndarray, np.ndarray],
+    look: SurfaceLook | None = None,
+    frame: FrameLook | None = None,
+    drift: Drift | None = None,
 ) -> list[Callable[[], None]]:
     """The work of `render_view` as independent pixel chunks, each writing its own rows of
     out = (rgb (H,W,3) uint8, depth (H,W) float32, normals (H,W,3) float32 zeroed beforehand). Chunks
-    of several views can run together, so no thread waits for the end of each frame."""
+    of several views can run together, so no thread waits for the end of each frame.
+
+    Defects (None: none): look, the texture-poor surfaces; frame, this frame's colour gain and flickering
+    detail; drift, the deformed world the colours are cast against (depth and normals are still cast
+    against the undeformed world: ground truth; texture and shadows are read where the hit was before the
+    deformation: the same triangle at the same barycentric coordinates)."""
     if not all(a.flags.c_contiguous for a in out):
         raise ValueError("_view_chunks writes into its outputs: they must be C-contiguous")
     fx = float(K[0, 0])
@@ -262,6 +433,8 @@ def _view_chunks(
     origin = centre[:, None]
     noise, sky_noise = _noise(opts.noise_seed), _noise(opts.noise_seed + 1)
     sunlight = _sunlight(world, opts, morph)
+    gain = None if frame is None else frame.gain
+    flickers = frame is not None and frame.flicker is not None
 
     part_tables(world, opts, noise)  # build shared caches before the chunks run in parallel
     n_pix = width * height
@@ -272,9 +445,13 @@ def _view_chunks(
         (numpy releases the GIL). Vectors are (3,n) here (see texture.py); outputs are (n,3)."""
         dworld = _directions(xy[:, sl], c2w)
         # Open3D holds the GIL while it casts, stalling the other chunks' threads: let it use every core
-        ans = cast(scene, _pack_rays(centre, dworld), nthreads=0)
+        rays = _pack_rays(centre, dworld)
+        ans = cast(scene if drift is None else drift.scene, rays, nthreads=0, uvs=drift is not None)
         t_all = ans["t_hit"]  # camera z = 1 along every ray, so the ray parameter is the depth
-        depth[sl] = t_all
+        if drift is None:
+            depth[sl] = t_all
+        else:  # ground truth: the undeformed world
+            _write_truth(cast(scene, rays, nthreads=0), dworld, Rf, depth[sl], normals[sl])
         prim_ids, prim_normals = ans["primitive_ids"], ans["primitive_normals"]
         hit_mask = np.isfinite(t_all)
         hit = np.flatnonzero(hit_mask)
@@ -289,18 +466,31 @@ def _view_chunks(
                 tri, ray_len = prim_ids.take(hit), dnorm[sl].take(hit)
             n_dot_d = rowdot(n_geo, d)
             n_face = n_geo * np.where(n_dot_d > 0, np.float32(-1.0), np.float32(1.0))  # exact: a sign flip
-            n_cam = rotate(n_face, Rf)
-            for c in range(3):
-                if all_hit:
-                    normals[sl, c] = n_cam[c]
-                else:
-                    normals[sl, c][hit] = n_cam[c]
-            points = origin + t * d
+            if drift is None:
+                n_cam = rotate(n_face, Rf)
+                for c in range(3):
+                    if all_hit:
+                        normals[sl, c] = n_cam[c]
+                    else:
+                        normals[sl, c][hit] = n_cam[c]
+                points = origin + t * d
+            else:  # where the hit was before the deformation (same triangle, same barycentric coordinates)
+                uv = ans["primitive_uvs"] if all_hit else ans["primitive_uvs"].take(hit, axis=0)
+                points = _undeformed(drift, world.triangles, tri, uv)
             tex = _texture_points(world, points, tri, morph)
             dist = t * ray_len
             cos_inc = np.abs(n_dot_d) * t / dist
             footprint = t * np.float32(1.0 / fx) / np.maximum(cos_inc, np.float32(opts.min_cos_incidence))
-            surf = surface_colour(world, opts, noise, sunlight, points, tex, n_geo, n_face, dist, footprint, tri)
+            detail = None
+            if flickers:
+                assert frame is not None
+                idx = np.arange(sl.start, sl.stop) if all_hit else hit + sl.start
+                pu = (idx % width).astype(np.float32) + np.float32(0.5)
+                pv = (idx // width).astype(np.float32) + np.float32(0.5)
+                detail = frame.detail(pu, pv, opts.texture_octaves, opts.octave_gain)
+            surf = surface_colour(
+                world, opts, noise, sunlight, points, tex, n_geo, n_face, dist, footprint, tri, look, detail
+            )
             if all_hit:
                 col = surf
             else:
@@ -311,6 +501,9 @@ def _view_chunks(
             sky = sky_colour(world, opts, sky_noise, dworld.take(miss, axis=1), fx)
             for c in range(3):
                 col[c][miss] = sky[c]
+        if gain is not None:  # exposure and white balance of this frame
+            for c in range(3):
+                col[c] *= gain[c]
         np.clip(col, 0.0, 1.0, out=col)
         col *= np.float32(255.0)
         col += np.float32(0.5)
@@ -319,6 +512,24 @@ def _view_chunks(
 
     # Chunk bounds are part of the picture: fbm normalises by the octaves that its chunk needs
     return [functools.partial(shade, slice(s, min(n_pix, s + opts.chunk_px))) for s in range(0, n_pix, opts.chunk_px)]
+
+
+def _write_truth(
+    ans: dict[str, np.ndarray], dworld: np.ndarray, Rf: np.ndarray, depth: np.ndarray, normals: np.ndarray
+) -> None:
+    """Write one chunk's depth (n,) and camera-space normals (n,3) (facing the camera, left 0 for sky) from a
+    cast `ans` of rays whose world directions are dworld (3,n) (camera z = 1), W2C rotation Rf."""
+    t_all = ans["t_hit"]
+    depth[:] = t_all
+    hit = np.flatnonzero(np.isfinite(t_all))
+    if not len(hit):
+        return
+    n_geo = ans["primitive_normals"].T.take(hit, axis=1)
+    n_dot_d = rowdot(n_geo, dworld.take(hit, axis=1))
+    n_face = n_geo * np.where(n_dot_d > 0, np.float32(-1.0), np.float32(1.0))
+    n_cam = rotate(n_face, Rf)
+    for c in range(3):
+        normals[hit, c] = n_cam[c]
 
 
 def _run(chunks: list[Callable[[], None]], n_threads: int) -> None:
@@ -509,37 +720,62 @@ class ProceduralVideo:
             self._world = build_world(self.scene_prompt, self.scene_seed, self.options)
         return self._world
 
+    def surface_look(self) -> SurfaceLook | None:
+        """The scene's texture-poor surfaces (`defects.texture_poor_share`), None for none."""
+        return surface_look(self.world, self.scene_seed, resolved_defects(self.options))
+
     def render(self, w2c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """One clean frame at a W2C pose in scene units: rgb (H,W,3) uint8, depth (H,W) f32 scene units,
-        normals (H,W,3) f32."""
+        normals (H,W,3) f32. Of the defects only the world's own look (texture-poor surfaces) applies; the
+        per-attempt ones (drifts, flicker, blur, compression, parallax) do not."""
         s = self.options.scene_scale
         native = _rescaled(validate_path(w2c[None]), 1.0 / s)[0]
-        rgb, depth, normals = render_view(self.world, self.K, native, self.width, self.height, self.options)
+        rgb, depth, normals = render_view(
+            self.world, self.K, native, self.width, self.height, self.options, look=self.surface_look()
+        )
         if s != 1.0:
             depth *= np.float32(s)
         return rgb, depth, normals
 
-    def generate(self, prompt: str, path: np.ndarray, seed: int, reference: np.ndarray | None) -> Video:
+    def generate(
+        self,
+        prompt: str,
+        path: np.ndarray,
+        seed: int,
+        reference: np.ndarray | None,
+        guide: Guide | None = None,
+    ) -> Video:
         """Render `path` (T,4,4 W2C, scene units). `prompt` is not used (the world comes from the scene
-        prompt); `seed` (>= 0) decides the attempt's fault. Returns frames (T,H,W,3) uint8, K and GroundTruth
-        (poses, depth and fault distances in scene units: native metres times `scene_scale`)."""
-        del prompt
+        prompt); `seed` (>= 0) decides the attempt's fault and its defects. `guide` (what is known along the
+        path, for guided extensions) is accepted and not used yet: this backend renders the truth anyway.
+        Returns frames (T,H,W,3) uint8, K and GroundTruth (poses, depth and fault distances in scene units:
+        native metres times `scene_scale`).
+
+        With defects (`options.defects`) the frames show them; gt.poses are the poses really rendered (after
+        `parallax_scale` and any fault), gt.depth and gt.normals those of the world's own undeformed mesh at
+        those poses (the geometric drift shows in the frames only)."""
+        del prompt, guide
         path = validate_path(path)
         if seed < 0:
             raise ValueError(f"seed must be >= 0, got {seed}")
         shape = (self.height, self.width, 3)
         if reference is not None and np.shape(reference) != shape:
             raise ValueError(f"reference frame has shape {np.shape(reference)}, this video renders {shape}")
+        params = resolved_defects(self.options)
+        clean = params.is_clean()
         plan = draw_fault(self.scene_seed, seed, len(path), self.options)
         s = self.options.scene_scale
         native = _rescaled(path, 1.0 / s)  # the world renders in native metres whatever the scale
-        poses, record = apply_pose_fault(native, plan, self.options)
+        asked = native if clean else scale_parallax(native, params.parallax_scale)
+        poses, record = apply_pose_fault(asked, plan, self.options)
         morph = None
         if plan is not None and plan.type == "morph":
             w2c_k = poses[plan.frame]
             morph, details = build_morph(self.world, self.K, w2c_k, self.width, self.height, plan, self.options)
             record |= details
         T = len(poses)
+        segment = None if clean else plan_segment(params, self.scene_seed, seed, T)
+        look = None if clean else self.surface_look()
         frames = np.empty((T, *shape), dtype=np.uint8)
         depth = np.empty((T, self.height, self.width), dtype=np.float32)
         normals = np.zeros((T, self.height, self.width, 3), dtype=np.float32)
@@ -549,14 +785,28 @@ class ProceduralVideo:
             if i not in frozen:
                 m = morph if morph is not None and plan is not None and i >= plan.frame else None
                 out = (frames[i], depth[i], normals[i])
-                chunks += _view_chunks(self.world, self.K, poses[i], self.width, self.height, self.options, m, out)
+                frame = None if segment is None else segment.frames[i]
+                drift = None
+                if segment is not None and segment.drift is not None and segment.frames[i].drift_m > 0:
+                    drift = drifted(self.world, m, segment.drift, segment.frames[i].drift_m)
+                view = _view_chunks(
+                    self.world, self.K, poses[i], self.width, self.height, self.options, m, out, look, frame, drift
+                )
+                if drift is None:
+                    chunks += view
+                else:  # its own deformed scene: render it now and let the scene go
+                    _run(view, self.options.shading_threads)
         _run(chunks, self.options.shading_threads)  # all frames at once: threads never wait at a frame's end
         for i in sorted(frozen):  # the video holds the previous frame
             frames[i], depth[i], normals[i] = frames[i - 1], depth[i - 1], normals[i - 1]
+        if not clean:
+            frames = degrade_frames(frames, depth, poses, self.K, params)
         if s != 1.0:  # report in scene units; frames the fault left alone keep the path exactly
             moved = ~(poses == native).all(axis=(1, 2))
             poses, record = np.where(moved[:, None, None], _rescaled(poses, s), path), _rescaled_record(record, s)
             depth *= np.float32(s)
+        if record.get("type") == "ignore":  # in scene units, and against the path as asked
+            record |= ignore_details(path, poses, record["mode"])
         return Video(frames=frames, K=self.K.copy(), gt=GroundTruth(poses, depth, normals, record), k_is_guess=False)
 
 

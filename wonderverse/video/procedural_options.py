@@ -1,17 +1,19 @@
 """What the procedural video backend can be told (`scene.video.options` when `scene.video.backend` is
-`procedural`): the world's layout, the surface patterns, faults, texture, light. Imports only pydantic, so the
-config validates these options when it is built, and the renderer's modules share them without importing
-each other.
+`procedural`): the world's layout, the surface patterns, faults, texture, light, and the defects of real AI
+video (`DefectParams`, named levels in `DEFECT_LEVELS`). Imports only pydantic, so the config validates these
+options when it is built, and the renderer's modules share them without importing each other.
 """
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal, get_args
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 Range = tuple[float, float]
-FaultType = Literal["teleport", "rotation", "morph", "freeze"]
+# "ignore": the camera follows a smooth, plausible but wrong path (the video model ignored its instruction);
+# not among the default `fault_types`, so it is drawn only when forced or listed explicitly.
+FaultType = Literal["teleport", "rotation", "morph", "freeze", "ignore"]
 
 
 class WorldParams(BaseModel):
@@ -71,6 +73,143 @@ class PatternParams(BaseModel):
     bark_stretch: float = Field(6.0, gt=1, description="bark streaks are this many times longer than wide")
 
 
+class DefectParams(BaseModel):
+    """The defects of real AI video the procedural backend can add, each independently; every one is off at
+    its default (0, None, or 1 for `parallax_scale`). Ground truth stays the truth: poses are the poses
+    actually rendered, depth and normals those of the world's own (undeformed) mesh at those poses.
+
+    Metres are native metres of the procedural world (whatever `scene_scale` presents it in). Per-segment
+    draws (curves, fields, flicker) are seeded by (scene seed, attempt seed): the same attempt renders the
+    same frames, another attempt draws again. The texture-poor choice is the world's own: seeded by the
+    scene seed alone, it holds for every segment and attempt of the scene.
+    """
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    texture_poor_share: float = Field(
+        0.0,
+        ge=0,
+        le=1,
+        description="share of surfaces rendered texture-poor (flat albedo, shading only: no noise, no pattern). "
+        "It counts surface area on the world's shell (ground, water, walls, floor, ceiling, rug, door: a smooth "
+        "field in patches of `texture_poor_patch_m` marks that share of it plain) and parts of objects "
+        "(each part - a roof, a trunk, a book - is plain when a hash of scene seed and part falls below the "
+        "share). A surface plain at one share stays plain at every larger share",
+    )
+    texture_poor_patch_m: float = Field(8.0, gt=0, description="size of the plain and textured patches of the shell")
+    exposure_drift_stops: float = Field(
+        0.0, ge=0, le=3, description="peak exposure change over a segment in stops (1 = twice as bright); 0 at the "
+        "first frame, a smooth curve after"
+    )  # fmt: skip
+    white_balance_drift_frac: float = Field(
+        0.0,
+        ge=0,
+        le=0.5,
+        description="peak relative change of one colour channel's gain over a segment (0.05: up to 5 %); the three "
+        "gains keep their product 1 (a colour-temperature and tint shift, not a brightness one); 0 at the first "
+        "frame, a smooth curve after",
+    )
+    appearance_drift_cycles: Range = Field(
+        (0.25, 1.0), description="the exposure and white-balance curves mix sinusoids of this many cycles per segment"
+    )
+    detail_flicker_contrast: float = Field(
+        0.0,
+        ge=0,
+        le=2,
+        description="strength of fine detail re-drawn every frame, in the texture's contrast units: its standard "
+        "deviation as a share of the surface texture's own (0.2: flicker a fifth as strong as the texture)",
+    )
+    detail_flicker_wavelength_px: float = Field(3.0, ge=1, le=64, description="size of the flickering detail")
+    geometric_drift_m: float = Field(
+        0.0,
+        ge=0,
+        description="peak displacement of the world's surfaces along any axis at a segment's last frame; a smooth "
+        "field that grows linearly from 0 at the first frame. The frames show the deformed world, ground truth "
+        "the undeformed one",
+    )
+    geometric_drift_wavelength_m: float = Field(15.0, gt=0, description="wavelength of the displacement field")
+    blur_sigma_px: float = Field(0.0, ge=0, le=20, description="Gaussian blur: standard deviation in pixels")
+    motion_blur_shutter: float = Field(
+        0.0,
+        ge=0,
+        le=1,
+        description="motion blur: share of the frame interval the shutter is open (0.5 = a 180° shutter); each "
+        "pixel is smeared along its own image motion between the neighbouring frames",
+    )
+    motion_blur_samples: int = Field(7, ge=2, le=64, description="samples along each pixel's smear")
+    motion_blur_max_px: float = Field(32.0, gt=0, description="cap on a smear's length (a jump fault is a cut)")
+    jpeg_quality: int | None = Field(
+        None, ge=1, le=100, description="JPEG quality every frame is compressed at (libjpeg via Pillow); None = off"
+    )
+    parallax_scale: float = Field(
+        1.0,
+        gt=0,
+        le=1,
+        description="share of the asked camera translation actually rendered, measured from the segment's first "
+        "pose; rotation kept (1 = the path as asked)",
+    )
+
+    @model_validator(mode="after")
+    def _cycles_ok(self) -> DefectParams:
+        lo, hi = self.appearance_drift_cycles
+        if not 0 < lo <= hi:
+            raise ValueError(
+                f"appearance_drift_cycles must satisfy 0 < low <= high, got {self.appearance_drift_cycles}"
+            )
+        return self
+
+    def is_clean(self) -> bool:
+        """True when no defect is on (the frames are exactly those without defects)."""
+        return self == DefectParams(
+            texture_poor_patch_m=self.texture_poor_patch_m,
+            appearance_drift_cycles=self.appearance_drift_cycles,
+            detail_flicker_wavelength_px=self.detail_flicker_wavelength_px,
+            geometric_drift_wavelength_m=self.geometric_drift_wavelength_m,
+            motion_blur_samples=self.motion_blur_samples,
+            motion_blur_max_px=self.motion_blur_max_px,
+        )
+
+
+# The "ai_like" level: our argued match to today's video models (CogVideoX 1.5, Wan 2.1/2.2, Runway Gen-3), read
+# off their published samples and known mechanisms; a judgement, not a measurement of those models here.
+# - texture_poor_share 0.35: a latent VAE (8x spatial compression) and the denoiser's prior for clean surfaces
+#   turn large plain-ish areas (walls, floors, snow, water, distant ground) into smooth albedo with shading;
+#   detail survives where the prompt or the reference frame put it. About a third of the surface, not all.
+# - exposure_drift_stops 0.15 (±11 %), white_balance_drift_frac 0.03: generated clips brighten or darken and
+#   shift colour slowly over a few seconds, more as they move away from the conditioning frame; a few percent
+#   of brightness and colour, no jumps.
+# - detail_flicker_contrast 0.2 at 3 px: detail finer than a latent cell is re-synthesised by the decoder for
+#   every frame (the "boiling" of grass, gravel, foliage); a fifth of the texture's contrast.
+# - geometric_drift_m 0.05 over 15 m: shapes swim by centimetres over a segment (no model is 3D-consistent),
+#   smooth, so the check's continuity thresholds (step ratio 3.5, 0.5 rad) are never approached: the per-frame
+#   change (2 mm over 25 frames) is a few percent of a typical camera step (5-10 cm).
+# - blur_sigma_px 0.5, motion_blur_shutter 0.5: decoders give softer frames than their pixel count, and the
+#   models reproduce the 180° shutter motion blur of the footage they learnt from.
+# - jpeg_quality 85: clips come as H.264/H.265 MP4 at a few Mbit/s; per-frame JPEG at 85 stands for that
+#   codec's blocking and ringing.
+# - parallax_scale 0.7: camera-controlled and prompt-driven models under-shoot translation and prefer to turn
+#   (less parallax than asked), the failure camera-control papers report.
+DefectLevel = Literal["none", "texture_poor", "ai_like"]
+DEFECT_LEVELS: dict[str, DefectParams] = {
+    "none": DefectParams(),
+    "texture_poor": DefectParams(texture_poor_share=0.5),
+    "ai_like": DefectParams(
+        texture_poor_share=0.35,
+        exposure_drift_stops=0.15,
+        white_balance_drift_frac=0.03,
+        detail_flicker_contrast=0.2,
+        geometric_drift_m=0.05,
+        blur_sigma_px=0.5,
+        motion_blur_shutter=0.5,
+        jpeg_quality=85,
+        parallax_scale=0.7,
+    ),
+}
+
+
+assert tuple(DEFECT_LEVELS) == get_args(DefectLevel), "every level has a name in DefectLevel"
+
+
 class ProceduralOptions(BaseModel):
     """Everything the procedural video model can be told (`VideoSpec.options`)."""
 
@@ -100,6 +239,18 @@ class ProceduralOptions(BaseModel):
     morph_objects: int = Field(3, ge=1)
     morph_probe_stride_px: int = Field(4, ge=1, description="pixel stride of the pass finding visible objects")
     freeze_frames: int = Field(5, ge=2)
+    ignore_min_turn_deg: float = Field(
+        5.0, ge=0, description="ignore fault: a planned turn at least this large may be reversed or left out"
+    )
+    ignore_min_move_m: float = Field(
+        0.1, ge=0, description="ignore fault: a planned move at least this long may go another way"
+    )
+    ignore_move_turn_deg: Range = Field(
+        (90.0, 180.0), description="ignore fault: the move's direction is turned about the world up by this much"
+    )
+    ignore_turn_deg: Range = Field(
+        (15.0, 30.0), description="ignore fault: a camera told to stay still turns (yaw) by this much instead"
+    )
     # texture
     texture_detail: float = Field(1.0, ge=0, description="contrast of the surface texture; 0 = flat colours")
     texture_octaves: int = Field(4, ge=1, le=8)
@@ -126,6 +277,19 @@ class ProceduralOptions(BaseModel):
     cloud_scale_m: float = Field(500.0, gt=0)
     cloud_octaves: int = Field(4, ge=1, le=8)
     sun_disc_cos: float = Field(0.9995, gt=0.9, lt=1)
+    # the defects of real AI video
+    defects: DefectLevel | DefectParams = Field(
+        "none",
+        description=f"a level name ({', '.join(DEFECT_LEVELS)}) or explicit DefectParams; 'none': today's frames",
+    )
+
+    @field_validator("defects", mode="before")
+    @classmethod
+    def _known_level(cls, v: Any) -> Any:
+        """One clear error for an unknown name (the union would add that it is no DefectParams either)."""
+        if isinstance(v, str) and v not in DEFECT_LEVELS:
+            raise ValueError(f"unknown defect level {v!r}; the levels are {', '.join(DEFECT_LEVELS)}")
+        return v
 
     @model_validator(mode="after")
     def _ranges_ok(self) -> ProceduralOptions:
@@ -136,6 +300,8 @@ class ProceduralOptions(BaseModel):
             "morph_m",
             "morph_scale",
             "lod_fade_px",
+            "ignore_move_turn_deg",
+            "ignore_turn_deg",
         ):
             lo, hi = getattr(self, name)
             if not lo <= hi:
@@ -143,3 +309,8 @@ class ProceduralOptions(BaseModel):
         if not 0 <= self.fault_window[0] < self.fault_window[1] <= 1:
             raise ValueError("fault_window must lie within [0, 1]")
         return self
+
+
+def resolved_defects(opts: ProceduralOptions) -> DefectParams:
+    """The DefectParams that `opts.defects` names (a level of DEFECT_LEVELS) or gives."""
+    return DEFECT_LEVELS[opts.defects] if isinstance(opts.defects, str) else opts.defects

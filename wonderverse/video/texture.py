@@ -12,11 +12,15 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from wonderverse.video.procedural_options import ProceduralOptions
 from wonderverse.video.world import MATERIALS, Pattern, World
+
+if TYPE_CHECKING:  # defects.py imports this module
+    from wonderverse.video.defects import SurfaceLook
 
 # int32 multipliers of the lattice hash (odd, large, unrelated)
 _HX, _HY, _HZ, _HMIX = (
@@ -226,17 +230,23 @@ def surface_colour(
     dist: np.ndarray,
     footprint: np.ndarray,
     tri: np.ndarray,
+    look: SurfaceLook | None = None,
+    detail: np.ndarray | None = None,
 ) -> np.ndarray:
     """RGB (3,n) float32 of surface hits: palette x solid texture x pattern, lit by sky and sun, hazed.
 
     points (3,n): world hit points; tex (3,n): texture-space points (metres); n_geo (3,n): geometric
     normals (winding), n_face: the same turned towards the camera; dist: ray length (m); footprint:
     pixel size on the surface (m); sunlight: the share of the sun reaching them, or None (no shadows).
+    look: which surfaces are texture-poor (their colour is the palette's mid colour, then lit), None for
+    none; detail (n,): added to the texture's noise sum (flickering detail), None for none.
     """
     tables = part_tables(world, opts, noise)
     part = world.tri_part.take(tri)
     inv_scale = tables.inv_scale.take(part)
     fbm = noise.fbm(tex * inv_scale, footprint * inv_scale, opts.texture_octaves, opts)
+    if detail is not None:
+        fbm += detail
     ramp = np.clip(np.float32(0.5) + tables.gain.take(part) * fbm, 0.0, 1.0)
     col = lerp(tables.color_a.take(part, axis=1), tables.color_b.take(part, axis=1), ramp)
     # brightness follows the ramp too: palettes of similar greys still give SIFT some contrast
@@ -256,6 +266,10 @@ def surface_colour(
         else:
             for c in range(3):
                 col[c][sel] = shaded[c]
+    plain = None if look is None else look.plain_weight(tex, part)
+    if plain is not None:  # texture-poor: flat albedo (the ramp's middle: no noise, no pattern), shading kept
+        flat = lerp(tables.color_a.take(part, axis=1), tables.color_b.take(part, axis=1), np.float32(0.5))
+        col += plain * (flat - col)
 
     sky = world.sky
     sun = sky.sun_dir.astype(np.float32)
