@@ -22,7 +22,8 @@ with and without the defects of real AI video.
   within the fusion's reach: a mesh that covers only the nearer half loses recall).
 
 Usage: `python -m benchmarks.enhancement [--quick] [--preset preview|standard] [--worlds outdoor indoor]
-[--conditions clean texture_poor ai_like] [--variants rgb depth normal both] [--loss KEY=VALUE ...]`;
+[--conditions clean texture_poor ai_like] [--variants rgb depth normal both] [--loss KEY=VALUE ...]
+[--mesh KEY=VALUE ...] [--out ROWS.json]`, and `--merge A.json B.json ...` to report runs made apart (in parallel);
 `--quick` shrinks the video to 160x112 and 9 frames per segment with 120 iterations (a smoke run).
 Last-line keys: `fscore_gain_lowtex`, `fscore_gain_ai` (F@1 % of "both" minus "rgb", mean over worlds, texture-poor
 and AI-like conditions), `depth_gain_ai` (1 - AbsRel both / AbsRel rgb, AI-like), `psnr_cost_clean_db` (PSNR rgb
@@ -36,6 +37,7 @@ import argparse
 import json
 import os
 import time
+from pathlib import Path
 from typing import Any
 
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads
@@ -56,7 +58,7 @@ FEATURE_SHARE = 0.02  # share of a frame's pixels that count as features (strong
 FEATURE_FRAME_STRIDE = 2
 GT_SAMPLES = 1_000_000
 PRED_SAMPLES = 300_000
-VISIBLE_REL_TOL = 0.01
+FULL_REACH = 1e3  # max_depth_frac of the "f1_full_reach" column: every rendered depth is fused
 
 
 def corner_mask(frame: np.ndarray, share: float) -> np.ndarray:
@@ -183,16 +185,22 @@ def score(data: dict[str, Any], run: dict[str, Any], cfg: Any) -> dict[str, floa
         ok &= np.linalg.norm(n_hat, axis=-1) > 1e-6
         cos = np.clip((n_hat[ok] * n_gt[ok]).sum(-1), -1.0, 1.0)
         angles.append(np.degrees(np.arccos(cos)))
-    mesh = mesh_scores(data, [(r.rgb, r.depth) for r in rendered], cfg)
+    images = [(r.rgb, r.depth) for r in rendered]
+    mesh = mesh_scores(data, images, cfg)
+    whole = mesh_scores(data, images, cfg, max_depth_frac=FULL_REACH)
     return {
         "absrel": float(absrel),
         "normal_deg": float(np.mean(np.concatenate(angles))) if angles else float("nan"),
         **mesh,
+        "f1_full_reach": whole["f1"],
     }
 
 
-def mesh_scores(data: dict[str, Any], images: list[tuple[np.ndarray, np.ndarray]], cfg: Any) -> dict[str, float]:
-    """F@1 % and Chamfer (m) of the preset's mesh fused from (rgb, depth) at every view, against the world."""
+def mesh_scores(
+    data: dict[str, Any], images: list[tuple[np.ndarray, np.ndarray]], cfg: Any, max_depth_frac: float | None = None
+) -> dict[str, float]:
+    """F@1 % and Chamfer (m) of the preset's mesh (its fusion reach, or `max_depth_frac`) fused from (rgb, depth)
+    at every view, against the world."""
     from benchmarks.mesh import visible_gt_points
     from wonderverse.camera import scene_extent
     from wonderverse.mesh import TsdfFusion, clean_mesh
@@ -201,6 +209,8 @@ def mesh_scores(data: dict[str, Any], images: list[tuple[np.ndarray, np.ndarray]
     views = data["views"]
     extent = scene_extent(views.w2c, data["gt_depth"])
     mesh_params = cfg.steps.outputs.mesh
+    if max_depth_frac is not None:
+        mesh_params = mesh_params.model_copy(update={"max_depth_frac": max_depth_frac})
     fusion = TsdfFusion(extent, mesh_params)
     for (rgb, depth), pose in zip(images, views.w2c, strict=True):
         fusion.integrate(rgb, depth, views.K, pose)
@@ -215,11 +225,12 @@ def mesh_scores(data: dict[str, Any], images: list[tuple[np.ndarray, np.ndarray]
 def ceiling(data: dict[str, Any], cfg: Any) -> dict[str, float]:
     """The fusion's ceiling: the same mesh from the true depth at every view."""
     frames = data["views"].frames
-    return mesh_scores(data, [(f, d) for f, d in zip(frames, data["gt_depth"], strict=True)], cfg)
+    images = [(f, d) for f, d in zip(frames, data["gt_depth"], strict=True)]
+    return mesh_scores(data, images, cfg) | {"f1_full_reach": mesh_scores(data, images, cfg, FULL_REACH)["f1"]}
 
 
-def parse_loss(items: list[str]) -> dict[str, Any]:
-    """KEY=VALUE overrides of LossParams (values parsed as JSON, else kept as strings)."""
+def parse_overrides(items: list[str]) -> dict[str, Any]:
+    """KEY=VALUE overrides (values parsed as JSON, else kept as strings)."""
     out: dict[str, Any] = {}
     for item in items:
         key, _, value = item.partition("=")
@@ -256,17 +267,26 @@ def main() -> None:
     ap.add_argument("--conditions", nargs="*", default=list(CONDITIONS), choices=list(CONDITIONS))
     ap.add_argument("--variants", nargs="*", default=list(VARIANTS), choices=list(VARIANTS))
     ap.add_argument("--loss", nargs="*", default=[], help="LossParams overrides KEY=VALUE for every variant")
+    ap.add_argument("--mesh", nargs="*", default=[], help="MeshParams overrides KEY=VALUE (steps.outputs.mesh)")
+    ap.add_argument("--out", type=Path, help="also write the rows here (JSON), to merge runs made apart")
+    ap.add_argument("--merge", nargs="*", type=Path, help="only merge rows written by --out runs and report them")
     args = ap.parse_args()
+    if args.merge:
+        rows = [r for f in args.merge for r in json.loads(f.read_text())]
+        report(f"Enhancement ablation, {args.preset}, merged {len(args.merge)} runs", rows, headline(rows, args.preset))
+        return
     from wonderverse.config import build_config
 
     overrides: dict[str, Any] = {}
+    if args.mesh:
+        overrides["steps"] = {"outputs": {"mesh": parse_overrides(args.mesh)}}
     if args.quick:
-        overrides = {
+        overrides |= {
             "scene": {"video": {"width": 160, "height": 112, "frames_per_segment": 9}},
-            "steps": {"splats": {"max_side_px": 160, "train": {"iterations": 120}}},
+            "steps": {**overrides.get("steps", {}), "splats": {"max_side_px": 160, "train": {"iterations": 120}}},
         }
     cfg = build_config("benchmark", preset=args.preset, overrides=overrides)
-    loss_update = parse_loss(args.loss)
+    loss_update = parse_overrides(args.loss)
     rows = []
     for world in args.worlds:
         for condition in args.conditions:
@@ -274,15 +294,18 @@ def main() -> None:
             data = prepare(world, condition, cfg)
             prep_s = time.perf_counter() - t0
             top = ceiling(data, cfg)
-            print(json.dumps({"world": world, "condition": condition, "ceiling_f1": round(top["f1"], 4)}), flush=True)
+            print(json.dumps({"world": world, "condition": condition, "ceiling": top}), flush=True)
             for variant in args.variants:
                 run = train_variant(data, cfg, variant, loss_update)
                 row = {"world": world, "condition": condition, "variant": variant}
                 row |= {"psnr": run["psnr"], **score(data, run, cfg), "gaussians": run["gaussians"]}
-                row |= {"ceiling_f1": top["f1"], "train_s": run["seconds"], "prepare_s": prep_s}
+                row |= {"ceiling_f1": top["f1"], "ceiling_f1_full_reach": top["f1_full_reach"]}
+                row |= {"train_s": run["seconds"], "prepare_s": prep_s}
                 rows.append(row)
                 print(json.dumps({k: round(x, 4) if isinstance(x, float) else x for k, x in row.items()}), flush=True)
-    title = f"Geometric enhancement ablation, {args.preset}, {machine()}, loss overrides {loss_update or 'none'}"
+    if args.out:
+        args.out.write_text(json.dumps(rows, indent=1))
+    title = f"Enhancement ablation, {args.preset}, {machine()}, loss {loss_update or '-'}, mesh {args.mesh or '-'}"
     report(title, rows, headline(rows, args.preset))
 
 

@@ -7,6 +7,9 @@
 #   start P,..  run `benchmarks.tradeoff --one` for each preset x scene at once, in the background
 #               (SCENES="indoor" picks scenes; ONE_ARGS="--mesh-voxels 0.0039" adds arguments)
 #   collect     wait for them (at most $WAIT_S s); rows into $OUT/tradeoff_gpu.json, logs into $OUT
+#   bench M A.. run `python3 -m benchmarks.M A..` in the background (another benchmark on the same install)
+#   wait-bench  wait for it (at most $WAIT_S s); its output into $OUT/M.log
+# `install` checks the imports the tradeoff needs; IMPORTS="open3d gsplat torch" checks fewer (what was staged).
 # What the image lacks, carried (cp312 manylinux wheels; the two large ones split with `split -b 60m` into
 # NAME.whl.part-aa, -ab, ... across the carried folders): open3d-cpu 0.19.0 (100 MB), imageio-ffmpeg (68 MB:
 # the image has no ffmpeg), pycolmap 4.2.1, zarr and its codecs, pydantic, dask/distributed and their small
@@ -34,9 +37,20 @@ install)
     python3 -m pip install -q --no-build-isolation --no-deps --no-index --target /tmp/site . > "$OUT/build.log" 2>&1) ||
     { tail -20 "$OUT/build.log"; exit 1; }
   [ -n "${SKIP_DIFFUSION:-}" ] || python3 "$REPO/scripts/gpu_video_diffusion.py" 2>&1 | tee "$OUT/gpu_video_diffusion.log" | tail -12
-  python3 -c "import open3d, pycolmap, zarr, gsplat, torch, imageio, trimesh, dask.distributed
+  if [ -n "${IMPORTS:-}" ]; then
+    python3 -c "import ${IMPORTS// /, }, torch; print('imports ok', torch.cuda.get_device_name())"
+  else
+    python3 -c "import open3d, pycolmap, zarr, gsplat, torch, imageio, trimesh, dask.distributed
 from tasks import STEPS; import benchmarks.tradeoff
-print('imports ok', open3d.__version__, pycolmap.__version__, gsplat.__version__, torch.cuda.get_device_name())" ;;
+print('imports ok', open3d.__version__, pycolmap.__version__, gsplat.__version__, torch.cuda.get_device_name())"
+  fi ;;
+bench)
+  setsid nohup python3 -m "benchmarks.$2" "${@:3}" > "$RUN/$2.log" 2>&1 &
+  sleep 5; tail -3 "$RUN/$2.log" ;;
+wait-bench)
+  end=$((SECONDS + ${WAIT_S:-540}))
+  while pgrep -f "benchmarks.$2" > /dev/null && [ $SECONDS -lt $end ]; do sleep 10; done
+  grep -v "^[EWI]2026" "$RUN/$2.log" > "$OUT/$2.log"; tail -25 "$OUT/$2.log" ;;
 start)
   IMAGEIO_FFMPEG_EXE=$(python3 -c "import imageio_ffmpeg; print(imageio_ffmpeg.get_ffmpeg_exe())")
   export IMAGEIO_FFMPEG_EXE
