@@ -12,8 +12,11 @@ with and without the defects of real AI video.
   points, which are as scarce on texture-poor surfaces. Priors: the oracle at the "realistic" level (the error of
   Depth Anything V2 / Omnidata on real benchmarks) aligned per frame to those references by the priors step's
   method; normals from that depth (`NormalsFromDepth`), as the priors step computes them.
-- Training: the preset's `steps.splats` (its loss as shipped for "both"; λ_d = 0 and/or λ_n = 0 for the others),
-  every 8th view held out.
+- Training: the preset's `steps.splats`, every 8th view held out. A variant without a prior is trained as the
+  pipeline trains with that prior's backend set to `none`: "rgb" has no prior at all (Gaussians start from the
+  feature points alone, and the sky, which the priors step marks, is modelled like anything else), "depth" has
+  the depth prior (it seeds Gaussians and drives L_depth), "normal" the normal prior (L_normal; no depth seeding),
+  "both" everything (the shipped pipeline).
 - Scores, against the procedural truth: `psnr` held-out PSNR (dB); `absrel` the rendered depth (D̂/alpha, where
   alpha > 0.5) of the held-out views vs the true depth; `normal_deg` mean angle between the rendered normals and the
   true normals there; `f1` mesh F-score at 1 % of the scene extent (`camera.scene_extent` of the true cameras and
@@ -142,14 +145,12 @@ def train_variant(data: dict[str, Any], cfg: Any, variant: str, loss_update: dic
     p = cfg.steps.splats
     use_depth, use_normal = VARIANTS[variant]
     loss = p.train.loss.model_copy(update=loss_update)
-    loss = loss.model_copy(
-        update={
-            "lambda_depth": loss.lambda_depth if use_depth else 0.0,
-            "lambda_normal": loss.lambda_normal if use_normal else 0.0,
-        }
-    )
     tp = p.train.model_copy(update={"loss": loss, "holdout_every": HOLDOUT, "checkpoint_every_iters": 10**9})
     views = data["views"]
+    views = views.replace(  # a prior the variant lacks is not computed at all, as with its backend set to none
+        prior_depth=views.prior_depth if use_depth else None,
+        prior_normals=views.prior_normals if use_normal else None,
+    )
     norm = normalization_from_cameras(views.w2c, data["points"])
     nviews = normalize_views(views, norm)
     model = initial_model(nviews, norm.apply(data["points"]), data["colors"], p)

@@ -296,3 +296,30 @@ def test_loss_and_grads_by_torch_func_match_autograd_of_the_loss_and_sky_term(un
     for mine, leaf in zip(grads, leaves, strict=True):
         assert mine.shape == leaf.shape and leaf.grad.abs().sum() > 0
         torch.testing.assert_close(mine, leaf.grad)
+
+
+ENHANCED = LossParams(
+    prior_texture_ref=0.02,
+    prior_decay_start_frac=0.3,
+    prior_final_ratio=0.05,
+    normal_target="both",
+    lambda_depth_normal=0.05,
+)
+
+
+@pytest.mark.parametrize(("scale", "log_scale_shift"), [(1e-3, 0.0), (1e3, 0.0), (1.0, -6.0), (1.0, 6.0)])
+def test_enhanced_prior_terms_train_at_the_extremes(scene: dict, scale: float, log_scale_shift: float) -> None:
+    """Texture weights, the decay, the rendered depth's normals and depth-normal consistency: finite, no skipped
+    step, at scene scales 1e-3 / 1e3 (the views and points scaled alike) and with tiny / huge Gaussians."""
+    views: Views = scene["views"]
+    w2c = views.w2c.copy()
+    w2c[:, :3, 3] *= scale
+    scaled = views.replace(w2c=w2c, prior_depth=views.prior_depth * scale)
+    model = init_from_points(scene["points"] * scale, np.full((len(scene["points"]), 3), 0.5), 1, init_opacity=0.5)
+    with torch.no_grad():
+        model.log_scales += log_scale_shift
+    params = TrainParams(**(FAST | {"iterations": 30}), strategy="none", loss=ENHANCED)
+    model, curves, metrics = train(model, scaled, params, make_renderer("torch"))
+    assert metrics["skipped_steps"] == 0
+    assert {"depth", "normal", "depth_normal"} <= set(curves)
+    assert np.isfinite(curves["total"]).all() and np.isfinite(model.means.detach().numpy()).all()
