@@ -16,12 +16,18 @@ class GroundTruth:
     depth: (T,H,W) float32 camera-space z in metres; +inf where the ray hits nothing (sky).
     normals: (T,H,W,3) float32 unit normals in camera space (OpenCV axes), facing the camera; 0 for sky.
     faults: what went wrong on purpose, e.g. {"type": "teleport", "frames": [12]}; {} when clean.
+    labels: (T,H,W) int16 per pixel, the id of the placed content it shows (what the segments' words named,
+    `wonderverse.video.content`), -1 for none (the world's own surfaces, sky); None when the world holds no placed
+    content. label_names: label id -> the content's name, its kind and variant ("lake (frozen)", "trees (pine)",
+    "table"; kinds are `content.VOCABULARY`'s keys). Pixels with a label >= 0 have finite depth.
     """
 
     poses: np.ndarray
     depth: np.ndarray
     normals: np.ndarray
     faults: dict[str, Any] = field(default_factory=dict)
+    labels: np.ndarray | None = None
+    label_names: dict[int, str] = field(default_factory=dict)
 
 
 @dataclass

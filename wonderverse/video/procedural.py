@@ -24,6 +24,7 @@ import numpy as np
 
 from wonderverse.camera import camera_centers, geodesic_angle, heading_pitch, intrinsics, look_at, rot_x, rot_z
 from wonderverse.video.base import GroundTruth, Guide, Video
+from wonderverse.video.content import WorldContent, segment_words
 from wonderverse.video.defects import (
     DriftField,
     FrameLook,
@@ -712,13 +713,28 @@ class ProceduralVideo:
         )
         self.K = intrinsics(self.width, self.height, self.fov_deg)
         self._world: World | None = None
+        self.content = WorldContent()  # what the segments' words placed (video/content.py)
 
     @property
     def world(self) -> World:
-        """The scene's world (built on first use)."""
+        """The scene's world (built on first use), with the content the words of earlier calls placed."""
         if self._world is None:
             self._world = build_world(self.scene_prompt, self.scene_seed, self.options)
-        return self._world
+        placed = self.content.world
+        return self._world if placed is None else placed
+
+    def _content_world(self, prompt: str, end_w2c: np.ndarray) -> tuple[World, np.ndarray, dict[int, str]]:
+        """The world this generation renders: the scene's, with what the user's words in `prompt` (after the scene
+        prompt: `segment_words`) name placed in front of the path's last pose `end_w2c` (native metres), and all
+        content placed before. Returns it with object_label (object id -> label id, -1 none) and label names, one
+        consistent snapshot (another thread may add content meanwhile)."""
+        base = self.world if self.content.world is None else self._world
+        assert base is not None
+        words = segment_words(prompt, self.scene_prompt)
+        if words:
+            self.content.add(base, words, end_w2c, self.K, (self.width, self.height), self.scene_seed)
+        world, object_label, names = self.content.snapshot()
+        return (base if world is None else world), object_label, names
 
     def surface_look(self) -> SurfaceLook | None:
         """The scene's texture-poor surfaces (`defects.texture_poor_share`), None for none."""
@@ -745,16 +761,18 @@ class ProceduralVideo:
         reference: np.ndarray | None,
         guide: Guide | None = None,
     ) -> Video:
-        """Render `path` (T,4,4 W2C, scene units). `prompt` is not used (the world comes from the scene
-        prompt); `seed` (>= 0) decides the attempt's fault and its defects. `guide` (what is known along the
-        path, for guided extensions) is accepted and not used yet: this backend renders the truth anyway.
+        """Render `path` (T,4,4 W2C, scene units). The world comes from the scene prompt; what the user's words at
+        the end of `prompt` name (video/content.py) is placed in front of the path's last pose and stays in the
+        world for every later call, with per-pixel labels in gt.labels. `seed` (>= 0) decides the attempt's fault
+        and its defects. `guide` (what is known along the path, for guided extensions) is accepted and not used
+        yet: this backend renders the truth anyway.
         Returns frames (T,H,W,3) uint8, K and GroundTruth (poses, depth and fault distances in scene units:
         native metres times `scene_scale`).
 
         With defects (`options.defects`) the frames show them; gt.poses are the poses really rendered (after
         `parallax_scale` and any fault), gt.depth and gt.normals those of the world's own undeformed mesh at
         those poses (the geometric drift shows in the frames only)."""
-        del prompt, guide
+        del guide
         path = validate_path(path)
         if seed < 0:
             raise ValueError(f"seed must be >= 0, got {seed}")
@@ -766,16 +784,17 @@ class ProceduralVideo:
         plan = draw_fault(self.scene_seed, seed, len(path), self.options)
         s = self.options.scene_scale
         native = _rescaled(path, 1.0 / s)  # the world renders in native metres whatever the scale
+        world, object_label, label_names = self._content_world(prompt, native[-1])
         asked = native if clean else scale_parallax(native, params.parallax_scale)
         poses, record = apply_pose_fault(asked, plan, self.options)
         morph = None
         if plan is not None and plan.type == "morph":
             w2c_k = poses[plan.frame]
-            morph, details = build_morph(self.world, self.K, w2c_k, self.width, self.height, plan, self.options)
+            morph, details = build_morph(world, self.K, w2c_k, self.width, self.height, plan, self.options)
             record |= details
         T = len(poses)
         segment = None if clean else plan_segment(params, self.scene_seed, seed, T)
-        look = None if clean else self.surface_look()
+        look = None if clean else surface_look(world, self.scene_seed, params)
         frames = np.empty((T, *shape), dtype=np.uint8)
         depth = np.empty((T, self.height, self.width), dtype=np.float32)
         normals = np.zeros((T, self.height, self.width, 3), dtype=np.float32)
@@ -788,9 +807,9 @@ class ProceduralVideo:
                 frame = None if segment is None else segment.frames[i]
                 drift = None
                 if segment is not None and segment.drift is not None and segment.frames[i].drift_m > 0:
-                    drift = drifted(self.world, m, segment.drift, segment.frames[i].drift_m)
+                    drift = drifted(world, m, segment.drift, segment.frames[i].drift_m)
                 view = _view_chunks(
-                    self.world, self.K, poses[i], self.width, self.height, self.options, m, out, look, frame, drift
+                    world, self.K, poses[i], self.width, self.height, self.options, m, out, look, frame, drift
                 )
                 if drift is None:
                     chunks += view
@@ -799,6 +818,10 @@ class ProceduralVideo:
         _run(chunks, self.options.shading_threads)  # all frames at once: threads never wait at a frame's end
         for i in sorted(frozen):  # the video holds the previous frame
             frames[i], depth[i], normals[i] = frames[i - 1], depth[i - 1], normals[i - 1]
+        labels = None
+        if label_names:  # what of the placed content each pixel shows, cast as depth was
+            at = plan.frame if morph is not None and plan is not None else T
+            labels = content_labels(world, object_label, self.K, poses, self.width, self.height, morph, at, frozen)
         if not clean:
             frames = degrade_frames(frames, depth, poses, self.K, params)
         if s != 1.0:  # report in scene units; frames the fault left alone keep the path exactly
@@ -807,7 +830,35 @@ class ProceduralVideo:
             depth *= np.float32(s)
         if record.get("type") == "ignore":  # in scene units, and against the path as asked
             record |= ignore_details(path, poses, record["mode"])
-        return Video(frames=frames, K=self.K.copy(), gt=GroundTruth(poses, depth, normals, record), k_is_guess=False)
+        truth = GroundTruth(poses, depth, normals, record, labels=labels, label_names=label_names)
+        return Video(frames=frames, K=self.K.copy(), gt=truth, k_is_guess=False)
+
+
+def content_labels(
+    world: World,
+    object_label: np.ndarray,
+    K: np.ndarray,
+    poses: np.ndarray,
+    width: int,
+    height: int,
+    morph: Morph | None = None,
+    morph_from: int = 0,
+    frozen: set[int] | frozenset[int] = frozenset(),
+) -> np.ndarray:
+    """(T,H,W) int16 label of the placed content each pixel shows (object_label of the hit triangle's object,
+    -1 for none or sky), cast like the depth: the same rays against the world (the morphed one from frame
+    `morph_from` on), frozen frames holding the previous frame. poses: (T,4,4) W2C in native metres."""
+    tri_label = object_label.take(world.tri_object)
+    labels = np.full((len(poses), height, width), -1, dtype=np.int16)
+    for i, w2c in enumerate(poses):
+        if i in frozen:
+            labels[i] = labels[i - 1]
+            continue
+        scene = morph.scene if morph is not None and i >= morph_from else world.scene
+        ans = cast(scene, world_rays(K, w2c, width, height))
+        hit = np.flatnonzero(np.isfinite(ans["t_hit"]))
+        labels[i].reshape(-1)[hit] = tri_label.take(ans["primitive_ids"].take(hit).astype(np.int64))
+    return labels
 
 
 def demo_path(start: np.ndarray, n_frames: int, yaw_deg: float = 30.0, forward_m: float = 2.0) -> np.ndarray:

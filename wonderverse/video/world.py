@@ -77,6 +77,7 @@ MATERIALS: dict[str, tuple[Pattern, float, float, float]] = {
     "cardboard": (Pattern.NOISE, 0.3, 0.6, 0.2),
     "marble": (Pattern.NOISE, 0.4, 0.9, 0.1),
     "plant": (Pattern.LEAVES, 0.15, 1.0, 0.2),
+    "ice": (Pattern.NOISE, 1.5, 0.5, 0.0),  # a frozen lake (video/content.py)
 }
 MATERIAL_IDS: dict[str, int] = {name: i for i, name in enumerate(MATERIALS)}
 
@@ -113,6 +114,7 @@ BASE_PALETTE: dict[str, tuple[Rgb, Rgb]] = {
     "cardboard": ((0.50, 0.36, 0.20), (0.75, 0.60, 0.40)),
     "marble": ((0.75, 0.74, 0.72), (0.97, 0.96, 0.95)),
     "plant": ((0.08, 0.25, 0.08), (0.35, 0.60, 0.20)),
+    "ice": ((0.55, 0.70, 0.82), (0.85, 0.93, 0.98)),
 }
 THEME_PALETTES: dict[str, dict[str, tuple[Rgb, Rgb]]] = {
     "snow": {
@@ -246,7 +248,8 @@ class World:
     primitives (a book, a rock) so their colours can vary. colors_a/colors_b (M,3) float32 are the
     palette of this world; texture_offset shifts the solid texture so worlds with equal materials differ.
     Geometry is always in native metres; scene_scale only changes the units the world is presented in
-    (`start_pose`, and through the video backend its paths, poses and depth).
+    (`start_pose`, and through the video backend its paths, poses and depth). terrain (outdoor worlds: the
+    ground's height function) and params (the layout's sizes) let content be placed later (video/content.py).
     """
 
     kind: Literal["outdoor", "indoor"]
@@ -266,6 +269,8 @@ class World:
     texture_offset: np.ndarray
     start: np.ndarray
     scene_scale: float = 1.0
+    terrain: Terrain | None = field(default=None, repr=False, compare=False)
+    params: WorldParams = field(default_factory=WorldParams, repr=False, compare=False)
     _scene: Any = field(default=None, repr=False, compare=False)
     cache: dict[Any, Any] = field(default_factory=dict, repr=False, compare=False)
 
@@ -1109,8 +1114,10 @@ def build_world(prompt: str, seed: int, opts: Any = None) -> World:
     rng = np.random.default_rng(prompt_seed(prompt, seed))
     builder = MeshBuilder()
     ctx = _Ctx(builder, rng, params, theme, night)
+    terrain = None
     if kind == "outdoor":
-        ground_z = float(_build_outdoor(ctx, layout).height(0.0, 0.0))
+        terrain = _build_outdoor(ctx, layout)
+        ground_z = float(terrain.height(0.0, 0.0))
         eye = np.array([0.0, 0.0, ground_z + params.camera_height_m])
         pitch = np.radians(params.camera_pitch_deg)
     else:
@@ -1139,4 +1146,6 @@ def build_world(prompt: str, seed: int, opts: Any = None) -> World:
         texture_offset=rng.uniform(-100, 100, 3).astype(np.float32),
         start=start,
         scene_scale=scene_scale,
+        terrain=terrain,
+        params=params,
     )
