@@ -12,11 +12,11 @@ with and without the defects of real AI video.
   points, which are as scarce on texture-poor surfaces. Priors: the oracle at the "realistic" level (the error of
   Depth Anything V2 / Omnidata on real benchmarks) aligned per frame to those references by the priors step's
   method; normals from that depth (`NormalsFromDepth`), as the priors step computes them.
-- Training: the preset's `steps.splats`, every 8th view held out. A variant without a prior is trained as the
-  pipeline trains with that prior's backend set to `none`: "rgb" has no prior at all (Gaussians start from the
-  feature points alone, and the sky, which the priors step marks, is modelled like anything else), "depth" has
-  the depth prior (it seeds Gaussians and drives L_depth), "normal" the normal prior (L_normal; no depth seeding),
-  "both" everything (the shipped pipeline).
+- Training: the preset's `steps.splats`, every 8th view held out. Variants: "rgb" trains as the pipeline does
+  with both prior backends set to `none` (Gaussians start from the feature points alone, and the sky, which the
+  priors step marks, is modelled like anything else); "rgb_seeded" has the priors but no prior loss (the depth
+  prior seeds Gaussians and marks the sky; λ_d = λ_n = 0): the baseline of the loss terms themselves; "depth",
+  "normal" and "both" add L_depth, L_normal or both at the preset's weights ("both" is the shipped pipeline).
 - Scores, against the procedural truth: `psnr` held-out PSNR (dB); `absrel` the rendered depth (D̂/alpha, where
   alpha > 0.5) of the held-out views vs the true depth; `normal_deg` mean angle between the rendered normals and the
   true normals there; `f1` mesh F-score at 1 % of the scene extent (`camera.scene_extent` of the true cameras and
@@ -28,10 +28,11 @@ Usage: `python -m benchmarks.enhancement [--quick] [--preset preview|standard] [
 [--conditions clean texture_poor ai_like] [--variants rgb depth normal both] [--loss KEY=VALUE ...]
 [--mesh KEY=VALUE ...] [--out ROWS.json]`, and `--merge A.json B.json ...` to report runs made apart (in parallel);
 `--quick` shrinks the video to 160x112 and 9 frames per segment with 120 iterations (a smoke run).
-Last-line keys: `fscore_gain_lowtex`, `fscore_gain_ai` (F@1 % of "both" minus "rgb", mean over worlds, texture-poor
-and AI-like conditions), `depth_gain_ai` (1 - AbsRel both / AbsRel rgb, AI-like), `psnr_cost_clean_db` (PSNR rgb
-minus both, clean), `fscore_rgb_clean`, `fscore_both_clean` and, with --preset standard/high, `fscore_standard` /
-`fscore_high` (F@1 % of the shipped loss, mean over worlds and conditions).
+Last-line keys (means over the worlds run): `fscore_gain_lowtex`, `fscore_gain_ai` (F@1 % of "both" minus
+"rgb_seeded", texture-poor and AI-like conditions: what the loss terms add), `depth_gain_ai` (1 - AbsRel both /
+AbsRel rgb_seeded, AI-like), `psnr_cost_clean_db` (PSNR rgb_seeded minus both, clean), the same four against
+"rgb" with the suffix `_vs_rgb` (what the priors add as a whole), and with --preset standard/high
+`fscore_standard` / `fscore_high` (F@1 % of "both", mean over worlds and conditions). A baseline not run: NaN.
 """
 
 from __future__ import annotations
@@ -55,7 +56,14 @@ WORLDS = {
 }
 CONDITIONS = ("clean", "texture_poor", "ai_like")
 DEFECTS = {"clean": "none", "texture_poor": "texture_poor", "ai_like": "ai_like"}
-VARIANTS = {"rgb": (False, False), "depth": (True, False), "normal": (False, True), "both": (True, True)}
+# variant: (the priors step ran, λ_d on, λ_n on)
+VARIANTS = {
+    "rgb": (False, False, False),
+    "rgb_seeded": (True, False, False),
+    "depth": (True, True, False),
+    "normal": (True, False, True),
+    "both": (True, True, True),
+}
 HOLDOUT = 8
 FEATURE_SHARE = 0.02  # share of a frame's pixels that count as features (strongest corner response)
 FEATURE_FRAME_STRIDE = 2
@@ -143,14 +151,18 @@ def train_variant(data: dict[str, Any], cfg: Any, variant: str, loss_update: dic
     from wonderverse.splats.trainer import normalize_views, train
 
     p = cfg.steps.splats
-    use_depth, use_normal = VARIANTS[variant]
+    with_priors, use_depth, use_normal = VARIANTS[variant]
     loss = p.train.loss.model_copy(update=loss_update)
+    loss = loss.model_copy(
+        update={
+            "lambda_depth": loss.lambda_depth if use_depth else 0.0,
+            "lambda_normal": loss.lambda_normal if use_normal else 0.0,
+        }
+    )
     tp = p.train.model_copy(update={"loss": loss, "holdout_every": HOLDOUT, "checkpoint_every_iters": 10**9})
     views = data["views"]
-    views = views.replace(  # a prior the variant lacks is not computed at all, as with its backend set to none
-        prior_depth=views.prior_depth if use_depth else None,
-        prior_normals=views.prior_normals if use_normal else None,
-    )
+    if not with_priors:  # as the pipeline trains with both prior backends set to none
+        views = views.replace(prior_depth=None, prior_normals=None)
     norm = normalization_from_cameras(views.w2c, data["points"])
     nviews = normalize_views(views, norm)
     model = initial_model(nviews, norm.apply(data["points"]), data["colors"], p)
@@ -247,14 +259,14 @@ def headline(rows: list[dict[str, Any]], preset: str) -> dict[str, float]:
         vals = [r[key] for r in rows if r["condition"] == cond and r["variant"] == variant]
         return float(np.mean(vals)) if vals else float("nan")
 
-    head = {
-        "fscore_gain_lowtex": mean("texture_poor", "both", "f1") - mean("texture_poor", "rgb", "f1"),
-        "fscore_gain_ai": mean("ai_like", "both", "f1") - mean("ai_like", "rgb", "f1"),
-        "depth_gain_ai": 1.0 - mean("ai_like", "both", "absrel") / mean("ai_like", "rgb", "absrel"),
-        "psnr_cost_clean_db": mean("clean", "rgb", "psnr") - mean("clean", "both", "psnr"),
-        "fscore_rgb_clean": mean("clean", "rgb", "f1"),
-        "fscore_both_clean": mean("clean", "both", "f1"),
-    }
+    head: dict[str, float] = {}
+    for base, suffix in (("rgb_seeded", ""), ("rgb", "_vs_rgb")):
+        head |= {
+            f"fscore_gain_lowtex{suffix}": mean("texture_poor", "both", "f1") - mean("texture_poor", base, "f1"),
+            f"fscore_gain_ai{suffix}": mean("ai_like", "both", "f1") - mean("ai_like", base, "f1"),
+            f"depth_gain_ai{suffix}": 1.0 - mean("ai_like", "both", "absrel") / mean("ai_like", base, "absrel"),
+            f"psnr_cost_clean_db{suffix}": mean("clean", base, "psnr") - mean("clean", "both", "psnr"),
+        }
     if preset in ("standard", "high"):
         head[f"fscore_{preset}"] = float(np.mean([r["f1"] for r in rows if r["variant"] == "both"]))
     return {k: round(v, 4) for k, v in head.items()}

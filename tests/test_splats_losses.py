@@ -287,4 +287,5 @@ def test_prior_schedule_decays_log_linearly_after_its_start() -> None:
     assert values[0] == values[500] == 1.0
     assert values[-1] == pytest.approx(0.01)
     assert all(a >= b for a, b in itertools.pairwise(values))
-    assert prior_schedule(TrainParams(iterations=100), 99) == 1.0  # off by default
+    off = LossParams(prior_decay_start_frac=1.0, prior_final_ratio=1.0)
+    assert prior_schedule(TrainParams(iterations=100, loss=off), 99) == 1.0

@@ -27,19 +27,19 @@ class LossParams(BaseModel):
         "depth (scale-free: the same loss for a room and a valley)",
     )
     prior_texture_ref: float | None = Field(
-        None,
+        0.02,
         gt=0,
         description="texture-aware prior weights: a pixel's depth/normal prior weight is 1 / (1 + (g / ref)²) with "
         "g its grey-level gradient magnitude (Sobel / 8, grey in [0, 1], per pixel); None: every pixel weighs 1",
     )
     prior_decay_start_frac: float = Field(
-        1.0, ge=0, le=1, description="share of the iterations after which λ_d and λ_n start to decay (1: never)"
+        0.3, ge=0, le=1, description="share of the iterations after which λ_d and λ_n start to decay (1: never)"
     )
     prior_final_ratio: float = Field(
-        1.0, gt=0, le=1, description="λ_d and λ_n at the last iteration / their value before the decay (log-linear)"
+        0.05, gt=0, le=1, description="λ_d and λ_n at the last iteration / their value before the decay (log-linear)"
     )
     normal_target: Literal["rendered", "depth", "both"] = Field(
-        "rendered",
+        "both",
         description="normals the normal prior supervises: the rendered Σ w n (the paper's), the normals of the "
         "rendered depth (they move the surface itself), or the mean of both terms",
     )
