@@ -4,7 +4,9 @@ pipeline re-runs with every step cached except what the new segment changes: the
 and checked; priors of the old segments keep their network output (`priors_raw/`); the new frames are
 registered into the stored reconstruction with the old poses held fixed (a full re-solve, mapped into the
 previous world frame, when that fails its gates); the splats continue from the existing Gaussians, new
-ones seeded and densified only where the new frames see something new; the outputs are refreshed."""
+ones seeded and densified only where the new frames see something new; the outputs are refreshed. With a video
+model that takes guides, the new segment is generated from its parent's stored geometry (made then, when the
+parent has none yet), checked and placed inside generate_segments, as every guided extension is."""
 
 from __future__ import annotations
 

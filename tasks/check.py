@@ -119,10 +119,10 @@ def check_segment(seg: str, scene_dir: str, p: Params) -> dict[str, Any]:
                 from wonderverse.video import make_video_model
 
                 model = make_video_model(p.source)
-            video, seed = render_attempt(store, p.source, model, seg, k)
+            video, seed, guide = render_attempt(store, p.source, model, seg, k)
             at = ATTEMPT.at(seg=seg, attempt=k)
             with store.staged(at, cache_key("attempt", VERSION, {"seed": seed}, [seg_key])) as g:
-                write_attempt(g, at, video, seed, p.source.video.backend)
+                write_attempt(g, at, video, seed, p.source.video.backend, guide)
             rendered += 1
         checks[k] = _judge(store, p.check, seg, k, cache_key("attempt_check", VERSION, {"k": k}, [key]))
         if checks[k]["accepted"]:
@@ -147,11 +147,20 @@ def check_segment(seg: str, scene_dir: str, p: Params) -> dict[str, Any]:
     return summary | {THIS_RUN: {"cached": False, "regenerated": rendered}}
 
 
+def is_checked(store: SceneStore, p: Params, seg: str) -> bool:
+    """Whether segment `seg` is checked under these settings (its `accepted` complete under its key)."""
+    seg_key = store.cache_key_of(SEGMENT.at(seg=seg))
+    return seg_key is not None and store.is_complete(SEGMENT.at(seg=seg).accepted, segment_key(p, seg_key))
+
+
 def run(store: SceneStore, p: Params, ctx: StepContext) -> str:
     segs = segment_ids(store)
-    results = map_segments(
+    # segments checked already (a guided flow checks them while generating) are read here; no workers start for them
+    todo = [s for s in segs if not is_checked(store, p, s)]
+    done = {s: check_segment(s, str(store.scene_dir), p) for s in segs if s not in todo}
+    fresh = map_segments(
         check_segment,
-        segs,
+        todo,
         str(store.scene_dir),
         p,
         workers=ctx.execution.segment_workers,
@@ -159,6 +168,7 @@ def run(store: SceneStore, p: Params, ctx: StepContext) -> str:
         step="check",
         progress=callback("segments checked"),
     )
+    results = [done[s] if s in done else fresh[todo.index(s)] for s in segs]
     this_run = [s[THIS_RUN] for s in results]
     summaries = [{k: v for k, v in s.items() if k != THIS_RUN} for s in results]
     extra = [s["extra_trials"] for s in summaries]

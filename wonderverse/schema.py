@@ -186,6 +186,8 @@ SEGMENT = Group(
         "reference_frame": "parent frame it continues",
         "repeats_reference": "frame 0 is the parent's frame",
         "k_is_guess": "K guessed rather than known",
+        "guide_geometry_key": "guided extensions: the key of the parent's geometry its guide was rendered from",
+        "guide_params": "guided extensions: the GuideParams its guide was rendered with (regenerations reuse them)",
     },
 )
 ATTEMPTS = Group("segments/{seg}/attempts", "the generation attempts of a segment (0, 1, ...)")
@@ -193,7 +195,11 @@ ATTEMPT = Group(
     "segments/{seg}/attempts/{attempt}",
     "one generation attempt: its frames",
     arrays={"frames": _frames("the rendered or read frames, RGB")},
-    attrs={"seed": "generation seed", "source": "video backend"},
+    attrs={
+        "seed": "generation seed",
+        "source": "video backend",
+        "guide": "guided extensions: {source, coverage, geometry_key} of the guide it was generated from; absent else",
+    },
 )
 ATTEMPT_GT = Group(
     "segments/{seg}/attempts/{attempt}/gt",
@@ -203,7 +209,10 @@ ATTEMPT_GT = Group(
         "depth": Array("float32", ("T", "H", "W"), "frame", "camera z; +inf for sky"),
         "normals": Array("float16", ("T", "H", "W", 3), "frame", "camera-space unit normals"),
     },
-    attrs={"faults": "injected faults (type, frames)"},
+    attrs={
+        "faults": "injected faults (type, frames)",
+        "guide": "guided procedural attempts: the guide's coverage and error against the truth (guide.guide_errors)",
+    },
 )
 ATTEMPT_SFM = Group(
     "segments/{seg}/attempts/{attempt}/sfm",
@@ -240,6 +249,30 @@ ACCEPTED = Group(
     "segments/{seg}/accepted",
     "step check: the attempt later steps follow (None: dropped)",
     attrs={"attempt": "accepted attempt index", "dropped": "", "reasons": "", "attempts": "", "extra_trials": ""},
+)
+SEGMENT_GEOMETRY = Group(
+    "segments/{seg}/geometry",
+    "guided flows (generate_segments): the accepted attempt's frames placed in the plan's world, what its "
+    "extensions' guides are rendered from (wonderverse.segment_geometry); keyed by the accepted attempt and "
+    "the depth settings",
+    arrays={
+        "depth": Array("float32", ("T", "H", "W"), "frame", "camera z in plan units; +inf sky; NaN unregistered"),
+        "poses": Array("float64", ("T", 4, 4), "whole", "W2C in the plan's world; NaN where not registered"),
+        "K": K,
+        "registered": Array("bool", ("T",), "whole"),
+        "aligned": Array("bool", ("T",), "whole", "the frame's depth alignment to the SfM points held"),
+    },
+    attrs={
+        "placed": "whether the geometry could be placed (False: `reason` says why; no arrays)",
+        "reason": "why it could not be placed, in words",
+        "attempt": "the accepted attempt it belongs to",
+        "to_plan": "the Sim3 (to_dict) taking the attempt's SfM world onto the plan's",
+        "fit_rms": "RMS of the camera centres' residuals after that Sim3, plan units",
+        "fit_rms_rel": "the same, share of the planned path's length",
+        "registered_frames": "",
+        "aligned_frames": "",
+        "reasons": "frames whose depth alignment failed, in words",
+    },
 )
 CHECK = Group(
     "check",
@@ -348,8 +381,8 @@ OUTPUTS = Group(
 )
 
 GROUPS: tuple[Group, ...] = (
-    PLAN, SEGMENTS, SEGMENT, ATTEMPTS, ATTEMPT, ATTEMPT_GT, ATTEMPT_SFM, ATTEMPT_CHECK, ACCEPTED, CHECK, SFM,
-    SFM_MODEL, PRIORS, PRIORS_SEGMENT, PRIORS_RAW, PRIORS_RAW_SEGMENT, SPLATS, SPLATS_CHECKPOINT, OUTPUTS,
+    PLAN, SEGMENTS, SEGMENT, ATTEMPTS, ATTEMPT, ATTEMPT_GT, ATTEMPT_SFM, ATTEMPT_CHECK, ACCEPTED, SEGMENT_GEOMETRY,
+    CHECK, SFM, SFM_MODEL, PRIORS, PRIORS_SEGMENT, PRIORS_RAW, PRIORS_RAW_SEGMENT, SPLATS, SPLATS_CHECKPOINT, OUTPUTS,
 )  # fmt: skip
 
 _CHILDREN: dict[tuple[str, str], Group] = {

@@ -11,7 +11,7 @@ from wonderverse.video.base import GroundTruth, Video, VideoModel
 if TYPE_CHECKING:  # the config pulls in YAML and every step's params; backends import only what they use
     from wonderverse.config import VideoSource
 
-__all__ = ["GroundTruth", "Video", "VideoModel", "initial_pose", "make_video_model"]
+__all__ = ["GroundTruth", "Video", "VideoModel", "initial_pose", "make_video_model", "source_takes_guide"]
 
 
 def make_video_model(source: VideoSource) -> VideoModel:
@@ -31,6 +31,20 @@ def make_video_model(source: VideoSource) -> VideoModel:
 
         return DiffusionVideo(v.width, v.height, v.frames_per_segment, v.fov_deg, v.options)
     raise ValueError(f"unknown video backend {v.backend!r}")
+
+
+def source_takes_guide(source: VideoSource) -> bool:
+    """Whether the backend `source.video` names reads guides (`takes_guide` of the model it builds), known from
+    the settings alone: the procedural world with `options.accept_guide`, a diffusers family with a mask-capable
+    pipeline (wan_vace). User clips never do."""
+    v = source.video
+    if v.backend == "procedural":
+        return bool(getattr(v.options, "accept_guide", False))
+    if v.backend == "diffusers":
+        from wonderverse.video.diffusion import family_takes_guide
+
+        return family_takes_guide(v.options.family)  # type: ignore[union-attr]
+    return False
 
 
 def initial_pose(model: VideoModel) -> np.ndarray:

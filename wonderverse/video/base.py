@@ -16,6 +16,8 @@ class GroundTruth:
     depth: (T,H,W) float32 camera-space z in metres; +inf where the ray hits nothing (sky).
     normals: (T,H,W,3) float32 unit normals in camera space (OpenCV axes), facing the camera; 0 for sky.
     faults: what went wrong on purpose, e.g. {"type": "teleport", "frames": [12]}; {} when clean.
+    guide: for a guided generation, the guide measured against the truth rendered (`wonderverse.guide.guide_errors`:
+    coverage, psnr_db, depth_absrel, depth_off_share); None when no guide was used.
     labels: (T,H,W) int16 per pixel, the id of the placed content it shows (what the segments' words named,
     `wonderverse.video.content`), -1 for none (the world's own surfaces, sky); None when the world holds no placed
     content. label_names: label id -> the content's name, its kind and variant ("lake (frozen)", "trees (pine)",
@@ -26,6 +28,7 @@ class GroundTruth:
     depth: np.ndarray
     normals: np.ndarray
     faults: dict[str, Any] = field(default_factory=dict)
+    guide: dict[str, float] | None = None
     labels: np.ndarray | None = None
     label_names: dict[int, str] = field(default_factory=dict)
 
@@ -63,11 +66,17 @@ class Video:
 
 
 class VideoModel(Protocol):
-    """generate(prompt, camera path, seed, reference frame) -> Video.
+    """generate(prompt, camera path, seed, reference frame, guide=None) -> Video.
 
     path: (T,4,4) float64 W2C poses the video is conditioned on (world frame of the scene); a
     backend that cannot follow a path exactly treats it as guidance. reference: (H,W,3) uint8 frame
-    the segment must continue from (its pose is path[0]), or None for the initial video.
+    the segment must continue from (its pose is path[0]), or None for the initial video. guide: what is
+    already known along `path` (a `Guide` of T frames at the video's size), for a backend that reads one: it
+    keeps the known pixels (mask False) and invents the rest. A backend says whether it reads guides with a
+    `takes_guide` property (absent: False); callers render and pass a guide only to one that does, and a
+    backend that cannot use a guide it is given raises a WonderError (or ignores it, saying so in its doc).
     """
 
-    def generate(self, prompt: str, path: np.ndarray, seed: int, reference: np.ndarray | None) -> Video: ...
+    def generate(
+        self, prompt: str, path: np.ndarray, seed: int, reference: np.ndarray | None, guide: Guide | None = None
+    ) -> Video: ...

@@ -265,6 +265,14 @@ def load_pipeline(params: DiffusionParams, mode: Mode) -> Any:
         if not (folder / "model_index.json").is_file():
             what = "has no model_index.json (not a saved diffusers pipeline)" if folder.is_dir() else "does not exist"
             raise WonderError(f"{field}: {folder} {what}")
+        if mode == "guided":  # diffusers loads another pipeline's folder with a warning, then fails deep inside
+            saved = _saved_class(folder / "model_index.json")
+            if saved != cls_name:
+                raise WonderError(
+                    f"{field}: {folder} holds a {saved or 'pipeline of unknown class'}, not a {cls_name}: the "
+                    f"{params.family} family needs its mask-capable pipeline (known frames plus a mask of pixels to "
+                    "generate)"
+                )
         source = str(folder.resolve())
     key = (cls_name, source, str(dtype), device, params.offload, params.vae_tiling, params.vae_slicing)
     with _CACHE_LOCK:
@@ -285,6 +293,17 @@ def load_pipeline(params: DiffusionParams, mode: Mode) -> Any:
         pipe.set_progress_bar_config(disable=True)
         _CACHE[key] = pipe
         return pipe
+
+
+def _saved_class(model_index: Path) -> str | None:
+    """The pipeline class a saved diffusers folder names (`_class_name` of its model_index.json); None if unreadable."""
+    import json
+
+    try:
+        name = json.loads(model_index.read_text()).get("_class_name")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return name if isinstance(name, str) else None
 
 
 def _from_pretrained(cls_name: str, source: str, dtype: Any, local_only: bool, field: str) -> Any:

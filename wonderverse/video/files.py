@@ -22,7 +22,7 @@ from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 from wonderverse.camera import intrinsics
 from wonderverse.errors import WonderError
-from wonderverse.video.base import Video
+from wonderverse.video.base import Guide, Video
 
 IMAGE_SUFFIXES = frozenset({".png", ".jpg", ".jpeg", ".webp", ".bmp", ".tif", ".tiff"})
 GIF_SUFFIXES = frozenset({".gif"})
@@ -537,6 +537,8 @@ class FilesVideo:
         """The clips read, in the order given (skipped ones left out)."""
         return list(self._clips)
 
+    takes_guide = False  # a user's clip is read, never generated: no guide can shape it
+
     def __len__(self) -> int:
         return len(self._clips)
 
@@ -547,8 +549,11 @@ class FilesVideo:
         c = self._clips[i]
         return Video(frames=c.frames, K=c.K.copy(), gt=None, k_is_guess=c.k_is_guess)
 
-    def generate(self, prompt: str, path: np.ndarray, seed: int, reference: np.ndarray | None) -> Video:
-        """Always raises: a user's clip is what it is and cannot be generated again (use `segment`)."""
+    def generate(
+        self, prompt: str, path: np.ndarray, seed: int, reference: np.ndarray | None, guide: Guide | None = None
+    ) -> Video:
+        """Always raises: a user's clip is what it is and cannot be generated again (use `segment`), guided or not
+        (`takes_guide` is False: clips take no guide)."""
         raise WonderError(
             "clips given by the user cannot be regenerated; a clip that fails its check is dropped or kept"
         )

@@ -736,6 +736,21 @@ class ProceduralVideo:
         world, object_label, names = self.content.snapshot()
         return (base if world is None else world), object_label, names
 
+    @property
+    def takes_guide(self) -> bool:
+        """Whether `generate` reads a guide (`options.accept_guide`); otherwise a guide is ignored."""
+        return self.options.accept_guide
+
+    def _keep_known(self, guide: Guide, frames: np.ndarray, depth: np.ndarray) -> tuple[np.ndarray, dict[str, float]]:
+        """What a guided model does with `guide`: the known pixels (mask False) are the guide's, the rest the
+        rendered truth `frames`. Returns those frames and the guide's errors against the truth (`guide_errors`
+        on `frames` and camera-z `depth`, scene units). WonderError when the guide does not fit the video."""
+        from wonderverse.guide import guide_errors, validate_guide
+
+        validate_guide(guide, *depth.shape)
+        errors = guide_errors(guide, frames, depth)
+        return np.where(guide.mask[..., None], frames, guide.frames).astype(np.uint8), errors
+
     def surface_look(self) -> SurfaceLook | None:
         """The scene's texture-poor surfaces (`defects.texture_poor_share`), None for none."""
         return surface_look(self.world, self.scene_seed, resolved_defects(self.options))
@@ -764,15 +779,15 @@ class ProceduralVideo:
         """Render `path` (T,4,4 W2C, scene units). The world comes from the scene prompt; what the user's words at
         the end of `prompt` name (video/content.py) is placed in front of the path's last pose and stays in the
         world for every later call, with per-pixel labels in gt.labels. `seed` (>= 0) decides the attempt's fault
-        and its defects. `guide` (what is known along the path, for guided extensions) is accepted and not used
-        yet: this backend renders the truth anyway.
+        and its defects. `guide` (what is known along the path, for guided extensions) is ignored unless
+        `options.accept_guide`: then the frames keep the guide's known pixels and show the rendered truth
+        elsewhere, and gt.guide holds the guide's errors against it.
         Returns frames (T,H,W,3) uint8, K and GroundTruth (poses, depth and fault distances in scene units:
         native metres times `scene_scale`).
 
         With defects (`options.defects`) the frames show them; gt.poses are the poses really rendered (after
         `parallax_scale` and any fault), gt.depth and gt.normals those of the world's own undeformed mesh at
         those poses (the geometric drift shows in the frames only)."""
-        del guide
         path = validate_path(path)
         if seed < 0:
             raise ValueError(f"seed must be >= 0, got {seed}")
@@ -830,7 +845,10 @@ class ProceduralVideo:
             depth *= np.float32(s)
         if record.get("type") == "ignore":  # in scene units, and against the path as asked
             record |= ignore_details(path, poses, record["mode"])
-        truth = GroundTruth(poses, depth, normals, record, labels=labels, label_names=label_names)
+        guided = None
+        if guide is not None and self.options.accept_guide:  # a guided model keeps the known, invents the rest
+            frames, guided = self._keep_known(guide, frames, depth)
+        truth = GroundTruth(poses, depth, normals, record, guide=guided, labels=labels, label_names=label_names)
         return Video(frames=frames, K=self.K.copy(), gt=truth, k_is_guess=False)
 
 

@@ -8,7 +8,15 @@ from __future__ import annotations
 
 from typing import Any, Literal, get_args
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    SerializerFunctionWrapHandler,
+    field_validator,
+    model_serializer,
+    model_validator,
+)
 
 Range = tuple[float, float]
 # "ignore": the camera follows a smooth, plausible but wrong path (the video model ignored its instruction);
@@ -282,6 +290,22 @@ class ProceduralOptions(BaseModel):
         "none",
         description=f"a level name ({', '.join(DEFECT_LEVELS)}) or explicit DefectParams; 'none': today's frames",
     )
+
+    # guided extensions
+    accept_guide: bool = Field(
+        False,
+        description="act as a guided video model (`takes_guide`): with a guide, keep its known pixels and render the "
+        "truth where it is unknown, and record its coverage and error against the truth (gt `guide`); false: a guide "
+        "is ignored and extensions are generated unguided, as before",
+    )
+
+    @model_serializer(mode="wrap")
+    def _default_guide_unwritten(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        """`accept_guide` is written only when true, so every cache key made before it existed stays the same."""
+        data = handler(self)
+        if not self.accept_guide:
+            data.pop("accept_guide", None)
+        return data
 
     @field_validator("defects", mode="before")
     @classmethod
