@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from tasks.base import Step, StepContext
-from tasks.generate_segments import render_attempt, write_attempt
+from tasks.generate_segments import render_attempt, replay_content, stored_words, write_attempt
 from tasks.parallel import map_segments
 from tasks.progress import callback
 from tasks.segments import attempt_ids, intrinsics, segment_ids
@@ -119,6 +119,7 @@ def check_segment(seg: str, scene_dir: str, p: Params) -> dict[str, Any]:
                 from wonderverse.video import make_video_model
 
                 model = make_video_model(p.source)
+                replay_content(model, p.source, stored_words(store))
             video, seed, guide = render_attempt(store, p.source, model, seg, k)
             at = ATTEMPT.at(seg=seg, attempt=k)
             with store.staged(at, cache_key("attempt", VERSION, {"seed": seed}, [seg_key])) as g:

@@ -208,6 +208,9 @@ def write_attempt(
         write_array(gt, at.gt.depth, video.gt.depth)
         write_array(gt, at.gt.normals, video.gt.normals)
         gt.attrs["faults"] = video.gt.faults
+        if video.gt.labels is not None:
+            write_array(gt, at.gt.labels, video.gt.labels)
+            gt.attrs["label_names"] = {str(k): v for k, v in video.gt.label_names.items()}
         if getattr(video.gt, "guide", None) is not None:
             gt.attrs["guide"] = _json_numbers(video.gt.guide)
 
@@ -335,6 +338,28 @@ def _run_unguided(store: SceneStore, p: Params, ctx: StepContext, model: Any, in
     return f"{len(todo)} rendered, {len(info) - len(todo)} cached"
 
 
+def replay_content(model: Any, source: VideoSource, segments: list[tuple[str, str, np.ndarray]]) -> None:
+    """Give a fresh video model what every planned segment's words placed in its world ((role, intent, path) per
+    segment), so a segment rendered now — a later `extend`, a regeneration in the check — sees the lake an earlier
+    segment's words put there. Only backends that keep a world (the procedural one) have `place_content`."""
+    place = getattr(model, "place_content", None)
+    if place is None:
+        return
+    for role, intent, path in segments:
+        if intent and np.isfinite(path).all():
+            place(segment_prompt(source.prompt, role, intent), path)
+
+
+def stored_words(store: SceneStore) -> list[tuple[str, str, np.ndarray]]:
+    """(role, intent, path) of every stored segment whose user's words are not empty, for `replay_content`."""
+    out = []
+    for seg in store.children(SEGMENTS.path):
+        a = store.attrs(SEGMENT.at(seg=seg))
+        if a.get("intent") and store.exists(SEGMENT.at(seg=seg).path):
+            out.append((a.get("role", ""), a["intent"], store.array(SEGMENT.at(seg=seg).path)))
+    return out
+
+
 def run(store: SceneStore, p: Params, ctx: StepContext) -> str:
     from wonderverse.planning import stitched_order
     from wonderverse.video import initial_pose, make_video_model
@@ -343,6 +368,7 @@ def run(store: SceneStore, p: Params, ctx: StepContext) -> str:
     model = make_video_model(p.source)
     clips = [len(c.frames) for c in model.clips] if p.source.video.backend == "files" else None  # type: ignore[attr-defined]
     info = plan_paths(p, plan, initial_pose(model), clips)
+    replay_content(model, p.source, [(i["plan"].role, i["plan"].intent, i["path"]) for i in info.values()])
     if isinstance(p, GuidedParams):
         summary = _run_guided(store, p, ctx, model, info)
     else:

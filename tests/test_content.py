@@ -190,3 +190,22 @@ def test_placement_depends_only_on_seed_words_and_end_pose() -> None:
     room.add(indoor.world, "a frozen lake", indoor.world.start_pose(), K, size, 3)
     assert room.placements == [] and room.world is None
     assert any("does not fit" in n for n in room.notes)
+
+
+def test_a_fresh_video_model_replays_the_words_of_earlier_segments(lake_run: dict) -> None:
+    """A later step or `extend` builds a new video model: `replay_content` gives it the stored segments' words, so
+    the next segment still sees the lake (and an unguided backend without a world is left alone)."""
+    from tasks.generate_segments import replay_content
+    from wonderverse.config import VideoSource, VideoSpec
+
+    fresh = video()
+    source = VideoSource(video=VideoSpec(), prompt=OUTDOOR, seed=0)
+    replay_content(
+        fresh,
+        source,
+        [("left", "a frozen lake on the left", lake_run["path"]), ("right", "", turn(lake_run["start"], -20.0))],
+    )
+    second = fresh.generate(segment_prompt(OUTDOOR, "left", ""), lake_run["second_path"], 2, None)
+    assert second.gt.label_names == {0: "lake (frozen)"}
+    assert np.array_equal(second.gt.labels, lake_run["second"].gt.labels)
+    replay_content(object(), source, [("left", "a frozen lake on the left", lake_run["path"])])  # no world: no-op

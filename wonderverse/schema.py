@@ -208,9 +208,11 @@ ATTEMPT_GT = Group(
         "poses": POSES,
         "depth": Array("float32", ("T", "H", "W"), "frame", "camera z; +inf for sky"),
         "normals": Array("float16", ("T", "H", "W", 3), "frame", "camera-space unit normals"),
+        "labels": Array("int16", ("T", "H", "W"), "frame", "content the user's words placed, by label id; -1 none"),
     },
     attrs={
         "faults": "injected faults (type, frames)",
+        "label_names": "label id -> what the words named, e.g. {'0': 'lake (frozen)'} (when content was placed)",
         "guide": "guided procedural attempts: the guide's coverage and error against the truth (guide.guide_errors)",
     },
 )

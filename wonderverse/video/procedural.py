@@ -736,6 +736,13 @@ class ProceduralVideo:
         world, object_label, names = self.content.snapshot()
         return (base if world is None else world), object_label, names
 
+    def place_content(self, prompt: str, path: np.ndarray) -> None:
+        """Place what a segment's words name (as `generate` does with `prompt` and `path`, scene units) without
+        rendering: a fresh video model (another step, a later `extend`) replays the scene's segments with this, so
+        the world keeps the content earlier segments placed. Placement depends only on the scene seed, the words
+        and the path's last pose, so the order of replays does not matter."""
+        self._content_world(prompt, _rescaled(validate_path(path), 1.0 / self.options.scene_scale)[-1])
+
     @property
     def takes_guide(self) -> bool:
         """Whether `generate` reads a guide (`options.accept_guide`); otherwise a guide is ignored."""
