@@ -318,7 +318,7 @@ def test_enhanced_prior_terms_train_at_the_extremes(scene: dict, scale: float, l
     model = init_from_points(scene["points"] * scale, np.full((len(scene["points"]), 3), 0.5), 1, init_opacity=0.5)
     with torch.no_grad():
         model.log_scales += log_scale_shift
-    params = TrainParams(**(FAST | {"iterations": 30}), strategy="none", loss=ENHANCED)
+    params = TrainParams(**(FAST | {"iterations": 12}), strategy="none", loss=ENHANCED)
     model, curves, metrics = train(model, scaled, params, make_renderer("torch"))
     assert metrics["skipped_steps"] == 0
     assert {"depth", "normal", "depth_normal"} <= set(curves)
