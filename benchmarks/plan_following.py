@@ -71,16 +71,9 @@ from typing import Any
 import numpy as np
 
 from benchmarks.common import parse_args, report, table
+from benchmarks.detection import PROMPTS  # the same six worlds
 from wonderverse.plan_following import PlanFollowingParams
 
-PROMPTS = (
-    "a small house decorated for Christmas",
-    "a quiet forest lake in autumn",
-    "a desert village at noon",
-    "a cosy living room with bookshelves",
-    "a snowy mountain cabin",
-    "a modern office with desks",
-)
 DIRECTIONS = ("left", "right", "up", "down")
 TURN_DEG = (20.0, 45.0)
 FORWARD_M = (0.5, 2.0)
