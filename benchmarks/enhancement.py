@@ -23,6 +23,13 @@ with and without the defects of real AI video.
   depths) and `chamfer_m` (m): the preset's mesh (TSDF of every view's rendered depth, the preset's `MeshParams`,
   clean-up) against points sampled on the world's triangles that a training camera sees at ANY distance (not only
   within the fusion's reach: a mesh that covers only the nearer half loses recall).
+- What the images can determine (`determinable`): a world point seen by training cameras whose rays to it span an
+  angle θ (widest pair, occlusion ignored, so an upper bound) has a depth uncertainty of about z σ / θ from
+  triangulation (z its nearest camera's depth, σ `MATCH_SIGMA_PX` pixels at the training size as an angle).
+  `parallax_bound` is the share of the seen world (by area) where that is below the F-score's threshold: no method
+  that gets depth from parallax recalls more. `f1_determined` is the F-score there (recall over those world
+  points, precision over the mesh points whose nearest world point is one): what the reconstruction makes of what
+  the video determines.
 
 Usage: `python -m benchmarks.enhancement [--quick] [--preset preview|standard] [--worlds outdoor indoor]
 [--conditions clean texture_poor ai_like] [--variants rgb depth normal both] [--loss KEY=VALUE ...]
@@ -32,7 +39,8 @@ Last-line keys (means over the worlds run): `fscore_gain_lowtex`, `fscore_gain_a
 "rgb_seeded", texture-poor and AI-like conditions: what the loss terms add), `depth_gain_ai` (1 - AbsRel both /
 AbsRel rgb_seeded, AI-like), `psnr_cost_clean_db` (PSNR rgb_seeded minus both, clean), the same four against
 "rgb" with the suffix `_vs_rgb` (what the priors add as a whole), and with --preset standard/high
-`fscore_standard` / `fscore_high` (F@1 % of "both", mean over worlds and conditions). A baseline not run: NaN.
+`fscore_standard` / `fscore_high` (F@1 % of "both", mean over worlds and conditions), `fscore_standard_determined`
+/ `fscore_high_determined` (the same as `f1_determined`) and `parallax_bound` (its mean). A baseline not run: NaN.
 """
 
 from __future__ import annotations
@@ -69,7 +77,9 @@ FEATURE_SHARE = 0.02  # share of a frame's pixels that count as features (strong
 FEATURE_FRAME_STRIDE = 2
 GT_SAMPLES = 1_000_000
 PRED_SAMPLES = 300_000
-FULL_REACH = 1e3  # max_depth_frac of the "f1_full_reach" column: every rendered depth is fused
+FULL_REACH = 1e3  # max_depth_frac of the "f1_full_reach" column: every rendered depth is fused at the fine voxel
+MATCH_SIGMA_PX = 0.25  # a good sub-pixel match (feature matching, or photometric alignment of sharp texture)
+DETERMINABLE_SAMPLES = 50_000
 
 
 def corner_mask(frame: np.ndarray, share: float) -> np.ndarray:
@@ -214,12 +224,15 @@ def mesh_scores(
 ) -> dict[str, float]:
     """F@1 % and Chamfer (m) of the preset's mesh (its fusion reach, or `max_depth_frac`) fused from (rgb, depth)
     at every view, against the world."""
+    from scipy.spatial import cKDTree
+
     from benchmarks.mesh import visible_gt_points
     from wonderverse.camera import scene_extent
     from wonderverse.mesh import TsdfFusion, clean_mesh
     from wonderverse.metrics import chamfer_fscore, sample_mesh_points
 
     views = data["views"]
+    h, w = views.frames.shape[1:3]
     extent = scene_extent(views.w2c, data["gt_depth"])
     mesh_params = cfg.steps.outputs.mesh
     if max_depth_frac is not None:
@@ -230,16 +243,48 @@ def mesh_scores(
     mesh = clean_mesh(fusion.extract(), mesh_params)
     if "gt_points" not in data:
         data["gt_points"] = visible_gt_points(data["world"], views.K, views.w2c, data["gt_depth"], np.inf)
+        data["determinable"] = determinable(data["gt_points"], views.K, views.w2c, 0.01 * extent, h, w)
     pred_pts = sample_mesh_points(mesh.vertices, mesh.triangles, PRED_SAMPLES, seed=1)
     m = chamfer_fscore(pred_pts, data["gt_points"], [0.01 * extent])
-    return {"f1": float(m["fscore"][0]), "chamfer_m": float(m["chamfer"])}
+    sub, ok = data["determinable"]
+    near = ok[cKDTree(sub).query(pred_pts, workers=1)[1]]
+    d = chamfer_fscore(pred_pts[near], sub[ok], [0.01 * extent])
+    return {"f1": float(m["fscore"][0]), "chamfer_m": float(m["chamfer"]), "f1_determined": float(d["fscore"][0])}
+
+
+def determinable(
+    points: np.ndarray, K: np.ndarray, w2c: np.ndarray, tolerance: float, h: int, w: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """A sample of `points` (M,3) and, per point, whether triangulation from the cameras that frame it (W2C
+    (N,4,4), K at h×w) can give its depth within `tolerance` at `MATCH_SIGMA_PX` (module docstring)."""
+    rng = np.random.default_rng(0)
+    sub = points[rng.choice(len(points), min(DETERMINABLE_SAMPLES, len(points)), replace=False)]
+    centres = np.stack([-c[:3, :3].T @ c[:3, 3] for c in w2c])
+    cam = np.einsum("nij,pj->npi", w2c[:, :3, :3], sub) + w2c[:, None, :3, 3]  # (N,P,3)
+    z = cam[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u, v = K[0, 0] * cam[..., 0] / z + K[0, 2], K[1, 1] * cam[..., 1] / z + K[1, 2]
+    framed = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)  # (N,P)
+    rays = sub[None] - centres[:, None]
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    widest = np.zeros(len(sub))
+    for start in range(0, len(sub), 2000):
+        part = slice(start, start + 2000)
+        r, f = rays[:, part].transpose(1, 0, 2), framed[:, part].T  # (p,N,3), (p,N)
+        cos = np.einsum("pik,pjk->pij", r, r)
+        cos = np.where(f[:, :, None] & f[:, None, :], cos, 1.0)
+        widest[part] = np.arccos(np.clip(cos.min(axis=(1, 2)), -1.0, 1.0))
+    nearest = np.where(framed, z, np.inf).min(axis=0)
+    sigma = nearest * MATCH_SIGMA_PX / K[0, 0] / np.maximum(widest, 1e-12)
+    return sub, sigma < tolerance
 
 
 def ceiling(data: dict[str, Any], cfg: Any) -> dict[str, float]:
     """The fusion's ceiling: the same mesh from the true depth at every view."""
     frames = data["views"].frames
     images = [(f, d) for f, d in zip(frames, data["gt_depth"], strict=True)]
-    return mesh_scores(data, images, cfg) | {"f1_full_reach": mesh_scores(data, images, cfg, FULL_REACH)["f1"]}
+    top = mesh_scores(data, images, cfg) | {"f1_full_reach": mesh_scores(data, images, cfg, FULL_REACH)["f1"]}
+    return top | {"parallax_bound": float(np.mean(data["determinable"][1]))}
 
 
 def parse_overrides(items: list[str]) -> dict[str, Any]:
@@ -268,7 +313,10 @@ def headline(rows: list[dict[str, Any]], preset: str) -> dict[str, float]:
             f"psnr_cost_clean_db{suffix}": mean("clean", base, "psnr") - mean("clean", "both", "psnr"),
         }
     if preset in ("standard", "high"):
-        head[f"fscore_{preset}"] = float(np.mean([r["f1"] for r in rows if r["variant"] == "both"]))
+        both = [r for r in rows if r["variant"] == "both"]
+        head[f"fscore_{preset}"] = float(np.mean([r["f1"] for r in both]))
+        head[f"fscore_{preset}_determined"] = float(np.mean([r.get("f1_determined", np.nan) for r in both]))
+        head["parallax_bound"] = float(np.mean([r.get("parallax_bound", np.nan) for r in both]))
     return {k: round(v, 4) for k, v in head.items()}
 
 
@@ -313,6 +361,7 @@ def main() -> None:
                 row = {"world": world, "condition": condition, "variant": variant}
                 row |= {"psnr": run["psnr"], **score(data, run, cfg), "gaussians": run["gaussians"]}
                 row |= {"ceiling_f1": top["f1"], "ceiling_f1_full_reach": top["f1_full_reach"]}
+                row |= {"parallax_bound": top["parallax_bound"]}
                 row |= {"train_s": run["seconds"], "prepare_s": prep_s}
                 rows.append(row)
                 print(json.dumps({k: round(x, 4) if isinstance(x, float) else x for k, x in row.items()}), flush=True)

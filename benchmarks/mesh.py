@@ -221,8 +221,8 @@ def measure(cfg: Any, scene: dict[str, Any]) -> tuple[list[dict[str, Any]], tupl
     extent = scene_extent(scene["w2c"], [v[1] for v in rendered[0][0]])  # as the pipeline sees it: SfM units
     gt_cache: dict[float, np.ndarray] = {}
 
-    def gt_points(max_depth_frac: float, ext_m: float) -> dict[str, Any]:
-        reach = max_depth_frac * ext_m  # the fusion's max depth, in metres
+    def gt_points(reach_frac: float, ext_m: float) -> dict[str, Any]:
+        reach = reach_frac * ext_m  # the fusion's max depth, in metres (inf: every depth)
         if reach not in gt_cache:
             gt_cache[reach] = visible_gt_points(world, true_K, gt_w2c, depth, reach)
         return {"points": gt_cache[reach], "thresholds": thresholds}
@@ -233,12 +233,12 @@ def measure(cfg: Any, scene: dict[str, Any]) -> tuple[list[dict[str, Any]], tupl
         if extra not in rendered:
             rendered[extra] = render(scene, extra, rw, rh, K)
         views, render_s = rendered[extra]
-        gt = gt_points(params.max_depth_frac, extent * to_world.s)
+        gt = gt_points(params.reach_frac, extent * to_world.s)
         rows.append(evaluate(name, params, views, extent, to_world, gt) | {"render_s": render_s})
     # the same fusion on the true depth and poses of the training frames: what the splats' depth costs
     oracle_views = [(c, d, true_K, p) for c, d, p in zip(scene["frames"], depth, gt_w2c, strict=True)]
     params = PRESET_MESH["standard"].model_copy(update={"extra_views_per_gap": 0})
-    gt = gt_points(params.max_depth_frac, extent_gt)
+    gt = gt_points(params.reach_frac, extent_gt)
     rows.append(evaluate("true depth", params, oracle_views, extent_gt, Sim3.identity(), gt))
     rows[-1]["render_s"] = 0.0
     return rows, (rw, rh), extent_gt

@@ -165,7 +165,7 @@ def score(scene_dir: Path, cfg: Any) -> dict[str, Any]:
     mesh = trimesh.load(scene_dir / "mesh.ply", force="mesh")
     vertices = output_frame(store).apply_inverse(np.asarray(mesh.vertices))  # the files' frame -> sfm/ frame
     pred = to_world.apply(sample_mesh_points(vertices, np.asarray(mesh.faces), 300_000, seed=1))
-    reach = cfg.steps.outputs.mesh.max_depth_frac * store.attrs(OUTPUTS.path)["mesh"]["extent"] * to_world.s
+    reach = cfg.steps.outputs.mesh.reach_frac * store.attrs(OUTPUTS.path)["mesh"]["extent"] * to_world.s
     extent = scene_extent(f["gt_w2c"], f["gt_depth"])
     gt_pts = visible_gt_points(video.world, video.K, f["gt_w2c"], f["gt_depth"], reach)
     fs = chamfer_fscore(pred, gt_pts, [0.01 * extent])

@@ -147,9 +147,21 @@ def test_sky_pixels_add_nothing_and_carve_nothing(fused: TriMesh):
         return {tuple(p) for p in np.round(m.vertices[far], 9)}
 
     assert far_from_pixel(again) == far_from_pixel(fused)
-    # depths beyond max_depth_frac * extent are background: far cameras see nothing
-    near_only = MeshParams(voxel_frac=1 / 128, max_depth_frac=0.5)  # 2 m; the ring sees the scene at 2.5-4 m
+    # depths beyond far_depth_frac * extent are background: with the far volume off, far cameras see nothing
+    near_only = MeshParams(voxel_frac=1 / 128, max_depth_frac=0.5, far_depth_frac=0.5)  # 2 m; the ring: 2.5-4 m
     assert len(fuse_tsdf(views(), EXTENT, near_only).triangles) == 0
+
+
+def test_depths_beyond_the_near_reach_go_to_a_coarser_volume():
+    """The ring sees the scene at 2.5-4 m, beyond a 2 m near reach: the far volume (4x the voxel) still meshes
+    the plane and the box, within its coarser voxel of the truth, with fewer triangles than the fine volume."""
+    fine = fuse_tsdf(views(), EXTENT, PARAMS)
+    coarse = fuse_tsdf(views(), EXTENT, PARAMS.model_copy(update={"max_depth_frac": 0.5, "far_voxel_scale": 4.0}))
+    assert 0 < len(coarse.triangles) < 0.5 * len(fine.triangles)
+    m = chamfer_fscore(sample_mesh_points(coarse.vertices, coarse.triangles, 20_000), gt_points(), [0.1])
+    assert m["accuracy"] < 4 * EXTENT * PARAMS.voxel_frac and m["fscore"][0] > 0.9
+    with pytest.raises(ValueError, match="far_depth_frac"):
+        MeshParams(max_depth_frac=0.5, far_depth_frac=0.4)
 
 
 def test_clean_mesh_drops_a_floating_blob_and_decimates():

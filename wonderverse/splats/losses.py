@@ -261,3 +261,13 @@ def total_loss(
         terms["depth_normal"] = l_dn.detach()
     terms["total"] = total.detach()
     return total, terms
+
+
+def flatten_loss(log_scales: Tensor) -> Tensor:
+    """Mean over Gaussians of shortest axis / middle axis (0: flat discs, 1: spheres), from (N,3) log scales.
+    A ratio, so it flattens without shrinking: the scene's scale and the Gaussians' sizes do not change it.
+    0 for no Gaussian."""
+    if log_scales.shape[0] == 0:
+        return log_scales.sum() * 0.0
+    s = torch.sort(log_scales, dim=-1).values
+    return torch.exp(s[:, 0] - s[:, 1]).mean()

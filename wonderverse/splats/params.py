@@ -46,6 +46,12 @@ class LossParams(BaseModel):
     lambda_depth_normal: float = Field(
         0.0, ge=0, description="weight of mean (1 - cos) between rendered normals and rendered-depth normals"
     )
+    lambda_flatten: float = Field(
+        0.0,
+        ge=0,
+        description="weight of the mean over Gaussians of shortest / middle axis: flat Gaussians (surfels), whose "
+        "shortest axis is a surface normal and whose depth is a surface's",
+    )
 
 
 class DensifyParams(BaseModel):

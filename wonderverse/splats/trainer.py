@@ -36,7 +36,7 @@ import torch
 
 from wonderverse.progress import ProgressFn, no_progress
 from wonderverse.splats.compiled import Compiled
-from wonderverse.splats.losses import masked_mean, texture_weight, total_loss
+from wonderverse.splats.losses import flatten_loss, masked_mean, texture_weight, total_loss
 from wonderverse.splats.model import GaussianModel
 from wonderverse.splats.params import LossParams, TrainParams
 from wonderverse.splats.renderer import Renderer
@@ -574,6 +574,10 @@ def train(
         tensors = [r for r in renders if r.requires_grad]
         grad_tensors = [g for r, g in zip(renders, grads, strict=True) if r.requires_grad]
         reg = None if strategy is None else strategy.regularization(pdict)
+        if params.loss.lambda_flatten > 0 and model.num_gaussians:
+            flat = params.loss.lambda_flatten * flatten_loss(pdict["log_scales"])
+            terms["flatten"] = flat.detach()
+            reg = flat if reg is None else reg + flat
         if reg is not None:
             tensors.append(reg)
             grad_tensors.append(torch.ones_like(reg))
