@@ -22,7 +22,7 @@ from typing import Any
 import numpy as np
 
 from tasks.base import Step, StepContext
-from tasks.parallel import fan_out, map_segments
+from tasks.parallel import fan_out, segment_pool
 from tasks.plan import load_plan
 from tasks.progress import advance, callback
 from tasks.segment_geometry import depth_settings, parent_geometry_key, parent_guide
@@ -37,11 +37,6 @@ from wonderverse.store import SceneStore, cache_key, write_array
 from wonderverse.video import source_takes_guide
 
 SEGMENT_VERSION = 2  # 2: keyed by the step's params model
-# How guided flows render guides. The depth a segment's frames are placed by is good to about 10 % (a monocular
-# network aligned to a short clip's SfM), so points of one surface lifted from two frames disagree by that much:
-# within 15 % they count as one surface and the frame the extension continues from wins, instead of a farther
-# frame's point drawn over it (on 160x112 procedural extensions: +0.5 to +1.2 dB against the default 3 %).
-FLOW_GUIDE = GuideParams(depth_tol_rel=0.15)
 
 
 class Params(Model):
@@ -54,19 +49,22 @@ class Params(Model):
 class GuidedParams(Params):
     """A guided flow's: also what each extension's guide is made from, since every segment is checked and placed
     here before its extensions are generated: the check's settings (which attempt is accepted, its SfM), the depth
-    settings that place its frames (`tasks.segment_geometry.depth_settings`) and how guides are rendered."""
+    settings that place its frames (`tasks.segment_geometry.depth_settings`), how they are placed and how guides
+    are rendered (`steps.generate_segments`)."""
 
     check: CheckStepParams
     depth: PriorsStepParams
-    geometry: GeometryParams = GeometryParams()
-    guide: GuideParams = FLOW_GUIDE
+    geometry: GeometryParams
+    guide: GuideParams
 
 
 def params(cfg: RunConfig) -> Params:
     base = Params(source=cfg.scene.video_source, strafe_m_per_deg=cfg.steps.plan.strafe_m_per_deg)
     if not source_takes_guide(cfg.scene.video_source):
         return base
-    return GuidedParams(**dict(base), check=cfg.steps.check, depth=depth_settings(cfg.steps.priors))
+    g = cfg.steps.generate_segments
+    depth = depth_settings(cfg.steps.priors)
+    return GuidedParams(**dict(base), check=cfg.steps.check, depth=depth, geometry=g.geometry, guide=g.guide)
 
 
 def _base(p: Params) -> Params:
@@ -257,9 +255,19 @@ def _generate_one(
         write_attempt(g.create_group(first.relative_to(at)), first, video, seed, v.backend, record)
 
 
+def _side_by_side(store: SceneStore, waves: list[list[str]]) -> bool:
+    """Whether some wave has two segments never checked before (a new scene, new extensions): then the workers are
+    started ahead, while the first wave renders. (A re-run, or a new extension alone in its wave, starts none.)"""
+    return any(sum(not store.exists(SEGMENT.at(seg=seg).accepted) for seg in batch) >= 2 for batch in waves)
+
+
 def _run_guided(store: SceneStore, p: GuidedParams, ctx: StepContext, model: Any, info: dict[str, Any]) -> str:
     """Wave by wave: render the wave's segments (an extension from its parent's guide), then check and place
-    each of them (one task per segment, on Dask when there are workers), then the next wave."""
+    each of them (one task per segment, on Dask when there are workers), then the next wave.
+
+    One cluster serves every wave (started ahead, while the first wave renders, when a wave will have segments
+    to check side by side), and a segment's check is submitted to it as soon as the segment is rendered, so it
+    runs while the wave's other segments render. Without workers the order is render all, then check each."""
     from tasks.check import THIS_RUN, is_checked
     from tasks.check import Params as CheckParams
     from tasks.segment_geometry import check_and_place
@@ -270,46 +278,51 @@ def _run_guided(store: SceneStore, p: GuidedParams, ctx: StepContext, model: Any
             "set steps.priors.models.depth_backend (none names no depth model)"
         )
     check_p = CheckParams(check=p.check, source=p.source)
+    scene_dir = str(store.scene_dir)
+    waves = [[seg for seg, i in info.items() if i["wave"] == w] for w in sorted({i["wave"] for i in info.values()})]
     n, rendered, regenerated, dropped, unplaced = len(info), 0, 0, [], []
-    for wave in sorted({i["wave"] for i in info.values()}):
-        batch = [seg for seg, i in info.items() if i["wave"] == wave]
+    workers = min(ctx.execution.segment_workers, max(len(batch) for batch in waves))
+    with segment_pool(workers, ctx.execution.dask_address) as pool:
+        if _side_by_side(store, waves):
+            pool.start()
+        for wave, batch in enumerate(waves):
+            submitted: dict[str, Any] = {}
 
-        def generate(seg: str) -> bool:
-            """Render `seg` unless it is complete under its key (an extension's needs its parent's geometry)."""
-            i = info[seg]
-            if i["parent"] is not None:
-                geometry = parent_geometry_key(store, seg, i["parent"])
-                i["key"] = guided_key(p, i["plan"], info[i["parent"]]["key"], geometry)
-            if store.is_complete(SEGMENT.at(seg=seg), i["key"]):
-                return False
-            _generate_one(store, p.source, model, seg, i, p.guide)
-            return True
+            def generate(seg: str, submitted: dict[str, Any] = submitted) -> bool:
+                """Render `seg` unless it is complete under its key (an extension's needs its parent's geometry),
+                then submit its check unless it is checked already. True when rendered."""
+                i = info[seg]
+                if i["parent"] is not None:
+                    geometry = parent_geometry_key(store, seg, i["parent"])
+                    i["key"] = guided_key(p, i["plan"], info[i["parent"]]["key"], geometry)
+                fresh = not store.is_complete(SEGMENT.at(seg=seg), i["key"])
+                if fresh:
+                    _generate_one(store, p.source, model, seg, i, p.guide)
+                if not is_checked(store, check_p, seg):
+                    args = (seg, scene_dir, check_p, p.depth, p.geometry)
+                    submitted[seg] = pool.submit(check_and_place, *args, only_if_started=True)
+                return fresh
 
-        progress = callback(f"segments of wave {wave + 1} generated")
-        rendered += sum(fan_out("generate_segments", batch, generate, ctx.execution.generate_workers, progress))
-        # segments checked before (a re-run, an extension's older siblings) are placed here: no workers start
-        todo = [seg for seg in batch if not is_checked(store, check_p, seg)]
-        done = {
-            seg: check_and_place(seg, str(store.scene_dir), check_p, p.depth, p.geometry)
-            for seg in batch
-            if seg not in todo
-        }
-        fresh = map_segments(
-            check_and_place,
-            todo,
-            str(store.scene_dir),
-            check_p,
-            p.depth,
-            p.geometry,
-            workers=ctx.execution.segment_workers,
-            address=ctx.execution.dask_address,
-            step="check",
-            progress=callback(f"segments of wave {wave + 1} checked and placed"),
-        )
-        out = [fresh[todo.index(seg)] if seg in todo else done[seg] for seg in batch]
-        regenerated += sum(r[THIS_RUN]["regenerated"] for r in out)
-        dropped += [r["segment"] for r in out if r["dropped"]]
-        unplaced += [r["segment"] for r in out if not r["dropped"] and not r["geometry"]["placed"]]
+            try:
+                progress = callback(f"segments of wave {wave + 1} generated")
+                workers_g = ctx.execution.generate_workers
+                rendered += sum(fan_out("generate_segments", batch, generate, workers_g, progress))
+                # segments checked before (a re-run, an extension's older siblings) are placed here, in-process
+                done = {
+                    seg: check_and_place(seg, scene_dir, check_p, p.depth, p.geometry)
+                    for seg in batch
+                    if seg not in submitted
+                }
+                todo = [seg for seg in batch if seg in submitted]
+                checked = callback(f"segments of wave {wave + 1} checked and placed")
+                fresh = dict(zip(todo, pool.gather("check", todo, submitted, checked), strict=True))
+            except Exception:
+                pool.settle(submitted.values())  # what the workers are writing is finished before they stop
+                raise
+            out = [fresh[seg] if seg in fresh else done[seg] for seg in batch]
+            regenerated += sum(r[THIS_RUN]["regenerated"] for r in out)
+            dropped += [r["segment"] for r in out if r["dropped"]]
+            unplaced += [r["segment"] for r in out if not r["dropped"] and not r["geometry"]["placed"]]
     msg = f"{rendered} rendered, {n - rendered} cached; checked and placed ({regenerated} regenerated"
     msg += f", dropped {', '.join(dropped)}" if dropped else ""
     msg += f", not placed {', '.join(unplaced)}" if unplaced else ""

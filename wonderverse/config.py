@@ -30,11 +30,13 @@ from pydantic_core import InitErrorDetails, PydanticCustomError
 from wonderverse.camera import DEFAULT_FOV_DEG
 from wonderverse.check import CheckParams
 from wonderverse.errors import ConfigError, shown
+from wonderverse.guide import GuideParams
 from wonderverse.mesh import MeshParams
 from wonderverse.plan_following import PlanFollowingParams
 from wonderverse.planning.params import ExtensionSpec, PlannerSpec, PlanParams
 from wonderverse.priors.params import PriorsParams
 from wonderverse.quality.params import QualityParams
+from wonderverse.segment_geometry import GeometryParams
 from wonderverse.sfm import SfmParams
 from wonderverse.splats.cleanup import ExportPruneParams
 from wonderverse.splats.params import TrainParams
@@ -211,6 +213,25 @@ class CheckStepParams(Model):
     )
 
 
+# How guided flows render guides. The depth a segment's frames are placed by is good to about 10 % (a monocular
+# network aligned to a short clip's SfM), so points of one surface lifted from two frames disagree by that much:
+# within 15 % they count as one surface and the frame the extension continues from wins, instead of a farther
+# frame's point drawn over it (on 160x112 procedural extensions: +0.5 to +1.2 dB against the library's 3 %).
+FLOW_GUIDE = GuideParams(depth_tol_rel=0.15)
+
+
+class GenerateStepParams(Model):
+    """Step `generate_segments`, read only by guided flows (a video model that takes guides: the procedural world
+    with `accept_guide`, the `wan_vace` family): how each segment's frames are placed in the plan's world, and how
+    an extension's guide is rendered from its parent's placed frames. Unguided flows read none of it, so their
+    cache keys never depend on it."""
+
+    geometry: GeometryParams = Field(
+        GeometryParams(), description="placing a checked segment's frames in the plan's world (depth fusion, fit)"
+    )
+    guide: GuideParams = Field(FLOW_GUIDE, description="rendering an extension's guide from its parent's frames")
+
+
 class PosesParams(Model):
     """Step `poses`: one camera path for the whole stitched video."""
 
@@ -297,6 +318,7 @@ class ExecutionParams(Model):
 
 class StepsConfig(Model):
     plan: PlanParams = PlanParams()
+    generate_segments: GenerateStepParams = GenerateStepParams()
     check: CheckStepParams = CheckStepParams()
     poses: PosesParams = PosesParams()
     priors: PriorsStepParams = PriorsStepParams()
