@@ -337,7 +337,7 @@ def inspect(
     """Steps with status and cache key, segments (or clips) with attempts and checks, priors, arrays and sizes."""
     from rich.table import Table
 
-    from flows.inspect import damaged_lines, summarize
+    from flows.inspect import damaged_lines, guide_words, summarize
     from wonderverse.report import CLIP_VERDICTS
     from wonderverse.store import SceneStore
 
@@ -366,10 +366,16 @@ def inspect(
     else:
         t = Table(title="segments (stitched order: " + " ".join(info["order"]) + ")")
         columns = ("segment", "role", "move", "attempts", "accepted", "check", "frames", "MB")
+    # guided extensions: the share of known pixels of the guide the shown attempt (accepted, else the last) came from
+    guided = not clips and any(a["guide"] is not None for s in info["segments"] for a in s["attempts"])
+    unguided: list[str] = []
+    if guided:
+        columns = (*columns[:6], "guide known", *columns[6:])
     for c in columns:
         t.add_column(c)
     for s in info["segments"]:
         acc = next((a for a in s["attempts"] if a["index"] == s["accepted_attempt"]), None)
+        shown = acc or (s["attempts"][-1] if s["attempts"] else {})
         check = (acc or {}).get("check") or {}
         verdict = "-" if not check else ("ok" if check.get("accepted") else "rejected")
         shape = ((acc or {}).get("arrays", {}).get("frames") or {}).get("shape", "-")
@@ -383,17 +389,17 @@ def inspect(
             row = [s["id"], name, frames, f"{clip['k_source'] or '-'}{fov}", CLIP_VERDICTS[clip["verdict"]]]
             t.add_row(*row, f"{mb:.1f}")
             continue
-        t.add_row(
-            s["id"],
-            str(s["role"]),
-            str(s["move"]),
-            str(len(s["attempts"])),
-            str(s["accepted_attempt"]),
-            verdict,
-            "x".join(map(str, shape)) if shape != "-" else "-",
-            f"{mb:.1f}",
-        )
+        row = [s["id"], str(s["role"]), str(s["move"]), str(len(s["attempts"])), str(s["accepted_attempt"]), verdict]
+        if guided:
+            row.append(guide_words(shown.get("guide")))
+            if shown.get("guide") and guide_words(shown["guide"]) == "none":
+                unguided.append(
+                    f"{s['id']}: generated without a guide: {shown['guide']['reason'] or 'no reason recorded'}"
+                )
+        t.add_row(*row, "x".join(map(str, shape)) if shape != "-" else "-", f"{mb:.1f}")
     out.print(t)
+    for line in unguided:
+        out.print(line, highlight=False)
     for c in clips.values():
         if c["reasons"]:
             label = c["name"] + ("/" if c["kind"] == "folder" else "")

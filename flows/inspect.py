@@ -198,6 +198,40 @@ def global_k(store: SceneStore) -> dict[str, Any] | None:
     return {"k_source": str(a["k_source"]), "fov_deg": fov}
 
 
+GUIDE_TRUTH = ("coverage", "psnr_db", "depth_absrel", "depth_off_share")
+
+
+def guide(store: SceneStore, seg: str, k: int) -> dict[str, Any] | None:
+    """The guide attempt `k` of segment `seg` was generated from (guided flows' extensions): {source, coverage,
+    reason, truth}. source: where it was rendered from ("segment s000, attempt 0"), None when the extension was
+    generated without one (its parent could not be placed in the plan's world: `reason` says why); coverage:
+    share of its pixels known (0..1); truth: the guide against the ground truth, measured by the procedural
+    backend ({coverage, psnr_db, depth_absrel, depth_off_share}; None for other backends). None when the attempt
+    was generated without looking for a guide (an unguided flow, an initial segment)."""
+    ap = ATTEMPT.at(seg=seg, attempt=k)
+    record = store.attrs(ap).get("guide")
+    if not isinstance(record, dict):
+        return None
+    truth = store.attrs(ap.gt).get("guide") if store.exists(ap.gt) else None
+    coverage = record.get("coverage")
+    return {
+        "source": record.get("source"),
+        "coverage": float(coverage) if isinstance(coverage, int | float) else None,
+        "reason": str(record.get("reason") or ""),
+        "truth": {name: truth.get(name) for name in GUIDE_TRUTH} if isinstance(truth, dict) else None,
+    }
+
+
+def guide_words(g: dict[str, Any] | None) -> str:
+    """A guide (`guide`) in a few words: its share of known pixels ("71 %"), "none" when the extension was
+    generated without one, "-" for an attempt that looked for none."""
+    if g is None:
+        return "-"
+    if g["source"] is None or g["coverage"] is None:
+        return "none"
+    return f"{100 * g['coverage']:.0f} %"
+
+
 def _expected_keys(store: SceneStore) -> dict[str, str]:
     config = store.root.attrs.get("config")
     if not config:
@@ -229,6 +263,7 @@ def summarize(store: SceneStore) -> dict[str, Any]:
                     "seed": at.get("seed"),
                     "check": store.attrs(ap.check) or None,
                     "faults": store.attrs(ap.gt).get("faults") if store.exists(ap.gt) else None,
+                    "guide": guide(store, seg, k),
                     "arrays": _arrays(store, ap),
                     "bytes": store.size_bytes(ap),
                 }

@@ -169,6 +169,7 @@ def _attempt(store: SceneStore, seg: str, k: int, chosen: int | None, params: An
     has_gt = store.exists(ap.gt)
     if has_gt:
         info.fault = _fault_words(store.attrs(ap.gt).get("faults"))
+    _guide(store, seg, k, info)
     check = store.attrs(ap.check)
     if check.get("complete") is not True:
         return info
@@ -186,6 +187,24 @@ def _attempt(store: SceneStore, seg: str, k: int, chosen: int | None, params: An
         if gt is not None:
             info.metrics["SfM ATE (% of path)"] = _ate_percent(est, gt)
     return info
+
+
+def _guide(store: SceneStore, seg: str, k: int, info: AttemptInfo) -> None:
+    """Into `info`: the guide attempt `k` was generated from (in words, and its share of known pixels) and its
+    errors against the ground truth when the procedural backend measured them (attempts table columns)."""
+    from flows.inspect import guide
+
+    g = guide(store, seg, k)
+    if g is None:
+        return
+    if g["source"] is None or g["coverage"] is None:
+        info.guide = f"none: {g['reason'] or 'no reason recorded'}"
+        return
+    info.guide = f"{100 * g['coverage']:.0f} % of pixels known, from {g['source']}"
+    info.guide_coverage = g["coverage"]
+    if g["truth"]:
+        info.metrics["guide PSNR vs GT (dB)"] = g["truth"].get("psnr_db")
+        info.metrics["guide depth AbsRel vs GT"] = g["truth"].get("depth_absrel")
 
 
 def _status(store: SceneStore, seg: str, n_attempts: int) -> tuple[str, bool | None]:
@@ -581,6 +600,9 @@ def _metrics(store: SceneStore, segments: list[SegmentInfo]) -> tuple[dict[str, 
             "dropped segments": ", ".join(check.get("dropped", [])) or "none",
             "kept failing": ", ".join(check.get("kept_failing", [])) or "none",
         }
+    guided = _guided_extensions(segments)
+    if guided:
+        metrics["Guided extensions"] = guided
     if store.cache_key_of(SFM.path) is not None:
         a = store.attrs(SFM.path)
         poses = store.array(SFM.poses)
@@ -644,6 +666,24 @@ def _metrics(store: SceneStore, segments: list[SegmentInfo]) -> tuple[dict[str, 
     if pruned:
         metrics["Exported splats"] = _export_facts(pruned, out.get("frame") or {})
     return metrics, headline
+
+
+def _guided_extensions(segments: list[SegmentInfo]) -> dict[str, Any]:
+    """Over the extensions of a guided flow (the attempt each follows: the accepted one, else the last): how many
+    were generated from a guide, and the mean share of their guides' pixels that were known. Empty when none
+    looked for a guide."""
+    shown = []
+    for s in segments:
+        chosen = next((a for a in s.attempts if a.chosen), s.attempts[-1] if s.attempts else None)
+        if chosen is not None and chosen.guide is not None:
+            shown.append(chosen.guide_coverage)
+    if not shown:
+        return {}
+    known = [c for c in shown if c is not None]
+    return {
+        "generated from a guide": f"{len(known)} of {len(shown)}",
+        "known pixels of their guides (mean)": f"{100 * np.mean(known):.0f} %" if known else None,
+    }
 
 
 def _export_facts(pruned: dict[str, Any], frame: dict[str, Any]) -> dict[str, Any]:

@@ -22,8 +22,8 @@ from tasks import generate_segments as gs
 from tasks.plan import load_plan
 from tasks.segments import stitched_frame_index
 from wonderverse.camera import camera_centers
-from wonderverse.config import RunConfig, build_config
-from wonderverse.errors import WonderError
+from wonderverse.config import RunConfig, build_config, deep_merge
+from wonderverse.errors import ConfigError, WonderError
 from wonderverse.store import SceneStore, cache_key
 from wonderverse.video import make_video_model
 from wonderverse.video.base import Guide
@@ -36,10 +36,18 @@ GUIDED_VIDEO = {
     "frames_per_segment": 9,
     "options": {"fault_probability": 0.0, "accept_guide": True},
 }
+# Settings of steps.generate_segments other than the defaults, which must reach the flow: guides for splats only
+# (so the frames' guides are as with the defaults) and a placement tolerance every segment here is well within.
+GUIDE_SETTINGS = {"splat_min_alpha": 0.4}
+GEOMETRY_SETTINGS = {"max_fit_rms_rel": 0.25}
 GUIDED: dict[str, Any] = {
     "preset": "preview",
     "scene": {"prompt": PROMPT, "video": GUIDED_VIDEO},
-    "steps": {"plan": {"yaw_step_deg": 30.0}, "check": {"max_attempts": 1}},
+    "steps": {
+        "plan": {"yaw_step_deg": 30.0},
+        "check": {"max_attempts": 1},
+        "generate_segments": {"guide": GUIDE_SETTINGS, "geometry": GEOMETRY_SETTINGS},
+    },
     "execution": {"segment_workers": 2},  # the wave of two extensions is checked on a Dask LocalCluster
 }
 
@@ -95,6 +103,72 @@ def test_each_extension_is_generated_from_its_parents_guide(guided: tuple[Path, 
         assert np.abs(first - ref).mean() < 8.0
 
 
+def test_the_guide_and_geometry_settings_come_from_the_config(guided: tuple[Path, Path, str]) -> None:
+    from tasks.segment_geometry import depth_settings, geometry_key
+    from wonderverse.guide import GuideParams
+    from wonderverse.segment_geometry import GeometryParams
+
+    scene, config, _ = guided
+    cfg = config_of(config)
+    store = SceneStore.open(scene)
+    guide = GuideParams(depth_tol_rel=0.15, **GUIDE_SETTINGS)  # the flow's default depth tolerance, kept
+    for seg in ("s001", "s002"):
+        assert store.attrs(f"segments/{seg}")["guide_params"] == guide.model_dump(mode="json")
+    accepted = store.attrs("segments/s000/accepted")
+    frames = store.array("segments/s000/attempts/0/frames")
+    placed_by = GeometryParams(**GEOMETRY_SETTINGS)
+    key = geometry_key(accepted["cache_key"], 0, frames, depth_settings(cfg.steps.priors), placed_by)
+    assert store.cache_key_of("segments/s000/geometry") == key
+
+
+def test_a_default_config_keeps_the_keys_made_before_the_settings_existed() -> None:
+    """The guided flow's key as it was computed with the guide and geometry settings fixed in code."""
+    from tasks.segment_geometry import depth_settings
+    from wonderverse.guide import GuideParams
+    from wonderverse.segment_geometry import GeometryParams
+
+    cfg = build_config(PROMPT, preset="preview", overrides={"scene": {"video": GUIDED_VIDEO}})
+    p = gs.params(cfg)
+    assert isinstance(p, gs.GuidedParams)
+    old = {
+        "source": cfg.scene.video_source,
+        "strafe_m_per_deg": cfg.steps.plan.strafe_m_per_deg,
+        "check": cfg.steps.check,
+        "depth": depth_settings(cfg.steps.priors),
+        "geometry": GeometryParams(),
+        "guide": GuideParams(depth_tol_rel=0.15),
+    }
+    keys = step_keys(STEPS, cfg)
+    assert keys["generate_segments"] == cache_key("generate_segments", 2, old, [keys["plan"]])
+    # a setting of steps.generate_segments changes a guided flow's key and no unguided one's
+    over = {"steps": {"generate_segments": {"guide": {"frame_stride": 2}}}}
+    changed = build_config(PROMPT, preset="preview", overrides=deep_merge(over, {"scene": {"video": GUIDED_VIDEO}}))
+    assert gs.params(changed).guide.frame_stride == 2  # type: ignore[attr-defined]
+    assert step_keys(STEPS, changed)["generate_segments"] != keys["generate_segments"]
+    unguided = tiny_config()
+    assert step_keys(STEPS, unguided) == step_keys(STEPS, unguided.model_copy(update={"steps": changed.steps}))
+
+
+@pytest.mark.parametrize(
+    ("setting", "message"),
+    [
+        ({"guide": {"depth_tol": 0.1}}, r"steps\.generate_segments\.guide\.depth_tol: unknown setting"),
+        (
+            {"geometry": {"max_fit_rms_rel": 0}},
+            r"generate_segments\.geometry\.max_fit_rms_rel: .*greater than 0",
+        ),
+        (
+            {"guide": {"frame_stride": 0}},
+            r"generate_segments\.guide\.frame_stride: .*greater than or equal to 1",
+        ),
+        ({"mask": True}, r"steps\.generate_segments\.mask: unknown setting"),
+    ],
+)
+def test_bad_guide_settings_are_refused_naming_the_setting(setting: dict[str, Any], message: str) -> None:
+    with pytest.raises(ConfigError, match=message):
+        build_config(PROMPT, preset="preview", overrides={"steps": {"generate_segments": setting}})
+
+
 def test_segments_are_checked_and_placed_inside_generate_segments(guided: tuple[Path, Path, str]) -> None:
     scene, _, stderr = guided
     assert "checked and placed" in stderr and "3 segments (3 cached)" in stderr, stderr[-3000:]
@@ -113,6 +187,70 @@ def test_segments_are_checked_and_placed_inside_generate_segments(guided: tuple[
         both = np.isfinite(depth) & np.isfinite(true_depth)
         # median AbsRel measured 0.06-0.18: the "realistic" oracle's own error and the bias of a short clip's SfM
         assert np.median(np.abs(depth[both] - true_depth[both]) / true_depth[both]) < 0.25, seg
+
+
+def test_inspect_and_the_report_show_the_guide_of_each_extension(guided: tuple[Path, Path, str]) -> None:
+    """Per attempt: where its guide came from, its share of known pixels, and (procedural) its error against the
+    truth; in `inspect --json`, inspect's table and the HTML report."""
+    import json
+    import re
+
+    from flows.inspect import summarize
+    from flows.report import gather
+    from wonderverse.report import render_html
+
+    scene, _, _ = guided
+    store = SceneStore.open(scene)
+    info = json.loads(json.dumps(summarize(store)))  # JSON as `inspect --json` prints it
+    attempts = {s["id"]: s["attempts"] for s in info["segments"]}
+    assert attempts["s000"][0]["guide"] is None  # the initial segment looks for no guide
+    coverage = {}
+    for seg in ("s001", "s002"):
+        shown = attempts[seg][0]["guide"]
+        truth = store.attrs(f"segments/{seg}/attempts/0/gt")["guide"]
+        assert shown["source"] == "segment s000, attempt 0" and shown["reason"] == ""
+        assert shown["coverage"] == pytest.approx(truth["coverage"]) and 0.3 < shown["coverage"] < 1.0
+        assert shown["truth"]["psnr_db"] == pytest.approx(truth["psnr_db"])
+        assert shown["truth"]["depth_absrel"] == pytest.approx(truth["depth_absrel"])
+        coverage[seg] = shown["coverage"]
+
+    r = run_cli("inspect", str(scene))
+    assert r.returncode == 0, r.stderr
+    assert "guide known" in r.stdout
+    rows = {ln.split()[1]: ln for ln in r.stdout.splitlines() if re.match(r"^\W+s00\d\b", ln)}  # table rows
+    for seg, c in coverage.items():
+        assert f"{100 * c:.0f} %" in rows[seg], rows[seg]
+    assert " - " in rows["s000"].split(" ok ", 1)[1], rows["s000"]  # no guide for the initial segment
+
+    html = render_html(gather(store))
+    for seg, c in coverage.items():
+        row = re.search(rf'<tr id="{seg}-a0">(.*?)</tr>', html, re.S)
+        assert row and f"{100 * c:.0f} % of pixels known, from segment s000, attempt 0" in row.group(1), seg
+    mean = 100 * (coverage["s001"] + coverage["s002"]) / 2
+    summary = re.search(r"Guided extensions</h3>(.*?)</table>", html, re.S)
+    assert summary and "2 of 2" in summary.group(1) and f"{mean:.0f} %" in summary.group(1)
+
+
+def test_an_attempt_generated_without_its_guide_says_why() -> None:
+    from flows.inspect import guide_words
+
+    assert guide_words(None) == "-"
+    assert guide_words({"source": None, "coverage": 0.0, "reason": "its parent could not be placed"}) == "none"
+    assert guide_words({"source": "segment s000, attempt 1", "coverage": 0.694, "reason": ""}) == "69 %"
+    # the report's summary over the extensions: the attempt each follows (the chosen one)
+    from flows.report import _guided_extensions
+    from wonderverse.report import AttemptInfo, SegmentInfo
+
+    unguided = AttemptInfo(0, chosen=True, guide="none: its parent segment s000 could not be placed")
+    guided = [AttemptInfo(0, guide="80 % of pixels known", guide_coverage=0.8)]
+    guided.append(AttemptInfo(1, chosen=True, guide="60 % of pixels known", guide_coverage=0.6))
+    segments = [SegmentInfo("s000", attempts=[AttemptInfo(0, chosen=True)]), SegmentInfo("s001", attempts=[unguided])]
+    segments.append(SegmentInfo("s002", attempts=guided))
+    assert _guided_extensions(segments) == {
+        "generated from a guide": "1 of 2",
+        "known pixels of their guides (mean)": "60 %",
+    }
+    assert _guided_extensions(segments[:1]) == {}  # an unguided scene has no such section
 
 
 def test_a_rerun_renders_nothing_and_a_new_depth_setting_regenerates_the_extensions_only(

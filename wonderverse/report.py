@@ -61,7 +61,9 @@ class AttemptInfo:
 
     accepted: the check's verdict (None: not checked yet); chosen: the attempt later steps follow;
     fault: the fault the procedural world injected (ground truth, diagnostics only), "" for none, None
-    when unknown; metrics: ground-truth figures (e.g. SfM ATE) by name."""
+    when unknown; metrics: ground-truth figures (e.g. SfM ATE) by name; guide: the guide a guided extension was
+    generated from, in words ("71 % of pixels known, from segment s000, attempt 0", or "none: " and why), None
+    for an attempt that looked for no guide; guide_coverage: that guide's share of known pixels (0..1)."""
 
     index: int
     seed: int | None = None
@@ -76,6 +78,8 @@ class AttemptInfo:
     metrics: dict[str, Value] = field(default_factory=dict)
     check_plot: bytes | None = None
     topview: bytes | None = None
+    guide: str | None = None
+    guide_coverage: float | None = None
 
 
 # A clip's verdict (as `inspect --json` gives it) in words.
@@ -533,9 +537,13 @@ def _reasons(a: AttemptInfo) -> str:
 def _attempts_table(seg: SegmentInfo) -> str:
     metric_names = sorted({k for a in seg.attempts for k in a.metrics})
     generated = seg.clip is None  # a clip is read, not generated: it has no seed and no injected fault
-    head = ["attempt", "seed", "verdict", "reasons", "registered", "SfM time", "injected fault (GT)", *metric_names]
+    guided = any(a.guide is not None for a in seg.attempts)  # an extension of a guided flow
+    head = ["attempt", "seed", "verdict", "reasons", "guide", "registered", "SfM time", "injected fault (GT)"]
+    head += metric_names
     if not generated:
         head = [h for h in head if h not in ("seed", "injected fault (GT)")]
+    if not guided:
+        head.remove("guide")
     rows = []
     for a in seg.attempts:
         reg = "–" if a.registered_frac is None else f"{100 * a.registered_frac:.0f} %"
@@ -545,6 +553,7 @@ def _attempts_table(seg: SegmentInfo) -> str:
             f'<td class="num">{esc(fmt(a.seed))}</td>' if generated else "",
             f"<td>{_verdict(a)}</td>",
             f"<td>{_reasons(a)}</td>",
+            f'<td class="guide">{esc(a.guide or "–")}</td>' if guided else "",
             f'<td class="num">{esc(reg)}</td>',
             f'<td class="num">{esc(fmt_seconds(a.sfm_seconds))}</td>',
             f"<td>{esc(fault)}</td>" if generated else "",
