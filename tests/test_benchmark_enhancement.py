@@ -1,0 +1,32 @@
+"""benchmarks.enhancement's parallax bound: which world points triangulation can place within a tolerance."""
+
+import numpy as np
+
+from benchmarks.enhancement import MATCH_SIGMA_PX, determinable
+from wonderverse.camera import look_at
+
+F_PX, W, H = 200.0, 320, 240
+K = np.array([[F_PX, 0.0, W / 2], [0.0, F_PX, H / 2], [0.0, 0.0, 1.0]])
+
+
+def test_points_are_determinable_up_to_the_depth_where_triangulation_error_reaches_the_tolerance():
+    """Two cameras 1 m apart looking along +y at points straight ahead: triangulation's depth error is about
+    z² σ / (f b) (σ the match error in pixels), so points are determinable up to z = sqrt(tol f b / σ)."""
+    baseline = 1.0
+    up = np.array([0.0, 0.0, 1.0])
+    cams = np.stack([look_at(np.array([x, 0.0, 0.0]), np.array([x, 10.0, 0.0]), up) for x in (-0.5, 0.5)])
+    z = np.linspace(2.0, 60.0, 400)
+    points = np.stack([np.zeros_like(z), z, np.zeros_like(z)], axis=1)
+    for edge in (10.0, 25.0):
+        tol = edge**2 * MATCH_SIGMA_PX / (F_PX * baseline)
+        sub, ok = determinable(points, K, cams, tol, H, W)
+        depth = sub[:, 1]
+        assert len(sub) == len(points)
+        assert ok[depth < 0.95 * edge].all() and (depth < 0.95 * edge).sum() > 10
+        assert not ok[depth > 1.05 * edge].any() and (depth > 1.05 * edge).sum() > 10
+
+
+def test_a_point_one_camera_alone_frames_is_not_determinable():
+    cams = np.stack([look_at(np.zeros(3), np.array([0.0, 10.0, 0.0]), np.array([0.0, 0.0, 1.0]))] * 2)
+    _, ok = determinable(np.array([[0.0, 5.0, 0.0], [0.0, -5.0, 0.0]]), K, cams, 1.0, H, W)
+    assert not ok.any()  # no baseline in front, nothing framed behind
