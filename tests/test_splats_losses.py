@@ -289,3 +289,21 @@ def test_prior_schedule_decays_log_linearly_after_its_start() -> None:
     assert all(a >= b for a, b in itertools.pairwise(values))
     off = LossParams(prior_decay_start_frac=1.0, prior_final_ratio=1.0)
     assert prior_schedule(TrainParams(iterations=100, loss=off), 99) == 1.0
+
+
+def test_flatten_loss_is_the_shortest_over_the_middle_axis_and_flattens_without_shrinking() -> None:
+    from wonderverse.splats.losses import flatten_loss
+
+    log_scales = torch.log(torch.tensor([[1.0, 1.0, 1.0], [4.0, 0.5, 2.0], [1e-3, 1e3, 1.0]])).requires_grad_()
+    loss = flatten_loss(log_scales)
+    assert loss.item() == pytest.approx((1.0 + 0.25 + 1e-3) / 3, rel=1e-5)
+    loss.backward()
+    g = log_scales.grad
+    # descent shrinks each shortest axis and grows each middle one; the longest is left alone
+    assert g[1, 1] > 0 and g[1, 2] < 0 and g[1, 0] == 0
+    assert g[2, 0] > 0 and g[2, 2] < 0 and g[2, 1] == 0
+    # the same Gaussians 1e6 times larger or smaller: the same loss (a ratio of axes)
+    for shift in (-6.0, 6.0):
+        scaled = flatten_loss(log_scales.detach() + shift * np.log(10.0))
+        assert scaled.item() == pytest.approx(loss.item(), rel=1e-5)
+    assert flatten_loss(torch.zeros(0, 3)).item() == 0.0

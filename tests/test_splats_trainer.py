@@ -304,13 +304,15 @@ ENHANCED = LossParams(
     prior_final_ratio=0.05,
     normal_target="both",
     lambda_depth_normal=0.05,
+    lambda_flatten=0.01,
 )
 
 
 @pytest.mark.parametrize(("scale", "log_scale_shift"), [(1e-3, 0.0), (1e3, 0.0), (1.0, -6.0), (1.0, 6.0)])
 def test_enhanced_prior_terms_train_at_the_extremes(scene: dict, scale: float, log_scale_shift: float) -> None:
-    """Texture weights, the decay, the rendered depth's normals and depth-normal consistency: finite, no skipped
-    step, at scene scales 1e-3 / 1e3 (the views and points scaled alike) and with tiny / huge Gaussians."""
+    """Texture weights, the decay, the rendered depth's normals, depth-normal consistency and the flatten term:
+    finite, no skipped step, at scene scales 1e-3 / 1e3 (the views and points scaled alike) and with tiny / huge
+    Gaussians."""
     views: Views = scene["views"]
     w2c = views.w2c.copy()
     w2c[:, :3, 3] *= scale
@@ -321,5 +323,5 @@ def test_enhanced_prior_terms_train_at_the_extremes(scene: dict, scale: float, l
     params = TrainParams(**(FAST | {"iterations": 12}), strategy="none", loss=ENHANCED)
     model, curves, metrics = train(model, scaled, params, make_renderer("torch"))
     assert metrics["skipped_steps"] == 0
-    assert {"depth", "normal", "depth_normal"} <= set(curves)
+    assert {"depth", "normal", "depth_normal", "flatten"} <= set(curves)
     assert np.isfinite(curves["total"]).all() and np.isfinite(model.means.detach().numpy()).all()
