@@ -1,6 +1,6 @@
 """Does a segment go where the words say? The plan-following check, guided extensions and named content (issue 23).
 
-1. Plan-following test (`wonderverse.plan_following.compare_to_plan`). N segments (--quick: 8 at 224x144, 13
+1. Plan-following test (`wonderverse.plan_following.judge_segment`). N segments (--quick: 8 at 224x144, 13
    frames; else 48 at the preview preset's 320x208, 17 frames), each a planned move from the procedural world's
    start pose (`camera.move_path`): a turn left, right, up or down of 20-45 deg, half of them with forward travel
    of 0.5-2 m, half without; a left/right turn also travels sideways `plan.strafe_m_per_deg` per degree as the
@@ -9,14 +9,19 @@
    rendered twice: clean (`fault_probability` 0) and with `force_fault: "ignore"` (the camera takes a smooth,
    plausible, wrong path: the turn reversed or left out, the travel turned by 90-180 deg; `gt.faults["mode"]`).
    Each rendering is posed exactly as the check poses an attempt (`sfm.reconstruct` with `cfg.steps.check.sfm`
-   of the preview preset, K known) and compared with its planned path. Sweeps (SfM runs once per rendering, only
-   the comparison is repeated): `rotation_tol_deg`, `rotation_tol_share` and `translation_direction_tol_deg`
-   scaled together by `SWEEP_FACTORS` (1 = the shipped `PlanFollowingParams()`), then the two rotation
-   tolerances alone and the direction tolerance alone. "Not judged": SfM registered fewer than 2 frames (ok is
-   None); left out of recall and FPR, and counted. Diagnostics: the same test on the path really rendered
-   (gt.poses: what the test does with perfect poses), and "SfM off": the SfM path fails the test against the
-   path really rendered (the error is SfM's, not the video's). Also: what the whole check does with the same SfM
-   (`check_trajectory`, plus the plan-following test as `tasks.check` adds it), over all segments.
+   of the preview preset, K known), looked at with two-view geometry (`two_view.two_view_path`, the check's
+   `plan_following.two_view`) and judged as `tasks.check` judges it (`plan_following.judge_segment`: SfM's
+   path unless two-view geometry contradicts its rotations by more than `sfm_rotation_tol_deg`, or SfM's model
+   failed its gates and cannot be confirmed; then the two-view path). Sweeps (SfM and the two-view look run
+   once per rendering, only the judgement is repeated): `rotation_tol_deg`, `rotation_tol_share` and
+   `translation_direction_tol_deg` scaled together by `SWEEP_FACTORS` (1 = the shipped
+   `PlanFollowingParams()`), then the two rotation tolerances alone and the direction tolerance alone, each
+   row also with SfM's path alone (the test before the two-view look); and `sfm_rotation_tol_deg` over
+   `DISAGREEMENT_TOLS_DEG`. "Not judged": neither path registered 2 frames (ok is None); left out of recall
+   and FPR, and counted. Diagnostics: the same test on the path really rendered (gt.poses: what the test does
+   with perfect poses), and "SfM off": the SfM path fails the test against the path really rendered (the
+   error is SfM's, not the video's). Also: what the whole check does (`check_trajectory`, plus the
+   plan-following test as `tasks.check` adds it), over all segments.
 2. Named content (`wonderverse.video.content`): extend requests (`CONTENT_REQUESTS`, --quick: the first 4 at
    160x104, 9 frames; else all 10 at 320x208, 17 frames). The rule planner's extension for the words after the
    initial segment (`planning.rules.plan_extension`), its path as `generate_segments.plan_paths` makes it,
@@ -50,6 +55,9 @@ Last-line keys:
 - `best_factor`: the factor of the "all three" sweep with the highest recall among those with FPR <= 0.05 (NaN
   if none).
 - `sfm_s_per_segment`: mean SfM seconds per rendering.
+- `sfm_only_recall`, `sfm_only_fpr`: the same on SfM's path alone (the test before the two-view look).
+- `judged_on_two_view`: renderings judged on the two-view path at the defaults (count, of 2 N);
+  `two_view_s_per_segment`: mean seconds of the two-view look per rendering.
 - `content_hit_rate`: share of extend requests whose named content is visible (NaN: no content module).
 - `guide_coverage`, `guide_psnr_db`, `guide_depth_absrel`: means over the guided extensions; `guided_extensions`:
   how many of the 4 were generated from a guide.
@@ -57,11 +65,14 @@ Last-line keys:
 - `branch_speedup`: `branch_serial_s` ÷ `branch_parallel_s` (seconds to `check` of the guided scene).
 - `seconds`: the whole benchmark.
 The guided keys are NaN when the installed procedural options have no `accept_guide` or a scene fails (a note
-line says which).
+line says which). `--only plan|content|guided` (repeatable) runs only those parts; the last line then holds
+their keys (and `seconds`).
 """
 
 from __future__ import annotations
 
+import argparse
+import json
 import math
 import sys
 import time
@@ -70,7 +81,7 @@ from typing import Any
 
 import numpy as np
 
-from benchmarks.common import parse_args, report, table
+from benchmarks.common import report, table
 from benchmarks.detection import PROMPTS  # the same six worlds
 from wonderverse.plan_following import PlanFollowingParams
 
@@ -106,7 +117,9 @@ class Case:
 class Outcome:
     """One rendering of a case posed by the check's SfM: estimated W2C poses (T,4,4, NaN where unregistered),
     registered mask, planned W2C path, the path really rendered (gt.poses), whether it ignored its instruction
-    (and how), and the trajectory rules' verdict on it (True: accepted) with their reasons."""
+    (and how), and the trajectory rules' verdict on it (True: accepted) with their reasons; the two-view look at
+    its frames (`two_view.TwoViewPath`, None: not taken), whether SfM's model passed its gates, and the seconds
+    of SfM and of the two-view look."""
 
     case: Case
     ignored: bool
@@ -118,6 +131,9 @@ class Outcome:
     trajectory_ok: bool
     trajectory_reasons: list[str]
     sfm_s: float
+    two_view: Any = None
+    gates_passed: bool = True
+    two_view_s: float = 0.0
 
 
 def cases(n: int) -> list[Case]:
@@ -159,6 +175,7 @@ def render_and_pose(case: Case, ignored: bool, width: int, height: int, frames: 
     from wonderverse.check import check_trajectory
     from wonderverse.config import build_config
     from wonderverse.sfm import reconstruct
+    from wonderverse.two_view import two_view_path
     from wonderverse.video import initial_pose
     from wonderverse.video.procedural import ProceduralVideo
 
@@ -175,6 +192,12 @@ def render_and_pose(case: Case, ignored: bool, width: int, height: int, frames: 
     rules = check_trajectory(
         sfm.poses, sfm.registered, cfg.steps.check.rules, sfm.problems, points=sfm.points, stopped=sfm.stopped
     )
+    look, two_view_s = None, 0.0
+    pf = cfg.steps.check.plan_following
+    if pf is not None and pf.two_view is not None:
+        t = time.perf_counter()
+        look = two_view_path(video.frames, video.K, pf.two_view)
+        two_view_s = time.perf_counter() - t
     return Outcome(
         case=case,
         ignored=ignored,
@@ -186,6 +209,9 @@ def render_and_pose(case: Case, ignored: bool, width: int, height: int, frames: 
         trajectory_ok=bool(rules.accepted),
         trajectory_reasons=list(rules.reasons),
         sfm_s=seconds,
+        two_view=look,
+        gates_passed=bool(sfm.gates_passed),
+        two_view_s=two_view_s,
     )
 
 
@@ -197,18 +223,23 @@ def scaled(params: PlanFollowingParams, factor: float, names: tuple[str, ...] = 
     return params.model_copy(update=new)
 
 
-def judged(o: Outcome, params: PlanFollowingParams, truth: bool = False) -> Any:
-    """compare_to_plan of the outcome's SfM path (or, `truth`, of the path really rendered) against its plan."""
-    from wonderverse.plan_following import compare_to_plan
+def judged(o: Outcome, params: PlanFollowingParams, truth: bool = False, sfm_only: bool = False) -> Any:
+    """The plan-following verdict on the outcome as `tasks.check` reaches it (`plan_following.judge_segment`:
+    SfM's path checked against the two-view look, `choose_path`); `sfm_only`: compare_to_plan of SfM's path
+    alone (the test before the two-view look); `truth`: compare_to_plan of the path really rendered."""
+    from wonderverse.plan_following import choose_path, compare_to_plan
 
     if truth:
         return compare_to_plan(o.true_poses, o.planned, params)
-    return compare_to_plan(o.poses, o.planned, params, registered=o.registered)
+    sfm = compare_to_plan(o.poses, o.planned, params, registered=o.registered)
+    if sfm_only or params.two_view is None or o.two_view is None:
+        return sfm
+    return choose_path(sfm, o.poses, o.registered, o.gates_passed, o.two_view, o.planned, params)
 
 
-def verdict(o: Outcome, params: PlanFollowingParams, truth: bool = False) -> bool | None:
-    """compare_to_plan's ok on the outcome: True followed, False ignored, None not judged."""
-    return judged(o, params, truth).ok
+def verdict(o: Outcome, params: PlanFollowingParams, truth: bool = False, sfm_only: bool = False) -> bool | None:
+    """`judged`'s ok on the outcome: True followed, False ignored, None not judged."""
+    return judged(o, params, truth, sfm_only).ok
 
 
 def sfm_off(o: Outcome, params: PlanFollowingParams) -> bool:
@@ -237,12 +268,14 @@ def rates(flagged: list[bool | None], ignored: list[bool]) -> dict[str, Any]:
     }
 
 
-def flagged_by(outcomes: list[Outcome], params: PlanFollowingParams, truth: bool = False) -> list[bool | None]:
+def flagged_by(
+    outcomes: list[Outcome], params: PlanFollowingParams, truth: bool = False, sfm_only: bool = False
+) -> list[bool | None]:
     """Per outcome: True when the plan-following test rejects it, False when it passes, None when not judged
-    (`truth`: judged on the path really rendered instead of SfM's)."""
+    (`truth`: judged on the path really rendered instead; `sfm_only`: on SfM's path alone)."""
     out: list[bool | None] = []
     for o in outcomes:
-        ok = verdict(o, params, truth)
+        ok = verdict(o, params, truth, sfm_only)
         out.append(None if ok is None else not ok)
     return out
 
@@ -266,6 +299,7 @@ def sweep_rows(
             p = scaled(base, f, names)
             r = rates(flagged_by(outcomes, p), ignored)
             t = rates(flagged_by(outcomes, p, truth=True), ignored)
+            alone = rates(flagged_by(outcomes, p, sfm_only=True), ignored)
             rows.append(
                 {
                     "scaled": name,
@@ -279,8 +313,37 @@ def sweep_rows(
                     "clean judged": r["clean_judged"],
                     "recall (true path)": t["recall"],
                     "fpr (true path)": t["fpr"],
+                    "recall (SfM only)": alone["recall"],
+                    "fpr (SfM only)": alone["fpr"],
                 }
             )
+    return rows
+
+
+DISAGREEMENT_TOLS_DEG = (2.0, 3.0, 4.0, 6.0, 8.0, 12.0, 20.0)
+
+
+def disagreement_rows(
+    outcomes: list[Outcome], base: PlanFollowingParams, tols_deg: tuple[float, ...] = DISAGREEMENT_TOLS_DEG
+) -> list[dict[str, Any]]:
+    """One row per `sfm_rotation_tol_deg` (the rotation disagreement beyond which two-view geometry overrules
+    SfM's path): recall, FPR, judged counts and how many renderings were judged on the two-view path."""
+    ignored = [o.ignored for o in outcomes]
+    rows = []
+    for tol in tols_deg:
+        p = base.model_copy(update={"sfm_rotation_tol_deg": tol})
+        verdicts = [judged(o, p) for o in outcomes]
+        r = rates([None if v.ok is None else not v.ok for v in verdicts], ignored)
+        rows.append(
+            {
+                "sfm_rotation_tol_deg": tol,
+                "recall": r["recall"],
+                "fpr": r["fpr"],
+                "ignored judged": r["ignored_judged"],
+                "clean judged": r["clean_judged"],
+                "judged on two-view": sum(v.source == "two_view" for v in verdicts),
+            }
+        )
     return rows
 
 
@@ -296,9 +359,12 @@ def best_factor(rows: list[dict[str, Any]], max_fpr: float = TARGET_FPR, sweep: 
 
 def breakdown_rows(outcomes: list[Outcome], params: PlanFollowingParams) -> list[dict[str, Any]]:
     """At `params`: per (rendering kind, move kind, defects) group, how many were flagged, passed, not judged,
-    flagged on the path really rendered, whose SfM path fails the test against that path (`sfm_off`), and
-    what the whole check did (rejected by the trajectory rules or the plan-following test)."""
-    flagged = flagged_by(outcomes, params)
+    judged on the two-view path, flagged by SfM's path alone, flagged on the path really rendered, whose SfM
+    path fails the test against that path (`sfm_off`), and what the whole check did (rejected by the trajectory
+    rules or the plan-following test)."""
+    verdicts = [judged(o, params) for o in outcomes]
+    flagged = [None if v.ok is None else not v.ok for v in verdicts]
+    alone = flagged_by(outcomes, params, sfm_only=True)
     on_truth = flagged_by(outcomes, params, truth=True)
     groups: dict[tuple[str, str, str], list[int]] = {}
     for i, o in enumerate(outcomes):
@@ -315,6 +381,8 @@ def breakdown_rows(outcomes: list[Outcome], params: PlanFollowingParams) -> list
                 "flagged": sum(flagged[i] is True for i in idx),
                 "passed": sum(flagged[i] is False for i in idx),
                 "not judged": sum(flagged[i] is None for i in idx),
+                "on two-view": sum(verdicts[i].source == "two_view" for i in idx),
+                "flagged (SfM only)": sum(alone[i] is True for i in idx),
                 "flagged (true path)": sum(on_truth[i] is True for i in idx),
                 "SfM off": sum(sfm_off(outcomes[i], params) for i in idx),
                 "check rejects": sum(_check_rejects(outcomes[i], flagged[i]) for i in idx),
@@ -338,6 +406,7 @@ def plan_following_part(n: int, width: int, height: int, frames: int) -> tuple[l
             pf = judged(o, PlanFollowingParams())
             word = {None: "not judged", True: "passed", False: "FLAGGED"}[pf.ok]
             word += f" ({'; '.join(pf.reasons)})" if pf.ok is False else ""
+            word += f" [{pf.source}, SfM vs two-view {pf.sfm_disagreement_deg:.1f}°]"
             rules = "" if o.trajectory_ok else f"; trajectory rules reject: {'; '.join(o.trajectory_reasons)}"
             print(
                 f"case {case.index} {case.move} [{case.defects}] {o.mode}: {word}{rules}", file=sys.stderr, flush=True
@@ -345,10 +414,13 @@ def plan_following_part(n: int, width: int, height: int, frames: int) -> tuple[l
     base = PlanFollowingParams()
     rows = sweep_rows(outcomes, base, SWEEP_FACTORS)
     table(breakdown_rows(outcomes, base), "plan following at the shipped defaults, per group")
+    table(disagreement_rows(outcomes, base), "SfM's path overruled by two-view geometry beyond a rotation disagreement")
     ignored = [o.ignored for o in outcomes]
-    flagged = flagged_by(outcomes, base)
+    verdicts = [judged(o, base) for o in outcomes]
+    flagged = [None if v.ok is None else not v.ok for v in verdicts]
     at_default = rates(flagged, ignored)
     on_truth = rates(flagged_by(outcomes, base, truth=True), ignored)
+    alone = rates(flagged_by(outcomes, base, sfm_only=True), ignored)
     check = [_check_rejects(o, f) for o, f in zip(outcomes, flagged, strict=True)]
     head = {
         "ignored_recall": round(at_default["recall"], 3),
@@ -363,6 +435,10 @@ def plan_following_part(n: int, width: int, height: int, frames: int) -> tuple[l
         "clean_sfm_off": sum(sfm_off(o, base) for o in outcomes if not o.ignored),
         "best_factor": best_factor(rows),
         "sfm_s_per_segment": round(float(np.mean([o.sfm_s for o in outcomes])), 2),
+        "sfm_only_recall": round(alone["recall"], 3),
+        "sfm_only_fpr": round(alone["fpr"], 3),
+        "judged_on_two_view": sum(v.source == "two_view" for v in verdicts),
+        "two_view_s_per_segment": round(float(np.mean([o.two_view_s for o in outcomes])), 2),
     }
     return outcomes, {"rows": rows, "head": head}
 
@@ -595,8 +671,20 @@ def guided_part(quick: bool) -> tuple[list[dict[str, Any]], dict[str, float], st
     return rows, head, note
 
 
+PARTS = ("plan", "content", "guided")
+
+
+def parse(argv: list[str] | None = None) -> argparse.Namespace:
+    """--quick (smaller workload), --only PART (repeatable; default all of PARTS)."""
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("--quick", action="store_true", help="smaller workload (CI-sized)")
+    p.add_argument("--only", action="append", choices=PARTS, help="run only this part (repeatable)")
+    return p.parse_args(argv)
+
+
 def main() -> None:
-    args = parse_args(__doc__ or "")
+    args = parse()
+    parts = set(args.only or PARTS)
     t0 = time.perf_counter()
     if args.quick:
         n, width, height, frames = 8, 224, 144, 13
@@ -605,22 +693,33 @@ def main() -> None:
         n, width, height, frames = 48, 320, 208, 17  # the preview preset's frames
         n_content, content_size = len(CONTENT_REQUESTS), (320, 208, 17)
     notes = []
-    content_rows, hit_rate, note = content_part(n_content, *content_size)
-    if content_rows:
-        table(content_rows, "named content: extend requests, label share over the last frames")
-    if note:
-        notes.append(f"content_hit_rate NaN: {note}")
-    guided_rows, guided_head, note = guided_part(args.quick)
-    if guided_rows:
-        table(guided_rows, "guided extensions: guide vs truth, seam PSNR vs the final splats (dB)")
-    if note:
-        notes.append(f"guided figures NaN: {note}")
-    _, part1 = plan_following_part(n, width, height, frames)
+    headline: dict[str, Any] = {}
+    rows: list[dict[str, Any]] = []
+    if "content" in parts:
+        content_rows, hit_rate, note = content_part(n_content, *content_size)
+        if content_rows:
+            table(content_rows, "named content: extend requests, label share over the last frames")
+        if note:
+            notes.append(f"content_hit_rate NaN: {note}")
+        headline["content_hit_rate"] = round(hit_rate, 3)
+    if "guided" in parts:
+        guided_rows, guided_head, note = guided_part(args.quick)
+        if guided_rows:
+            table(guided_rows, "guided extensions: guide vs truth, seam PSNR vs the final splats (dB)")
+        if note:
+            notes.append(f"guided figures NaN: {note}")
+        headline |= guided_head
+    if "plan" in parts:
+        _, part1 = plan_following_part(n, width, height, frames)
+        rows = part1["rows"]
+        headline = part1["head"] | headline
     for line in notes:
         print(f"note: {line}", flush=True)
-    headline = part1["head"] | {"content_hit_rate": round(hit_rate, 3)} | guided_head
     headline["seconds"] = round(time.perf_counter() - t0, 1)
-    report("plan following: tolerance sweep (recall of 'ignore', FPR on clean; judged only)", part1["rows"], headline)
+    if rows:
+        report("plan following: tolerance sweep (recall of 'ignore', FPR on clean; judged only)", rows, headline)
+    else:
+        print(json.dumps(headline), flush=True)
 
 
 if __name__ == "__main__":

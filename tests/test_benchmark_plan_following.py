@@ -11,14 +11,18 @@ from benchmarks.plan_following import (
     Case,
     Outcome,
     best_factor,
+    breakdown_rows,
     cases,
+    disagreement_rows,
+    parse,
     planned_path,
     rates,
     scaled,
     sweep_rows,
 )
-from wonderverse.camera import camera_centers, look_at, move_path
+from wonderverse.camera import camera_centers, look_at, move_path, so3_exp
 from wonderverse.plan_following import PlanFollowingParams
+from wonderverse.two_view import TwoViewPath
 
 START = look_at(np.array([0.0, 0.0, 3.0]), np.array([0.0, 10.0, 2.0]))  # level-ish, looking along +y
 T = 13
@@ -38,12 +42,47 @@ def _similar(w2c: np.ndarray, seed: int) -> np.ndarray:
     return out
 
 
-def _outcome(planned: np.ndarray, rendered: np.ndarray, ignored: bool, seed: int, registered: bool = True) -> Outcome:
+def _outcome(
+    planned: np.ndarray,
+    rendered: np.ndarray,
+    ignored: bool,
+    seed: int,
+    registered: bool = True,
+    sfm_path: np.ndarray | None = None,
+    two_view: bool = False,
+) -> Outcome:
+    """An outcome whose SfM path is `sfm_path` (default: the rendered path) in another frame and scale, and,
+    with `two_view`, a two-view look that saw the rendered path exactly at every other frame."""
     case = Case(seed, "test", 0, "left", 40.0, 1.0, "none")
-    poses = _similar(rendered, seed) if registered else np.full_like(rendered, np.nan)
+    seen = rendered if sfm_path is None else sfm_path
+    poses = _similar(seen, seed) if registered else np.full_like(rendered, np.nan)
     reg = np.full(len(planned), registered)
     mode = "reverse_turn" if ignored else "clean"
-    return Outcome(case, ignored, mode, poses, reg, planned, rendered, True, [], 0.0)
+    tv = _two_view(rendered) if two_view else None
+    return Outcome(case, ignored, mode, poses, reg, planned, rendered, True, [], 0.0, tv, True, 0.0)
+
+
+def _two_view(w2c: np.ndarray) -> TwoViewPath:
+    """The two-view look at a path known exactly: every other frame, relative to frame 0, travel measured."""
+    n = len(w2c)
+    rel = w2c @ np.linalg.inv(w2c[0])
+    poses = np.full((n, 4, 4), np.nan)
+    poses[::2] = rel[::2]
+    reg = np.zeros(n, dtype=bool)
+    reg[::2] = True
+    return TwoViewPath(poses, reg, reg.copy(), [], 0.0)
+
+
+def _twin(w2c: np.ndarray, pitch_deg: float) -> np.ndarray:
+    """A wrong SfM path like the planar twin: pitch up growing to `pitch_deg`, travel turned downwards."""
+    out = w2c.copy()
+    c = camera_centers(w2c)
+    for j in range(len(w2c)):
+        u = j / (len(w2c) - 1)
+        out[j, :3, :3] = so3_exp(np.array([np.radians(pitch_deg) * u, 0.0, 0.0])) @ w2c[j, :3, :3]
+        d = c[j] - c[0]
+        out[j, :3, 3] = -out[j, :3, :3] @ (c[0] + 0.4 * d - [0.0, 0.0, 0.9 * float(np.linalg.norm(d))])
+    return out
 
 
 def test_rates_count_judged_only() -> None:
@@ -112,3 +151,33 @@ def test_cases_cover_every_kind_and_paths_turn_as_named() -> None:
         turned = yaw if c.direction in ("left", "right") else pitch
         assert turned == pytest.approx(sign * c.turn_deg, abs=1e-6)
         assert 20 <= c.turn_deg <= 45
+
+
+def test_two_view_look_in_the_sweep_and_the_breakdown() -> None:
+    """A clean rendering whose SfM path is twin-like (flagged by SfM alone) and a reversed turn: with the two-view
+    look the clean one passes (judged on two-view geometry), the reversed one is still caught."""
+    planned = move_path(START, math.radians(-24), 0.0, 1.8, -24 * 0.04, T)
+    wrong = move_path(START, math.radians(24), 0.0, 1.8, -24 * 0.04, T)
+    outcomes = [
+        _outcome(planned, planned, False, 1, sfm_path=_twin(planned, 30.0), two_view=True),
+        _outcome(planned, wrong, True, 2, two_view=True),
+    ]
+    rows = {(r["scaled"], r["factor"]): r for r in sweep_rows(outcomes, PlanFollowingParams(), (1.0,))}
+    row = rows[("all", 1.0)]
+    assert (row["recall"], row["fpr"]) == (1.0, 0.0)
+    assert (row["recall (SfM only)"], row["fpr (SfM only)"]) == (1.0, 1.0)
+    tols = disagreement_rows(outcomes, PlanFollowingParams(), (4.0, 45.0))
+    assert [(r["fpr"], r["judged on two-view"]) for r in tols] == [(0.0, 1), (1.0, 0)]  # 30° > 4°, < 45°
+    groups = breakdown_rows(outcomes, PlanFollowingParams())
+    clean = next(g for g in groups if g["rendering"] == "clean")
+    assert (clean["flagged"], clean["on two-view"], clean["flagged (SfM only)"]) == (0, 1, 1)
+    # without the two-view look (params or outcome), the verdict is SfM's alone
+    assert sweep_rows(outcomes, PlanFollowingParams(two_view=None), (1.0,))[0]["fpr"] == 1.0
+
+
+def test_only_option() -> None:
+    assert parse([]).only is None
+    assert parse(["--only", "plan"]).only == ["plan"]
+    assert parse(["--only", "plan", "--only", "content", "--quick"]).only == ["plan", "content"]
+    with pytest.raises(SystemExit):
+        parse(["--only", "everything"])

@@ -16,7 +16,14 @@ from pydantic import ValidationError
 from scipy.spatial.transform import Rotation
 
 from wonderverse.camera import Sim3, camera_centers, look_at, move_path, se3, so3_exp
-from wonderverse.plan_following import PlanFollowingParams, compare_to_plan
+from wonderverse.plan_following import (
+    PlanFollowingParams,
+    choose_path,
+    compare_to_plan,
+    judge_segment,
+    rotation_disagreement,
+)
+from wonderverse.two_view import TwoViewPath
 
 T = 25
 START = look_at(np.array([1.0, 2.0, 1.5]), np.array([5.0, 3.0, 1.0]))  # looking slightly down
@@ -352,3 +359,211 @@ def test_property_backward_instead_of_forward_is_caught_in_any_frame(sim: Sim3, 
     assert r.ok is False
     assert r.translation_direction_error_deg == pytest.approx(180.0, abs=1e-4)
     assert r.reasons[-1].startswith("moved backward where the plan said forward")
+
+
+# ------------------------------------------------------------------ SfM's path checked against two-view geometry
+
+
+def as_two_view(w2c: np.ndarray, frames: list[int], travel_frames: list[int]) -> TwoViewPath:
+    """What `two_view_path` returns for a camera path known exactly: frame 0 the identity, the other looked-at
+    frames relative to it (translations scaled so that the longest is 1, zero where travel is not measured)."""
+    T = len(w2c)
+    rel = w2c @ np.linalg.inv(w2c[0])
+    longest = max(float(np.linalg.norm(rel[j, :3, 3])) for j in travel_frames) if travel_frames else 1.0
+    poses = np.full((T, 4, 4), np.nan)
+    for j in frames:
+        poses[j] = rel[j]
+        poses[j, :3, 3] = rel[j, :3, 3] / longest if j in travel_frames else 0.0
+    poses[0] = np.eye(4)
+    registered = np.all(np.isfinite(poses.reshape(T, -1)), axis=1)
+    known = np.zeros(T, dtype=bool)
+    known[[0, *travel_frames]] = True
+    return TwoViewPath(poses, registered, known & registered, [], 0.0)
+
+
+def planar_twin_like(w2c: np.ndarray, pitch_deg: float) -> np.ndarray:
+    """The wrong path SfM settled in on the benchmark's turn-and-travel clips (the planar twin): the turn as it
+    was, plus a pitch up growing to `pitch_deg`, and the travel turned to point mostly downwards."""
+    T = len(w2c)
+    out = w2c.copy()
+    c = camera_centers(w2c)
+    down = -np.array([0.0, 0.0, 1.0])
+    for j in range(T):
+        u = j / (T - 1)
+        out[j, :3, :3] = so3_exp(np.array([math.radians(pitch_deg) * u, 0.0, 0.0])) @ w2c[j, :3, :3]
+        d = c[j] - c[0]
+        moved = c[0] + 0.4 * d + 0.9 * np.linalg.norm(d) * down
+        out[j, :3, 3] = -out[j, :3, :3] @ moved
+    return out
+
+
+EVERY_OTHER = list(range(0, T, 2))
+
+
+def test_travel_known_judges_the_translation_on_measured_frames_only() -> None:
+    plan = turn(30, 0, 2)
+    back = path(30, 0, -2, -STRAFE_M_PER_DEG * 30)  # the turn as planned, the travel reversed
+    late = list(range(T // 2, T))
+    # travel reversed, but measured only where it was right: the travel judged on those frames passes
+    mixed = plan.copy()
+    mixed[: T // 2] = back[: T // 2]
+    known = np.zeros(T, dtype=bool)
+    known[[0, *late]] = True
+    r = compare_to_plan(mixed, plan, travel_known=known)
+    assert r.ok is True, r.reasons
+    assert any(n.startswith(f"travel measured at frames 0, {T // 2},") for n in r.notes)
+    # the same frames measured on the reversed path: caught
+    r = compare_to_plan(back, plan, travel_known=known)
+    assert r.ok is False and r.reasons[-1].startswith("moved backward")
+    # nothing but the first frame measured: the translation is not judged, the rotation is
+    none = np.zeros(T, dtype=bool)
+    none[0] = True
+    r = compare_to_plan(back, plan, travel_known=none)
+    assert r.ok is True
+    assert "the travel was not measured (too little parallax): the translation is not judged" in r.notes
+    assert r.estimated is not None and math.isnan(r.estimated.forward)
+    assert r.estimated.yaw_left_deg == pytest.approx(30.0, abs=1e-6)
+    r = compare_to_plan(turn(-30, 0, 2), plan, travel_known=none)
+    assert r.ok is False and r.reasons[0].startswith("turned right 30°")
+    with pytest.raises(ValueError, match="travel_known"):
+        compare_to_plan(plan, plan, travel_known=np.ones(3, dtype=bool))
+
+
+def test_rotation_disagreement_between_two_paths() -> None:
+    truth = turn(-24, 0, 1.8)
+    seen = as_sfm(truth, similarity(3, 0.01))
+    reg = np.ones(T, dtype=bool)
+    dis, _ = rotation_disagreement(seen, reg, truth, reg)
+    assert dis < 1e-6
+    off = seen.copy()
+    off[-1, :3, :3] = so3_exp(np.radians([10.0, 0.0, 0.0])) @ off[-1, :3, :3]
+    dis, frame = rotation_disagreement(off, reg, truth, reg)
+    assert dis == pytest.approx(10.0, abs=1e-6) and frame == T - 1
+    # relative to the first common frame: a path missing frame 0 is compared from frame 1
+    late = reg.copy()
+    late[0] = False
+    dis, frame = rotation_disagreement(off, late, truth, reg)
+    assert dis == pytest.approx(10.0, abs=1e-6) and frame == T - 1
+    one = np.zeros(T, dtype=bool)
+    one[5] = True
+    assert math.isnan(rotation_disagreement(off, one, truth, reg)[0])
+
+
+def _choose(sfm_w2c: np.ndarray, plan: np.ndarray, tv: TwoViewPath, gates: bool = True, reg=None):
+    reg = np.ones(T, dtype=bool) if reg is None else reg
+    sfm = compare_to_plan(sfm_w2c, plan, registered=reg)
+    return sfm, choose_path(sfm, sfm_w2c, reg, gates, tv, plan, PlanFollowingParams())
+
+
+def test_sfm_in_the_planar_twin_is_overruled_by_two_view_geometry() -> None:
+    """A clean turn and travel whose SfM path is the twin: SfM alone flags it, two-view geometry clears it."""
+    plan = turn(-24, 0, 1.8)
+    twin = as_sfm(planar_twin_like(plan, 26.0), similarity(4, 3.0))
+    alone, r = _choose(twin, plan, as_two_view(plan, EVERY_OTHER, EVERY_OTHER[4:]))
+    assert alone.ok is False  # the false positive the two-view look removes
+    assert r.ok is True and r.source == "two_view"
+    assert r.sfm_disagreement_deg == pytest.approx(26.0, abs=0.5)
+    assert r.notes[0].startswith("judged on two-view geometry: SfM's path is contradicted by two-view geometry")
+    assert r.frames == EVERY_OTHER
+    attrs = json.loads(json.dumps(r.to_attrs(), allow_nan=False))
+    assert attrs["source"] == "two_view" and attrs["two_view"]["frames"] == EVERY_OTHER
+
+
+def test_a_fault_sfm_passes_is_caught_on_two_view_geometry() -> None:
+    """The camera went straight on (no turn) but SfM's path follows the plan: two-view geometry sees the
+    straight path, disagrees with SfM by the whole turn, and the verdict on it flags the segment."""
+    plan = turn(-24, 0, 1.8)
+    straight = path(0, 0, float(np.linalg.norm(camera_centers(plan)[-1] - camera_centers(plan)[0])))
+    alone, r = _choose(as_sfm(plan, similarity(5, 2.0)), plan, as_two_view(straight, EVERY_OTHER, EVERY_OTHER[2:]))
+    assert alone.ok is True
+    assert r.ok is False and r.source == "two_view"
+    assert r.reasons[0].startswith("did not turn")
+    assert r.sfm_disagreement_deg == pytest.approx(24.0, abs=0.5)
+
+
+def test_sfm_confirmed_by_two_view_geometry_keeps_its_verdict() -> None:
+    plan = turn(30, 0, 2)
+    reversed_turn = turn(-30, 0, 2)
+    seen = as_sfm(noisy(reversed_turn, 0.3, 0.01), similarity(6, 0.5))
+    alone, r = _choose(seen, plan, as_two_view(reversed_turn, EVERY_OTHER, EVERY_OTHER[3:]))
+    assert alone.ok is False
+    assert r.ok is False and r.source == "sfm" and r.reasons == alone.reasons
+    assert r.sfm_disagreement_deg < 2.0
+    assert r.notes[-1].startswith("two-view geometry agrees with SfM's rotations to")
+
+
+def test_sfm_that_failed_its_gates_is_used_only_when_confirmed() -> None:
+    plan = turn(30, 0, 2)
+    wrong = as_sfm(planar_twin_like(plan, 20.0), similarity(7, 1.0))
+    # gates failed, no frame in common to confirm it: the two-view path is judged
+    reg = np.zeros(T, dtype=bool)
+    reg[[7, 9, 15]] = True
+    tv = as_two_view(plan, [0, 2, 4, 6], [0, 4, 6])
+    _, r = _choose(wrong, plan, tv, gates=False, reg=reg)
+    assert r.source == "two_view" and r.ok is True
+    assert "failed its quality gates and shares fewer than 2 frames" in r.notes[0]
+    # the same SfM path with its gates passed and nothing to compare: SfM's verdict stands
+    _, r = _choose(wrong, plan, tv, gates=True, reg=reg)
+    assert r.source == "sfm" and math.isnan(r.sfm_disagreement_deg)
+    # gates failed but confirmed by two-view geometry: SfM's verdict
+    good = as_sfm(plan, similarity(8, 1.0))
+    _, r = _choose(good, plan, as_two_view(plan, EVERY_OTHER, EVERY_OTHER[2:]), gates=False)
+    assert r.source == "sfm" and r.ok is True
+
+
+def test_neither_path_judged_is_not_judged() -> None:
+    plan = turn(30, 0, 2)
+    nothing = as_two_view(plan, [0], [0])
+    twin = planar_twin_like(plan, 35.0)
+    reg = np.zeros(T, dtype=bool)
+    _, r = _choose(np.full_like(plan, np.nan), plan, nothing, reg=reg)
+    assert r.ok is None
+    assert r.reasons == [
+        "not judged: SfM's path could not be judged; two-view geometry: only 1 frame(s) registered; at least 2 "
+        "are needed"
+    ]
+    # SfM contradicted (nothing to contradict with here: one frame) keeps SfM's verdict
+    _, r = _choose(twin, plan, nothing)
+    assert r.source == "sfm" and r.ok is False
+    # SfM registered nothing, two-view geometry did: judged on it
+    _, r = _choose(np.full_like(plan, np.nan), plan, as_two_view(plan, EVERY_OTHER, EVERY_OTHER), reg=reg)
+    assert r.ok is True and r.source == "two_view"
+
+
+def test_judge_segment_without_frames_or_plan() -> None:
+    plan = turn(30, 0, 2)
+    seen = as_sfm(plan, similarity(9, 1.0))
+    reg = np.ones(T, dtype=bool)
+    r = judge_segment(plan, seen, reg)  # no frames: SfM's path alone
+    assert r.ok is True and r.source == "sfm" and r.two_view is None
+    frames = np.zeros((T, 8, 8, 3), dtype=np.uint8)
+    r = judge_segment(np.full_like(plan, np.nan), seen, reg, frames, np.eye(3))  # a user's clip: no plan
+    assert r.ok is None and r.two_view is None
+    r = judge_segment(plan, seen, reg, frames, np.eye(3), PlanFollowingParams(two_view=None))
+    assert r.ok is True and r.two_view is None
+
+
+@pytest.mark.parametrize("ignored", [False, True])
+def test_a_rendered_turn_and_travel_is_judged_as_the_check_judges_it(ignored: bool) -> None:
+    """Right 24° with 1.8 m forward over the forest lake's ground (benchmarks.plan_following case 13), rendered
+    clean and ignoring its instruction, posed by the check's SfM and judged with the two-view look: the clean
+    one passes (where SfM's own path took the planar twin, on two-view geometry), the ignoring one does not."""
+    from wonderverse.config import build_config
+    from wonderverse.sfm import reconstruct
+    from wonderverse.video import initial_pose
+    from wonderverse.video.procedural import ProceduralVideo
+
+    prompt = "a quiet forest lake in autumn"
+    cfg = build_config(prompt, preset="preview")
+    opts = {"fault_probability": 0.0} | ({"force_fault": "ignore"} if ignored else {})
+    model = ProceduralVideo(prompt, 13, 320, 208, cfg.scene.video.fov_deg, opts)
+    plan = move_path(initial_pose(model), math.radians(-24), 0.0, 1.8, -24 * STRAFE_M_PER_DEG, 17)
+    video = model.generate(prompt, plan, seed=2013 if ignored else 1013, reference=None)
+    sfm = reconstruct(video.frames, cfg.steps.check.sfm, K_prior=video.K, K_known=True)
+    p = cfg.steps.check.plan_following
+    r = judge_segment(plan, sfm.poses, sfm.registered, video.frames, video.K, p, sfm_gates_passed=sfm.gates_passed)
+    assert compare_to_plan(video.gt.poses, plan, p).ok is (not ignored)  # the truth, for reference
+    assert r.ok is (not ignored), (r.reasons, r.notes)
+    if compare_to_plan(sfm.poses, plan, p, registered=sfm.registered).ok is not r.ok:
+        assert r.source == "two_view" and r.sfm_disagreement_deg > p.sfm_rotation_tol_deg
+    assert r.two_view is not None and len(r.two_view["frames"]) >= 6
