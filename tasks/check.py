@@ -53,9 +53,10 @@ def _judge(store: SceneStore, p: CheckStepParams, seg: str, k: int, key: str) ->
     if store.is_complete(ap.check, key):
         return store.attrs(ap.check)
     K, known = intrinsics(store, seg)
-    sfm = reconstruct(store.array(ap.frames), p.sfm, K_prior=K, K_known=known, K_guessed=not known)
+    frames = store.array(ap.frames)
+    sfm = reconstruct(frames, p.sfm, K_prior=K, K_known=known, K_guessed=not known)
     result = check_trajectory(sfm.poses, sfm.registered, p.rules, sfm.problems, points=sfm.points, stopped=sfm.stopped)
-    verdict = _with_plan_verdict(result.to_attrs(), store.array(SEGMENT.at(seg=seg).path), sfm, p)
+    verdict = _with_plan_verdict(result.to_attrs(), store.array(SEGMENT.at(seg=seg).path), sfm, p, frames, K)
     with store.staged(
         ap.sfm,
         key,
@@ -78,15 +79,20 @@ def _judge(store: SceneStore, p: CheckStepParams, seg: str, k: int, key: str) ->
     return store.attrs(ap.check)
 
 
-def _with_plan_verdict(verdict: dict[str, Any], planned: np.ndarray, sfm: Any, p: CheckStepParams) -> dict[str, Any]:
-    """The check's `verdict` with the plan-following test of the attempt's SfM path against its planned path
-    (`plan_following`) added: its figures, and, when the camera ignored its instruction, a rejection with the
-    reasons in words. A user's clip has no plan (NaN path) and is not judged; nor is a path SfM did not map."""
-    if p.plan_following is None or not np.isfinite(planned).all() or not sfm.registered.any():
+def _with_plan_verdict(
+    verdict: dict[str, Any], planned: np.ndarray, sfm: Any, p: CheckStepParams, frames: np.ndarray, K: np.ndarray
+) -> dict[str, Any]:
+    """The check's `verdict` with the plan-following test of the attempt's path against its planned path
+    (`plan_following.judge_segment`: SfM's path, checked against the two-view geometry of the attempt's frames
+    with K) added: its figures, and, when the camera ignored its instruction, a rejection with the reasons in
+    words. A user's clip has no plan (NaN path) and is not judged."""
+    if p.plan_following is None or not np.isfinite(planned).all():
         return verdict
-    from wonderverse.plan_following import compare_to_plan
+    from wonderverse.plan_following import judge_segment
 
-    pf = compare_to_plan(sfm.poses, planned, p.plan_following, registered=sfm.registered)
+    pf = judge_segment(
+        planned, sfm.poses, sfm.registered, frames, K, p.plan_following, sfm_gates_passed=sfm.gates_passed
+    )
     verdict = verdict | {"plan_following": pf.to_attrs()}
     if pf.ok is False:
         reasons = [f"ignored its camera instruction: {r}" for r in pf.reasons]
