@@ -41,7 +41,9 @@ def load_views(store: SceneStore) -> tuple[Views, list[str]]:
     from wonderverse.splats.trainer import Views
 
     first = store.attrs(SFM.path)["segments"][0]
-    priors = {name for name in ("depth", "normals") if store.exists(getattr(PRIORS_SEGMENT.at(seg=first), name))}
+    priors = {
+        name for name in ("depth", "aligned", "normals") if store.exists(getattr(PRIORS_SEGMENT.at(seg=first), name))
+    }
     arrays = {"frames": lambda seg: attempt_path(store, seg).frames}
     arrays |= {name: (lambda seg, n=name: getattr(PRIORS_SEGMENT.at(seg=seg), n)) for name in priors}
     rows, w2c, names = posed_stitched(store, arrays)
@@ -52,6 +54,7 @@ def load_views(store: SceneStore) -> tuple[Views, list[str]]:
         w2c=w2c,
         K=store.array(SFM.K),
         prior_depth=rows.get("depth"),
+        prior_aligned=rows.get("aligned"),
         prior_normals=rows["normals"].astype(np.float32) if "normals" in rows else None,
     )
     return views, names

@@ -52,6 +52,19 @@ def test_splats_are_stored_with_the_normalisation_to_the_world(trained: Path):
     assert not store.exists("splats_checkpoint")  # removed once the result is committed
 
 
+def test_the_step_trains_on_each_frame_s_prior_with_the_priors_step_s_alignment_flag(trained: Path):
+    """Frames the priors step aligned are compared as they are, the others are fitted (`LossParams.depth_fit`):
+    the step hands each frame's flag to the trainer, in the order of its frames."""
+    from tasks.splats import load_views
+
+    store = SceneStore.open(trained)
+    views, names = load_views(store)
+    flags = {seg: store.array(f"priors/{seg}/aligned") for seg in store.attrs("sfm")["segments"]}
+    expect = [bool(flags[name.rsplit("_", 1)[0]][int(name.rsplit("_", 1)[1])]) for name in names]
+    assert views.prior_aligned is not None and views.prior_aligned.tolist() == expect
+    assert any(expect)  # the tiny scene's priors do align to its SfM points
+
+
 def test_sigkill_during_training_resumes_from_its_checkpoint(tmp_path: Path, trained: Path, caplog):
     import shutil
     import signal

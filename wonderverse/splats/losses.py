@@ -144,8 +144,11 @@ def depth_loss(
     valid: Tensor | None,
     params: LossParams,
     weight: Tensor | None = None,
+    aligned: Tensor | bool = True,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """L_depth (see the module docstring) for depth, alpha (H,W,1), prior (H,W) or (H,W,1), valid (H,W) bool.
+    aligned (0-d bool): the prior is already in the render's units (the priors step aligned it); with
+    `depth_fit: unaligned` it is then compared as it is, else fitted by scale and shift to the render.
     Fewer than `depth_min_valid_px` valid pixels: the term is 0 (and the fit NaN)."""
     d = depth[..., 0]
     a_r = alpha[..., 0]
@@ -157,6 +160,9 @@ def depth_loss(
     n = mask.sum()
     enough = n >= params.depth_min_valid_px
     scale, shift = fit_scale_shift(prior, rendered.detach(), mask)
+    if params.depth_fit == "unaligned":
+        as_is = torch.as_tensor(aligned, device=scale.device)
+        scale, shift = torch.where(as_is, 1.0, scale), torch.where(as_is, 0.0, shift)
     aligned = scale.to(d.dtype) * torch.where(mask, prior, 0) + shift.to(d.dtype)
     err = (rendered - aligned).abs()
     if params.depth_units == "median":
@@ -224,11 +230,13 @@ def total_loss(
     K: Tensor | None = None,
     prior_weight: Tensor | None = None,
     prior_scale: Tensor | float = 1.0,
+    prior_aligned: Tensor | bool = True,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """L = L_rgb + s (λ_d L_depth + λ_n L_normal) + λ_dn L_dn for one view. Images (H,W,C) float in [0,1]; see the
     module docstring for every term. A missing prior drops its term. K (3,3) is needed for the rendered depth's
     normals (`normal_target` other than "rendered", `lambda_depth_normal`); prior_weight (H,W) weighs the prior
-    terms per pixel (`texture_weight`); s = prior_scale, the schedule's factor. Returns (total, {term: float})
+    terms per pixel (`texture_weight`); s = prior_scale, the schedule's factor; prior_aligned: the depth prior is
+    in the render's units (`depth_loss`). Returns (total, {term: float})
     with keys rgb_l1, ssim, rgb, depth, normal, total and the fit/validity diagnostics, all detached 0-d tensors:
     nothing here waits for the device, so a training step runs without host syncs."""
     l1 = (rgb - gt_rgb).abs().mean()
@@ -247,7 +255,7 @@ def total_loss(
             defined &= normal_valid.reshape(defined.shape).bool()
         surface = depth_normals(depth[..., 0] / a.clamp_min(1e-10), K.to(depth.dtype), defined)
     if prior_depth is not None and params.lambda_depth > 0:
-        l_d, extra = depth_loss(depth, alpha, prior_depth, depth_valid, params, prior_weight)
+        l_d, extra = depth_loss(depth, alpha, prior_depth, depth_valid, params, prior_weight, prior_aligned)
         total = total + prior_scale * params.lambda_depth * l_d
         terms.update(extra, depth=l_d.detach())
     if prior_normals is not None and params.lambda_normal > 0:

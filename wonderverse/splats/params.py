@@ -21,6 +21,12 @@ class LossParams(BaseModel):
     ssim_sigma_px: float = Field(1.5, gt=0, description="Gaussian SSIM window standard deviation")
     depth_min_valid_px: int = Field(16, ge=2, description="fewer valid pixels: no depth fit, L_depth = 0")
     depth_use_expected: bool = Field(True, description="compare D̂/alpha (expected depth) instead of D̂ = Σ w z")
+    depth_fit: Literal["unaligned", "every"] = Field(
+        "unaligned",
+        description="frames whose depth prior is fitted (scale and shift, least squares) to the rendered depth at each "
+        "step: those the priors step could not align (their scale is unknown), or every frame (the fit then absorbs "
+        "the prior's absolute depth, and surfaces that parallax does not place drift: benchmarks.enhancement)",
+    )
     depth_units: Literal["scene", "median"] = Field(
         "median",
         description="units of |D̂ - (aD+b)| inside the log: the scene's, or the frame's median aligned prior "

@@ -49,13 +49,14 @@ log = logging.getLogger(__name__)
 _FLUSH_EVERY = 50  # steps between copies of the loss terms to the host (each copy waits for the device)
 
 
-PER_FRAME = ("frames", "w2c", "prior_depth", "prior_normals", "masks", "sky")
+PER_FRAME = ("frames", "w2c", "prior_depth", "prior_aligned", "prior_normals", "masks", "sky")
 
 
 @dataclass(kw_only=True)
 class Views:
     """Posed frames in the training frame. frames (T,H,W,3) uint8 or float in [0,1]; w2c (T,4,4) W2C;
-    K (3,3) or (T,3,3) pixels; prior_depth (T,H,W) camera z, any affine scale, +inf/NaN/<=0 invalid;
+    K (3,3) or (T,3,3) pixels; prior_depth (T,H,W) camera z, +inf/NaN/<=0 invalid, in the views' units where
+    prior_aligned (T,) bool says so (None: every frame), else at any affine scale;
     prior_normals (T,H,W,3) camera-space unit normals facing the camera (zero = invalid);
     masks (T,H,W) bool, pixels whose priors may be used; sky (T,H,W) bool, pixels of sky.
     Built by keyword only; `subset` and `replace` give changed copies without dropping a field."""
@@ -64,6 +65,7 @@ class Views:
     w2c: np.ndarray
     K: np.ndarray
     prior_depth: np.ndarray | None = None
+    prior_aligned: np.ndarray | None = None
     prior_normals: np.ndarray | None = None
     masks: np.ndarray | None = None
     sky: np.ndarray | None = None
@@ -211,6 +213,8 @@ class _Data:
         self.K = [torch.from_numpy(np.asarray(views.K_of(i), dtype=np.float32)).to(device) for i in range(len(views))]
         t, h, w = frames.shape[:3]
         self.depth = None if views.prior_depth is None else torch.from_numpy(views.prior_depth.astype(np.float32))
+        aligned = np.ones(t, bool) if views.prior_aligned is None else np.asarray(views.prior_aligned, bool)
+        self.aligned = torch.from_numpy(aligned.copy()).to(device)
         self.normals = None if views.prior_normals is None else torch.from_numpy(views.prior_normals.astype(np.float32))
         sky = np.zeros((t, h, w), bool) if views.sky is None else np.asarray(views.sky, bool).copy()
         if params.sky_from_invalid_prior and views.prior_depth is not None:
@@ -279,6 +283,7 @@ def loss_and_grads(
     K: torch.Tensor | None = None,
     prior_weight: torch.Tensor | None = None,
     prior_scale: torch.Tensor | float = 1.0,
+    prior_aligned: torch.Tensor | bool = True,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor], tuple[torch.Tensor, ...]]:
     """(loss, its terms, its gradients with respect to rgb, depth, alpha and normals) of a training step:
     `total_loss` plus `sky_alpha_weight` x the mean alpha over the `sky` pixels (0 on a view without sky).
@@ -302,6 +307,7 @@ def loss_and_grads(
             K,
             prior_weight,
             prior_scale,
+            prior_aligned,
         )
         if sky_alpha_weight > 0:
             terms["sky_alpha"] = masked_mean(alpha[..., 0], sky)
@@ -568,6 +574,7 @@ def train(
             K=data.K[i],
             prior_weight=None if data.prior_weight is None else data.prior_weight[i],
             prior_scale=prior_scale.fill_(prior_schedule(params, step)),
+            prior_aligned=data.aligned[i],
         )
         # back-propagate the loss's gradients through the render (and the strategy's own terms)
         renders = (rgb, depth, alpha, normals)
