@@ -87,7 +87,7 @@ def test_depth_loss_value_mask_and_gradient() -> None:
     prior[3, 10:] = 123.0  # excluded by the validity mask
     valid = torch.ones(H, W, dtype=torch.bool)
     valid[3] = False
-    loss, info = _floats(depth_loss(rendered, alpha, prior, valid, params, aligned=False))
+    loss, info = _floats(depth_loss(rendered, alpha, prior, valid, params, prior_aligned=False))
     assert float(loss.detach()) == pytest.approx(0.0, abs=1e-12)
     assert (info["depth_scale"], info["depth_shift"]) == (pytest.approx(2.0), pytest.approx(0.5))
     n_valid = H * (W - 4) - 3 - (W - 4)
@@ -96,7 +96,7 @@ def test_depth_loss_value_mask_and_gradient() -> None:
     shifted = rendered.detach().clone()
     shifted[10:14, 10:14] += 0.3
     shifted.requires_grad_()
-    loss, info = _floats(depth_loss(shifted, alpha, prior, valid, params, aligned=False))
+    loss, info = _floats(depth_loss(shifted, alpha, prior, valid, params, prior_aligned=False))
     mask = torch.isfinite(prior) & (prior > 0) & (alpha[..., 0] > 0.5) & valid
     aligned = info["depth_scale"] * prior + info["depth_shift"]
     r = (shifted.detach()[..., 0] - aligned)[mask]
@@ -107,9 +107,9 @@ def test_depth_loss_value_mask_and_gradient() -> None:
     np.testing.assert_allclose(shifted.grad[..., 0].numpy(), expect.numpy(), atol=1e-15)
     # the default measures the residual in units of the frame's median aligned prior depth (scale-free)
     scaled = LossParams(depth_use_expected=False)
-    loss_m, _ = depth_loss(shifted, alpha, prior, valid, scaled, aligned=False)
+    loss_m, _ = depth_loss(shifted, alpha, prior, valid, scaled, prior_aligned=False)
     assert float(loss_m.detach()) == pytest.approx(float(torch.log1p(r.abs() / aligned[mask].median()).mean()))
-    loss_10, _ = depth_loss(shifted * 10, alpha, prior * 10, valid, scaled, aligned=False)
+    loss_10, _ = depth_loss(shifted * 10, alpha, prior * 10, valid, scaled, prior_aligned=False)
     assert float(loss_10.detach()) == pytest.approx(float(loss_m.detach()), rel=1e-9)
     assert torch.isfinite(shifted.grad).all()
 
@@ -122,17 +122,17 @@ def test_an_aligned_prior_is_compared_as_it_is_unless_every_frame_is_fitted() ->
     rendered = (2.0 * prior)[..., None].requires_grad_()  # right up to scale: wrong in absolute terms
     alpha = torch.ones(H, W, 1, dtype=torch.float64)
     params = LossParams(depth_use_expected=False, depth_units="scene")
-    as_is, info = _floats(depth_loss(rendered, alpha, prior, None, params, aligned=True))
+    as_is, info = _floats(depth_loss(rendered, alpha, prior, None, params, prior_aligned=True))
     assert (info["depth_scale"], info["depth_shift"]) == (1.0, 0.0)
     assert float(as_is.detach()) == pytest.approx(float(torch.log1p(prior).mean()), rel=1e-12)  # |2p - p| = p
-    fitted, info = _floats(depth_loss(rendered, alpha, prior, None, params, aligned=False))
+    fitted, info = _floats(depth_loss(rendered, alpha, prior, None, params, prior_aligned=False))
     assert float(fitted.detach()) == pytest.approx(0.0, abs=1e-12) and info["depth_scale"] == pytest.approx(2.0)
     every = params.model_copy(update={"depth_fit": "every"})
-    assert float(depth_loss(rendered, alpha, prior, None, every, aligned=True)[0].detach()) == pytest.approx(
+    assert float(depth_loss(rendered, alpha, prior, None, every, prior_aligned=True)[0].detach()) == pytest.approx(
         0.0, abs=1e-12
     )
     # as a tensor flag (how the trainer passes it, per frame): the same
-    flag, _ = depth_loss(rendered, alpha, prior, None, params, aligned=torch.tensor(True))
+    flag, _ = depth_loss(rendered, alpha, prior, None, params, prior_aligned=torch.tensor(True))
     assert float(flag.detach()) == pytest.approx(float(as_is.detach()), rel=1e-12)
 
 
@@ -148,9 +148,11 @@ def test_depth_use_expected_divides_by_alpha() -> None:
     alpha = torch.full((H, W, 1), 0.75, dtype=torch.float64)
     prior = torch.linspace(1, 2, H * W, dtype=torch.float64).reshape(H, W)
     prior_const = torch.full((H, W), 2.0, dtype=torch.float64)
-    _, info = _floats(depth_loss(depth, alpha, prior_const, None, LossParams(depth_use_expected=True), aligned=False))
+    _, info = _floats(
+        depth_loss(depth, alpha, prior_const, None, LossParams(depth_use_expected=True), prior_aligned=False)
+    )
     assert info["depth_scale"] == pytest.approx(2.0)  # 3 / 0.75 = 4 = 2 * 2
-    loss, _ = depth_loss(depth, alpha, prior, None, LossParams(), aligned=False)
+    loss, _ = depth_loss(depth, alpha, prior, None, LossParams(), prior_aligned=False)
     assert float(loss) == pytest.approx(0.0, abs=1e-12)  # a constant render: a = 0, b = 3
 
 

@@ -9,11 +9,14 @@
 Ĉ, D̂, N̂ are rendered colour, depth and camera-space normals (D̂ = Σ w_i z_i and N̂ = Σ w_i n_i exactly as
 the paper's equations: alpha-composited, not divided by alpha; `depth_use_expected` divides D̂ by alpha
 instead). C is the frame, D the monocular depth prior and N the prior normals (OpenCV camera axes,
-facing the camera). (a, b) is the per-image least-squares fit of the prior to the render,
-argmin Σ_valid (a D + b - D̂)², computed without gradient: the loss is measured in the render's own depth
-units, so the scene scale is set by the cameras and never pulled towards the prior's arbitrary scale.
-(The paper writes the fit the other way round, (a D̂ + b) ≈ D; aligning the prior keeps the target
-fixed while the gradient flows into D̂ alone.) Valid pixels: prior finite and positive (depth) or of
+facing the camera). (a, b) = (1, 0) for a prior the priors step aligned to the SfM points (it is in the
+scene's units: `depth_fit: unaligned`, the default); otherwise the per-image least-squares fit of the prior
+to the render, argmin Σ_valid (a D + b - D̂)², computed without gradient: the loss is then measured in the
+render's own depth units, so the scene scale is set by the cameras and never pulled towards the prior's
+arbitrary scale, but only the prior's shape is enforced — fitted at every step it lets surfaces that
+parallax does not place drift (`depth_fit: every`; measured in docs/benchmarks.md, session 12). (The paper
+writes the fit the other way round, (a D̂ + b) ≈ D; aligning the prior keeps the target fixed while the
+gradient flows into D̂ alone.) Valid pixels: prior finite and positive (depth) or of
 non-zero length (normals), the optional validity mask, and rendered alpha > `alpha_threshold`.
 ||·||_1 sums the three channels; "mean_valid" averages over valid pixels (0 when there are none).
 
@@ -144,10 +147,10 @@ def depth_loss(
     valid: Tensor | None,
     params: LossParams,
     weight: Tensor | None = None,
-    aligned: Tensor | bool = True,
+    prior_aligned: Tensor | bool = True,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """L_depth (see the module docstring) for depth, alpha (H,W,1), prior (H,W) or (H,W,1), valid (H,W) bool.
-    aligned (0-d bool): the prior is already in the render's units (the priors step aligned it); with
+    prior_aligned (0-d bool): the prior is in the render's units (the priors step aligned it); with
     `depth_fit: unaligned` it is then compared as it is, else fitted by scale and shift to the render.
     Fewer than `depth_min_valid_px` valid pixels: the term is 0 (and the fit NaN)."""
     d = depth[..., 0]
@@ -161,7 +164,7 @@ def depth_loss(
     enough = n >= params.depth_min_valid_px
     scale, shift = fit_scale_shift(prior, rendered.detach(), mask)
     if params.depth_fit == "unaligned":
-        as_is = torch.as_tensor(aligned, device=scale.device)
+        as_is = torch.as_tensor(prior_aligned, device=scale.device)
         scale, shift = torch.where(as_is, 1.0, scale), torch.where(as_is, 0.0, shift)
     aligned = scale.to(d.dtype) * torch.where(mask, prior, 0) + shift.to(d.dtype)
     err = (rendered - aligned).abs()
