@@ -60,7 +60,9 @@ class PlanFollowingParams(BaseModel):
     Defaults: video models follow a camera instruction loosely (they ease in and out, turn along an arc
     instead of the plan's straight line), so the tolerances catch an ignored instruction (no turn, the
     wrong way, a turn up instead of left, backward instead of forward) rather than an imprecise one; a
-    half-done turn passes. SfM's own rotation error (< 1°) is far below them.
+    half-done turn passes. SfM's own rotation error (< 1°) is far below them where its path is right; where
+    it took a wrong solution (the planar twin, 13-36° off), two-view geometry overrules it (`two_view`,
+    `sfm_rotation_tol_deg`; module doc) rather than wider tolerances, which cost recall.
     """
 
     model_config = ConfigDict(extra="forbid", frozen=True)
