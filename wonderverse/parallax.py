@@ -165,29 +165,18 @@ def pairs_to_look_at(n: int) -> list[tuple[int, int]]:
 def triangulation_angles(p1: np.ndarray, p2: np.ndarray, K: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Triangulation angle (degrees) of each match p1[k] <-> p2[k] ((N,2) pixels, centres at +0.5) under the
     relative pose x2 = R x1 + t (any scale) and intrinsics K (3,3): the angle at the midpoint-triangulated
-    point between the rays from the two camera centres; 0 for points behind either camera or a pose
-    without translation."""
+    point between the rays from the two camera centres (`two_view.triangulated_depths`); 0 for points behind
+    either camera or a pose without translation."""
+    from wonderverse.two_view import triangulated_depths
+
     if not np.linalg.norm(t) > 0:
         return np.zeros(len(p1))
     Kinv = np.linalg.inv(K)
-    d1 = np.c_[p1, np.ones(len(p1))] @ Kinv.T
-    d2 = np.c_[p2, np.ones(len(p2))] @ Kinv.T @ R  # rows: R^T K^-1 x2, the second rays in camera 1's frame
-    d1 /= np.linalg.norm(d1, axis=1, keepdims=True)
-    d2 /= np.linalg.norm(d2, axis=1, keepdims=True)
-    c2 = -R.T @ t  # camera 2's centre in camera 1's frame
-    # closest points of the rays s*d1 and c2 + u*d2
-    b = np.sum(d1 * d2, axis=1)
-    d = d1 @ -c2
-    e = d2 @ -c2
-    den = np.maximum(1.0 - b * b, 1e-12)
-    s = (b * e - d) / den
-    u = (e - b * d) / den
-    X = 0.5 * (s[:, None] * d1 + c2 + u[:, None] * d2)
-    v1 = X / np.maximum(np.linalg.norm(X, axis=1, keepdims=True), 1e-300)
-    v2 = X - c2
-    v2 /= np.maximum(np.linalg.norm(v2, axis=1, keepdims=True), 1e-300)
-    ang = np.degrees(np.arccos(np.clip(np.sum(v1 * v2, axis=1), -1.0, 1.0)))
-    return np.where((s > 0) & (u > 0), ang, 0.0)
+    r1 = np.c_[p1, np.ones(len(p1))] @ Kinv.T
+    r2 = np.c_[p2, np.ones(len(p2))] @ Kinv.T
+    r1 /= np.linalg.norm(r1, axis=1, keepdims=True)
+    r2 /= np.linalg.norm(r2, axis=1, keepdims=True)
+    return triangulated_depths(r1, r2, R, t)[1]
 
 
 def homography_residuals(p1: np.ndarray, p2: np.ndarray, H: np.ndarray) -> np.ndarray:
