@@ -33,10 +33,10 @@ with and without the defects of real AI video.
 
 Usage: `python -m benchmarks.enhancement [--quick] [--preset preview|standard] [--worlds outdoor indoor]
 [--conditions clean texture_poor ai_like] [--variants rgb depth normal both] [--loss KEY=VALUE ...]
-[--mesh KEY=VALUE ...] [--iterations N] [--out ROWS.json]`, and `--merge A.json B.json ...` to report runs made
-apart (in parallel);
-`--quick` shrinks the video to 160x112 and 9 frames per segment with 120 iterations (a smoke run); `--iterations`
-trains that many iterations instead of the preset's (the preset's video and training sizes kept).
+[--mesh KEY=VALUE ...] [--train KEY=VALUE ...] [--out ROWS.json]`, and `--merge A.json B.json ...` to report runs
+made apart (in parallel);
+`--quick` shrinks the video to 160x112 and 9 frames per segment with 120 iterations (a smoke run); `--train`
+overrides the preset's `steps.splats.train` (e.g. `iterations=2000` at the preset's video and training sizes).
 Last-line keys (means over the worlds run): `fscore_gain_lowtex`, `fscore_gain_ai` (F@1 % of "both" minus
 "rgb_seeded", texture-poor and AI-like conditions: what the loss terms add), `depth_gain_ai` (1 - AbsRel both /
 AbsRel rgb_seeded, AI-like), `psnr_cost_clean_db` (PSNR rgb_seeded minus both, clean), the same four against
@@ -331,7 +331,7 @@ def main() -> None:
     ap.add_argument("--variants", nargs="*", default=list(VARIANTS), choices=list(VARIANTS))
     ap.add_argument("--loss", nargs="*", default=[], help="LossParams overrides KEY=VALUE for every variant")
     ap.add_argument("--mesh", nargs="*", default=[], help="MeshParams overrides KEY=VALUE (steps.outputs.mesh)")
-    ap.add_argument("--iterations", type=int, help="splat iterations instead of the preset's")
+    ap.add_argument("--train", nargs="*", default=[], help="steps.splats.train overrides KEY=VALUE (not loss)")
     ap.add_argument("--out", type=Path, help="also write the rows here (JSON), to merge runs made apart")
     ap.add_argument("--merge", nargs="*", type=Path, help="only merge rows written by --out runs and report them")
     args = ap.parse_args()
@@ -349,9 +349,9 @@ def main() -> None:
             "scene": {"video": {"width": 160, "height": 112, "frames_per_segment": 9}},
             "steps": {**overrides.get("steps", {}), "splats": {"max_side_px": 160, "train": {"iterations": 120}}},
         }
-    if args.iterations:
+    if args.train:
         splats = overrides.setdefault("steps", {}).setdefault("splats", {})
-        splats["train"] = {**splats.get("train", {}), "iterations": args.iterations}
+        splats["train"] = {**splats.get("train", {}), **parse_overrides(args.train)}
     cfg = build_config("benchmark", preset=args.preset, overrides=overrides)
     loss_update = parse_overrides(args.loss)
     rows = []
@@ -376,7 +376,7 @@ def main() -> None:
     iterations = cfg.steps.splats.train.iterations
     title = (
         f"Enhancement ablation, {args.preset}, {iterations} iterations, {machine()}, "
-        f"loss {loss_update or '-'}, mesh {args.mesh or '-'}"
+        f"loss {loss_update or '-'}, mesh {args.mesh or '-'}, train {args.train or '-'}"
     )
     report(title, rows, headline(rows, args.preset))
 

@@ -574,6 +574,7 @@ def seam_psnr(scene_dir: Any) -> dict[str, float]:
     """Per extension segment: PSNR (dB) of its first SEAM_FRAMES frames after the reference frame against the
     final splats rendered at those frames' global SfM poses (video size, the splats' learnt background)."""
     from tasks.outputs import posed_frames
+    from tasks.splats import stored_sky
     from wonderverse.metrics import psnr
     from wonderverse.schema import SEGMENT, SFM, SPLATS
     from wonderverse.splats.model import GaussianModel, normalization_from_dict
@@ -586,7 +587,7 @@ def seam_psnr(scene_dir: Any) -> dict[str, float]:
     splats = store.attrs(SPLATS.path)
     norm = normalization_from_dict(splats["normalization"])
     arrays = {name: store.array(getattr(SPLATS, name)) for name in GaussianModel.PARAM_NAMES}
-    background = splats.get("metrics", {}).get("background_rgb")
+    background = stored_sky(store)
     K = store.array(SFM.K)
     h, w = frames.shape[1:3]
     by_seg: dict[str, list[tuple[int, int]]] = {}

@@ -84,6 +84,7 @@ def world_statement(gravity: GravityFrame, source: str | None) -> str:
 
 
 def run(store: SceneStore, params: Params, ctx: StepContext) -> str:
+    from tasks.splats import stored_sky
     from wonderverse.camera import camera_centers, fit_intrinsics
     from wonderverse.exports import (
         nerfstudio_dataparser_frame,
@@ -117,7 +118,7 @@ def run(store: SceneStore, params: Params, ctx: StepContext) -> str:
     splats = store.attrs(SPLATS.path)
     norm_sfm = normalization_from_dict(splats["normalization"])
     arrays = {name: store.array(getattr(SPLATS, name)) for name in GaussianModel.PARAM_NAMES}
-    background = splats.get("metrics", {}).get("background_rgb")
+    background = stored_sky(store)
     frames, w2c_sfm, names = posed_frames(store)
     K = store.array(SFM.K)
     height, width = frames.shape[1:3]

@@ -82,6 +82,15 @@ def _previous(store: SceneStore, p: SplatsStepParams, names: list[str]) -> Previ
     return PreviousSplats(arrays, normalization_from_dict(prev["normalization"]), prev["frames"])
 
 
+def stored_sky(store: SceneStore) -> np.ndarray | None:
+    """What the stored splats show behind their Gaussians: the sky map (R, 2R, 3) when one was trained, else
+    the learnt colour (3,); None for splats stored without either."""
+    if "sky_map" in store.group(SPLATS.path):
+        return store.array(SPLATS.sky_map)
+    colour = store.attrs(SPLATS.path).get("metrics", {}).get("background_rgb")
+    return None if colour is None else np.asarray(colour, np.float32)
+
+
 def _save_checkpoint(store: SceneStore, key: str, step: int, state: dict[str, Any]) -> None:
     """The training state as plain tensors (one byte blob) and JSON (the `layout` attribute): never a pickle,
     so a scene folder cannot run code when its checkpoint is read back."""
@@ -155,6 +164,9 @@ def run(store: SceneStore, p: SplatsStepParams, ctx: StepContext) -> str:
         progress=callback("iterations"),
     )
     arrays = model.to_numpy()
+    sky_map = metrics.pop("sky_map", None)
+    if sky_map is not None:
+        arrays["sky_map"] = sky_map
     with store.staged(
         SPLATS.path,
         ctx.key,

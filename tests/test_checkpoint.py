@@ -33,6 +33,7 @@ TRAIN = TrainParams(
     strategy="default",
     densify=DensifyParams(start_iter=3, every_iters=4, reset_opacity_every_iters=10, grow_grad2d_ndc=1e-5),
     checkpoint_every_iters=8,
+    sky_map_rows=4,  # the sky as a (4, 8, 3) map: the state's largest non-Gaussian tensor travels too
 )
 
 

@@ -40,7 +40,7 @@ def scene(tmp_path_factory) -> Path:
         # a 60° turn: the cameras' headings spread enough for SfM's frame to give its up from their x axes
         "plan": {"initial_move": "up 0, right 60, forward 1"},
         "poses": {"source": "sfm"},
-        "splats": {"max_side_px": 112, "train": {"iterations": 150, "holdout_every": 0}},
+        "splats": {"max_side_px": 112, "train": {"iterations": 150, "holdout_every": 0, "sky_map_rows": 16}},
         "outputs": {"video_frames": FRAMES},
     }
     steps = cfg.steps.model_validate(
@@ -96,6 +96,17 @@ def test_files_are_listed_and_a_rerun_is_cached(scene: Path) -> None:
     # how many views render at once changes the speed, not the files: still cached
     faster = again.model_copy(update={"execution": again.execution.model_copy(update={"render_workers": 3})})
     assert [r.status for r in execute(scene, faster)] == ["cached"] * 7
+
+
+def test_the_sky_map_is_stored_with_the_splats(scene: Path) -> None:
+    from tasks.splats import stored_sky
+
+    store = SceneStore.open(scene)
+    sky = stored_sky(store)
+    assert sky.shape == (16, 32, 3) and sky.dtype == np.float32 and 0.0 <= sky.min() and sky.max() <= 1.0
+    assert sky.reshape(-1, 3).std(axis=0).max() > 0.01  # more than one colour was learnt
+    metrics = store.attrs("splats")["metrics"]
+    np.testing.assert_allclose(metrics["background_rgb"], sky.reshape(-1, 3).mean(axis=0), rtol=1e-5)
 
 
 def test_the_exported_splats_are_pruned_and_the_same_in_every_format(scene: Path) -> None:

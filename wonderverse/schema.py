@@ -347,7 +347,16 @@ _GAUSSIANS = {
 SPLATS = Group(
     "splats",
     "step splats: the trained Gaussians, in the training frame (`normalization` maps it to the world)",
-    arrays=_GAUSSIANS,
+    arrays={
+        **_GAUSSIANS,
+        "sky_map": Array(
+            "float32",
+            ("R", "C", 3),
+            "whole",
+            "the sky's colour per direction of the training frame, latitude-longitude (wonderverse.splats.sky); "
+            "only with train.sky_map_rows > 0, else the sky is metrics.background_rgb",
+        ),
+    },
     attrs={
         "normalization": "",
         "metrics": "",

@@ -252,10 +252,12 @@ def check_train_state(state: Any, n_views: int, sh_rest: int | None = None) -> N
         if not ok or any(w is not None and w != s for w, s in zip(want, a.shape, strict=True)):
             raise CheckpointError(f"parameter {name}: not float32 of shape {want}")
     background = state["background"]
-    if not (isinstance(background, np.ndarray) and background.dtype == np.float32 and background.shape == (3,)):
-        raise CheckpointError("the background is not 3 float32")
+    is_sky = isinstance(background, np.ndarray) and background.dtype == np.float32
+    shape = background.shape if is_sky else ()
+    if not (shape == (3,) or (len(shape) == 3 and shape[1] == 2 * shape[0] > 0 and shape[2] == 3)):
+        raise CheckpointError("the background is neither 3 float32 nor a float32 (R, 2R, 3) sky map")
     _check_adam(state["optimizer"], {k: v.shape for k, v in params.items()}, "optimizer")
-    _check_adam(state["bg_optimizer"], {"background": (3,)}, "bg_optimizer")
+    _check_adam(state["bg_optimizer"], {"background": shape}, "bg_optimizer")
     strategy = state["strategy_state"]
     if not isinstance(strategy, dict) or not all(isinstance(k, str) for k in strategy):
         raise CheckpointError("the strategy state is not a dict of names")

@@ -118,6 +118,13 @@ class TrainParams(BaseModel):
         None, description="initial background (sky) colour; None = median colour of the sky pixels, else black"
     )
     learn_background: bool = True
+    sky_map_rows: int = Field(
+        0,
+        ge=0,
+        le=2048,
+        description="0: the sky is one colour; else a colour per ray direction, a latitude-longitude map of "
+        "this many rows and twice as many columns (`wonderverse.splats.sky`)",
+    )
     sky_from_invalid_prior: bool = Field(True, description="treat pixels with an invalid depth prior as sky")
     sky_alpha_weight: float = Field(0.1, ge=0, description="weight of mean alpha over sky pixels")
     holdout_every: int = Field(8, ge=0, description="every Nth view is held out for evaluation; 0 = none")

@@ -5,7 +5,8 @@ pipeline normalises both first (`model.normalization_from_cameras`, `normalize_v
 densification thresholds are scene-independent, and inverts it at export (`ply.write_ply`).
 
 Sky: pixels marked sky (or, with `sky_from_invalid_prior`, where the depth prior is invalid, e.g. +inf)
-are explained by a learnable background colour composited behind the Gaussians, rgb = Σ w c + T bg, and
+are explained by a learnable sky composited behind the Gaussians, rgb = Σ w c + T sky — one colour, or with
+`sky_map_rows` a colour per ray direction (`wonderverse.splats.sky`) — and
 their rendered alpha is pushed to 0 (`sky_alpha_weight` * mean alpha over sky pixels), so the sky is not
 modelled by Gaussians at infinity. Depth/normal terms ignore sky pixels (their priors are invalid).
 
@@ -40,6 +41,7 @@ from wonderverse.splats.losses import flatten_loss, masked_mean, texture_weight,
 from wonderverse.splats.model import GaussianModel
 from wonderverse.splats.params import LossParams, TrainParams
 from wonderverse.splats.renderer import Renderer
+from wonderverse.splats.sky import composite, initial_sky, is_map, mean_colour
 from wonderverse.splats.strategy import DefaultStrategy, MCMCStrategy
 
 if TYPE_CHECKING:
@@ -239,8 +241,9 @@ class _Data:
         return self.frames[self.sky].median(dim=0).values.cpu().numpy()
 
 
-def _render_view(model: GaussianModel, data: _Data, i: int, renderer: Renderer, params: TrainParams, bg, sh: int):
-    return renderer(
+def _render_view(model: GaussianModel, data: _Data, i: int, renderer: Renderer, params: TrainParams, sky, sh: int):
+    """Render view i with the sky behind: a colour (3,) the renderer composites, or a map composited here."""
+    rgb, depth, alpha, normals, info = renderer(
         model.means,
         model.quats,
         torch.exp(model.log_scales),
@@ -252,9 +255,12 @@ def _render_view(model: GaussianModel, data: _Data, i: int, renderer: Renderer, 
         data.height,
         near=params.near,
         far=params.far,
-        background=bg,
+        background=None if is_map(sky) else sky,
         sh_degree=sh,
     )
+    if is_map(sky):
+        rgb = composite(rgb, alpha, sky, data.w2c[i], data.K[i])
+    return rgb, depth, alpha, normals, info
 
 
 def view_order(train_ids: list[int], focus: Collection[int], share: float, gen: torch.Generator) -> list[int]:
@@ -473,7 +479,7 @@ def train(
     else:
         sky = data.sky_colour()
         bg0 = sky if sky is not None else np.zeros(3, np.float32)
-    background = torch.nn.Parameter(torch.tensor(bg0, dtype=torch.float32, device=device))
+    background = torch.nn.Parameter(torch.tensor(initial_sky(bg0, params.sky_map_rows), device=device))
     scene_scale = params.scene_scale
     if resume_state is not None and "scene_scale" in resume_state:
         scene_scale = float(resume_state["scene_scale"])
@@ -597,7 +603,7 @@ def train(
         for p in trained:
             p.grad = None
         with torch.no_grad():
-            background.clamp_(0.0, 1.0)  # a colour: outside [0,1] it would only compensate other errors
+            background.clamp_(0.0, 1.0)  # colours: outside [0,1] they would only compensate other errors
         if strategy is not None and model.num_gaussians:
             n_before = model.num_gaussians
             strategy.step_post_backward(pdict, optimizers, strategy_state, step, info, lr=lr_m)
@@ -627,10 +633,12 @@ def train(
         "n_gaussians": model.num_gaussians,
         "scene_scale": scene_scale,
         "seconds": time.perf_counter() - t_start,
-        "background_rgb": bg_final.cpu().tolist(),
+        "background_rgb": mean_colour(bg_final.cpu().numpy()).tolist(),
         "skipped_steps": len(curves.get("skipped", [])),
     }
     for name, ids in (("test", test_ids), ("train", train_ids[:8])):
         for k, v in evaluate(model, views, ids, renderer, params, bg_final).items():
             metrics[f"{name}_{k}"] = v
+    if is_map(bg_final):
+        metrics["sky_map"] = bg_final.cpu().numpy()
     return model, curves, metrics

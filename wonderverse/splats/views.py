@@ -26,6 +26,7 @@ from wonderverse.camera import Sim3
 from wonderverse.progress import ProgressFn, no_progress
 from wonderverse.splats.model import GaussianModel
 from wonderverse.splats.renderer import Renderer
+from wonderverse.splats.sky import composite, is_map
 
 T = TypeVar("T")
 R = TypeVar("R")
@@ -58,19 +59,22 @@ def render_views(
     progress: ProgressFn | None = None,
 ) -> Iterator[RenderedView]:
     """Render `arrays` (GaussianModel.to_numpy layout, training frame) from world W2C poses (N,4,4) with
-    intrinsics K (3,3) or (N,3,3) at width×height; yields one RenderedView per camera, in order, lazily
-    (`workers` > 1 on the CPU: up to twice that many views ahead, see the module docstring).
+    intrinsics K (3,3) or (N,3,3) at width×height, `background` behind (a colour (3,) or a sky map (R, 2R, 3)
+    of the training frame's directions, `wonderverse.splats.sky`; black if None); yields one RenderedView per
+    camera, in order, lazily (`workers` > 1 on the CPU: up to twice that many views ahead, see the module
+    docstring).
     progress(views yielded, N, "") is called before the first view and as each one is yielded."""
     model = GaussianModel.from_numpy(arrays).to(renderer.device)
     w2c_n = norm.transform_w2c(np.asarray(w2c, np.float64).reshape(-1, 4, 4))
     Ks = np.broadcast_to(np.asarray(K, np.float64), (len(w2c_n), 3, 3)).copy()
-    bg = None if background is None else torch.as_tensor(np.asarray(background, np.float32), device=renderer.device)
+    sky = None if background is None else torch.as_tensor(np.asarray(background, np.float32), device=renderer.device)
     dev = renderer.device
     scales, opac = model.scales.detach(), model.opacities.detach()
     colors = model.sh_coeffs.detach()
 
     def one(camera: tuple[np.ndarray, np.ndarray]) -> RenderedView:
-        pose, k = camera
+        pose_t = torch.as_tensor(camera[0], dtype=torch.float32, device=dev)
+        k_t = torch.as_tensor(camera[1], dtype=torch.float32, device=dev)
         with torch.no_grad():
             rgb, depth, alpha, normals, _ = renderer(
                 model.means,
@@ -78,13 +82,15 @@ def render_views(
                 scales,
                 opac,
                 colors,
-                torch.as_tensor(pose, dtype=torch.float32, device=dev),
-                torch.as_tensor(k, dtype=torch.float32, device=dev),
+                pose_t,
+                k_t,
                 width,
                 height,
-                background=bg,
+                background=None if is_map(sky) else sky,
                 sh_degree=model.sh_degree,
             )
+            if is_map(sky):
+                rgb = composite(rgb, alpha, sky, pose_t, k_t)
         a = alpha[..., 0].cpu().numpy().astype(np.float32)
         with np.errstate(invalid="ignore", divide="ignore"):
             z = depth[..., 0].cpu().numpy().astype(np.float32) / np.maximum(a, 1e-6) / norm.s
