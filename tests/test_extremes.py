@@ -660,6 +660,36 @@ def test_trainer_survives_extreme_models(small_views, case: str) -> None:
         assert model.num_gaussians > 0
 
 
+@pytest.mark.usefixtures("one_thread")
+def test_all_sky_views_looking_at_the_poles_train_the_sky_map_alone(small_views) -> None:
+    """Every pixel sky (an all-sky prior), one camera straight up and one straight down (the map's poles, where
+    every longitude meets): finite losses, and the map takes the sky's colour where it was seen."""
+    from wonderverse.camera import look_at
+    from wonderverse.splats.model import GaussianModel
+    from wonderverse.splats.params import TrainParams
+    from wonderverse.splats.renderer import make_renderer
+    from wonderverse.splats.trainer import train
+
+    views, _ = small_views
+    w2c = views.w2c.copy()
+    eye = -w2c[0, :3, :3].T @ w2c[0, :3, 3]
+    w2c[0] = look_at(eye, eye + np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0]))
+    w2c[1] = look_at(eye, eye - np.array([0.0, 0.0, 1.0]), np.array([0.0, 1.0, 0.0]))
+    sky = views.replace(
+        frames=np.full_like(views.frames, 200),
+        w2c=w2c,
+        prior_depth=np.full(views.prior_depth.shape, np.inf, np.float32),
+        prior_normals=np.zeros_like(views.prior_normals),
+    )
+    params = TrainParams(
+        iterations=40, sh_degree=0, holdout_every=0, sky_map_rows=4, lr_background=0.05, background_rgb=(0, 0, 0)
+    )
+    _, curves, metrics = train(GaussianModel.empty(0), sky, params, make_renderer("torch"))
+    assert np.isfinite(curves["total"]).all() and metrics["skipped_steps"] == 0
+    assert np.isfinite(metrics["sky_map"]).all()
+    assert metrics["train_psnr"] > 30.0  # from black: every pixel is the map's, and it learnt the flat sky
+
+
 # ============================================================================ end to end: scene_scale 1e-3 and 1e3
 
 E2E_VIDEO = {"width": 128, "height": 96, "frames_per_segment": 8}
