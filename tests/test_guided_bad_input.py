@@ -40,8 +40,7 @@ def test_a_guided_family_without_a_mask_capable_pipeline_keeps_the_scene_made_be
     pytest.importorskip("diffusers")
     if importlib.util.find_spec("ftfy") is None:
         pytest.skip("diffusers' Wan pipelines need ftfy")
-    from diffusers import WanPipeline
-    from tiny_diffusers import wan_components
+    from tiny_diffusers import plain_wan_as_guided
 
     scene = tmp_path / "scene"
     video = {"width": 96, "height": 64, "frames_per_segment": 6, "options": {"fault_probability": 0.0}}
@@ -52,15 +51,7 @@ def test_a_guided_family_without_a_mask_capable_pipeline_keeps_the_scene_made_be
     keys = {seg: SceneStore.open(scene).cache_key_of(f"segments/{seg}") for seg in SEGMENTS}
     digest = tree_digest(scene / "scene.zarr" / "segments")
 
-    folder = tmp_path / "wan-t2v"
-    WanPipeline(**wan_components(False)).save_pretrained(folder)
-    options = {"family": "wan_vace", "guided_model": str(folder), "steps": 2, "device": "cpu"}
-    video = {"backend": "diffusers", "width": 48, "height": 32, "frames_per_segment": 9, "options": options}
-    guided = {
-        "preset": "preview",
-        "scene": {"prompt": PROMPT, "video": video},
-        "steps": {"priors": {"models": {"depth_backend": "depth_anything"}}},
-    }
+    guided = plain_wan_as_guided(tmp_path / "wan-t2v", PROMPT)
     args = ("generate", "--config", str(spec_file(tmp_path, "wan", guided)), "--out", str(scene))
     # the user allows the new model to replace the segments: it fails before it has made one, so none is replaced
     line = one_error_line(default_engine(tmp_path, *args, "--until", "check", "--replace-segments"))

@@ -374,18 +374,9 @@ def test_a_guided_family_without_a_mask_capable_pipeline_is_one_error_line(tmp_p
 
     if importlib.util.find_spec("ftfy") is None:
         pytest.skip("diffusers' Wan pipelines need ftfy")
-    from diffusers import WanPipeline
-    from tiny_diffusers import wan_components
+    from tiny_diffusers import plain_wan_as_guided
 
-    folder = tmp_path / "wan-t2v"
-    WanPipeline(**wan_components(False)).save_pretrained(folder)
-    options = {"family": "wan_vace", "guided_model": str(folder), "steps": 2, "device": "cpu"}
-    video = {"backend": "diffusers", "width": 48, "height": 32, "frames_per_segment": 9, "options": options}
-    data = {
-        "preset": "preview",
-        "scene": {"prompt": PROMPT, "video": video},
-        "steps": {"priors": {"models": {"depth_backend": "depth_anything"}}},
-    }
+    data = plain_wan_as_guided(tmp_path / "wan-t2v", PROMPT)
     scene = tmp_path / "scene"
     args = ("generate", "--config", str(spec_file(tmp_path, "wan", data)), "--out", str(scene))
     line = one_error_line(run_cli(*args, "--until", "check", "--engine", "local"))

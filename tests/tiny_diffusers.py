@@ -168,6 +168,21 @@ def wan_vace_components() -> dict[str, Any]:
 FAMILY_MODES: dict[str, tuple[str, ...]] = {"cogvideox": ("t2v", "i2v"), "wan": ("t2v", "i2v"), "wan_vace": ("guided",)}
 
 
+def plain_wan_as_guided(folder: Path, prompt: str) -> dict[str, Any]:
+    """A run config asking the `wan_vace` family of weights that are a plain Wan text-to-video pipeline (it takes
+    no mask), saved to `folder`: a guided run with it must stop with one error line."""
+    from diffusers import WanPipeline
+
+    WanPipeline(**wan_components(False)).save_pretrained(folder)
+    options = {"family": "wan_vace", "guided_model": str(folder), "steps": 2, "device": "cpu"}
+    video = {"backend": "diffusers", "width": 48, "height": 32, "frames_per_segment": 9, "options": options}
+    return {
+        "preset": "preview",
+        "scene": {"prompt": prompt, "video": video},
+        "steps": {"priors": {"models": {"depth_backend": "depth_anything"}}},
+    }
+
+
 def save_tiny_pipelines(root: Path, families: tuple[str, ...] = ("cogvideox", "wan")) -> dict[str, dict[str, Path]]:
     """Save each family's pipelines under `root`: text-to-video and image-to-video for cogvideox and wan, the
     guided pipeline for wan_vace.
