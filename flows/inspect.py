@@ -17,7 +17,7 @@ from tasks import STEPS, step_keys
 from tasks.segments import accepted_attempt, attempt_ids, segment_ids
 from wonderverse.config import validate_config
 from wonderverse.errors import WonderError
-from wonderverse.schema import ATTEMPT, PRIORS, SEGMENT, SEGMENTS, SFM
+from wonderverse.schema import ATTEMPT, PRIORS, PRIORS_SEGMENT, SEGMENT, SEGMENTS, SFM
 from wonderverse.store import SceneStore
 
 
@@ -170,7 +170,8 @@ def priors_words(depth: str | None, normal: str | None) -> str:
 
 def priors(store: SceneStore) -> dict[str, Any]:
     """The scene's priors: depth and normal backends (from the priors step when it ran, else from the stored
-    configuration), whether the step computed them, and in words."""
+    configuration), whether the step computed them, the mean share of pixels the depth prior marked sky (None
+    without one), and in words."""
     backends = store.attrs(PRIORS.path).get("backends")
     done = store.cache_key_of(PRIORS.path) is not None and isinstance(backends, list) and len(backends) == 2
     if done:
@@ -178,7 +179,14 @@ def priors(store: SceneStore) -> dict[str, Any]:
     else:
         models = (((store.root.attrs.get("config") or {}).get("steps") or {}).get("priors") or {}).get("models") or {}
         depth, normal = models.get("depth_backend"), models.get("normal_backend")
-    return {"depth_backend": depth, "normal_backend": normal, "computed": done, "words": priors_words(depth, normal)}
+    # the share of pixels the depth prior calls sky (`sky_beyond_ref`): far terrain can be taken too
+    shares = (
+        [store.attrs(PRIORS_SEGMENT.at(seg=s)).get("sky_share") for s in store.children(PRIORS.path)] if done else []
+    )
+    shares = [float(x) for x in shares if isinstance(x, int | float)]
+    sky = round(sum(shares) / len(shares), 4) if shares else None
+    words = priors_words(depth, normal) + ("" if sky is None else f"; {100 * sky:.1f} % of pixels sky")
+    return {"depth_backend": depth, "normal_backend": normal, "computed": done, "sky_share": sky, "words": words}
 
 
 def global_k(store: SceneStore) -> dict[str, Any] | None:

@@ -97,6 +97,7 @@ def priors_segment(seg: str, scene_dir: str, settings: PriorsStepParams, step_ke
         aligned = align_frames(pred.depth, pred.kind, poses, points, K, p.align, settings.sky_beyond_ref)
         depth = aligned.depth
         summary |= {"kind": pred.kind, "aligned_frames": int(aligned.ok.sum()), "reasons": aligned.reasons[:20]}
+        summary["sky_share"] = round(float(np.isinf(depth).mean()), 4)
         arrays |= {"depth": depth, "scale": aligned.scale, "shift": aligned.shift, "aligned": aligned.ok}
         if pred.confidence is not None:
             arrays["confidence"] = pred.confidence
@@ -134,7 +135,10 @@ def run(store: SceneStore, p: PriorsStepParams, ctx: StepContext) -> str:
     store.mark_complete(PRIORS.path, ctx.key, backends=backends)
     aligned = sum(s["aligned_frames"] for s in out)
     total = sum(s["frames"] for s in out)
-    return f"{len(segs)} segments, {aligned}/{total} frames aligned to SfM ({out[0]['kind'] if out else '-'})"
+    # the share the sky rule took is worth seeing: far terrain no SfM point reaches can be taken too
+    sky = sum(s.get("sky_share", 0.0) * s["frames"] for s in out) / max(total, 1)
+    kind = out[0]["kind"] if out else "-"
+    return f"{len(segs)} segments, {aligned}/{total} frames aligned to SfM ({kind}), {100 * sky:.1f} % of pixels sky"
 
 
 # 4: the step contract

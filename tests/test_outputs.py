@@ -98,6 +98,23 @@ def test_files_are_listed_and_a_rerun_is_cached(scene: Path) -> None:
     assert [r.status for r in execute(scene, faster)] == ["cached"] * 7
 
 
+def test_the_priors_mark_most_of_the_true_sky_and_say_how_much(scene: Path) -> None:
+    """The priors step's sky rule against the procedural truth of each accepted attempt: most true sky pixels
+    become +inf, few true surfaces do, and `sky_share` is what was marked."""
+    from tasks.segments import attempt_path
+    from wonderverse.schema import PRIORS_SEGMENT
+
+    store = SceneStore.open(scene)
+    for seg in store.attrs("sfm")["segments"]:
+        truth = np.isinf(store.array(attempt_path(store, seg).gt.depth))
+        depth = store.array(PRIORS_SEGMENT.at(seg=seg).depth)
+        marked = np.isinf(depth)
+        assert truth.mean() > 0.02, seg  # the scene shows sky
+        # seen (s000): 86 % of the sky, 1.1 % of the surfaces (far terrain no SfM point reaches)
+        assert marked[truth].mean() > 0.5 and marked[~truth].mean() < 0.02, seg
+        assert store.attrs(PRIORS_SEGMENT.at(seg=seg))["sky_share"] == pytest.approx(marked.mean(), abs=1e-4)
+
+
 def test_the_sky_map_is_stored_with_the_splats(scene: Path) -> None:
     from tasks.splats import stored_sky
 

@@ -276,11 +276,13 @@ def test_a_generated_scene_has_its_plan_and_priors_and_no_clips(full_scene: Path
     info = summarize(SceneStore.open(full_scene))
     assert info["clips"] is None
     # the procedural world's default priors: the oracle depth, normals from it
+    sky = info["priors"].pop("sky_share")
+    assert 0.0 < sky < 0.6  # an outdoor village under the sky; the share is the truth's in test_outputs
     assert info["priors"] == {
         "depth_backend": "oracle",
         "normal_backend": "from_depth",
         "computed": True,
-        "words": "depth oracle, normals from_depth",
+        "words": f"depth oracle, normals from_depth; {100 * sky:.1f} % of pixels sky",
     }
 
 

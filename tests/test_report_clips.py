@@ -154,6 +154,7 @@ def test_inspect_describes_the_clips_and_the_priors(scene: Path, clips):
         "depth_backend": "none",
         "normal_backend": "none",
         "computed": True,
+        "sky_share": None,
         "words": "none: colours only",
     }
     got = [{k: c[k] for k in ("segment", "source", "name", "kind", "frames", "size", "k_source", "verdict")}

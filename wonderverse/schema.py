@@ -324,7 +324,13 @@ PRIORS_SEGMENT = Group(
         "shift": Array("float64", ("T",), "whole"),
         "aligned": Array("bool", ("T",), "whole"),
     },
-    attrs={"kind": "depth|inverse_depth", "aligned_frames": "", "frames": "", "reasons": ""},
+    attrs={
+        "kind": "depth|inverse_depth",
+        "aligned_frames": "",
+        "frames": "",
+        "reasons": "",
+        "sky_share": "share of the segment's pixels whose aligned depth is +inf (sky: `sky_beyond_ref`)",
+    },
 )
 PRIORS_RAW = Group("priors_raw", "step priors: the depth network's raw output, kept across extensions")
 PRIORS_RAW_SEGMENT = Group(
