@@ -179,12 +179,15 @@ def priors(store: SceneStore) -> dict[str, Any]:
     else:
         models = (((store.root.attrs.get("config") or {}).get("steps") or {}).get("priors") or {}).get("models") or {}
         depth, normal = models.get("depth_backend"), models.get("normal_backend")
-    # the share of pixels the depth prior calls sky (`sky_beyond_ref`): far terrain can be taken too
-    shares = (
-        [store.attrs(PRIORS_SEGMENT.at(seg=s)).get("sky_share") for s in store.children(PRIORS.path)] if done else []
-    )
-    shares = [float(x) for x in shares if isinstance(x, int | float)]
-    sky = round(sum(shares) / len(shares), 4) if shares else None
+    # the share of pixels the depth prior calls sky (`sky_beyond_ref`), over all frames as the step's line gives it
+    segs = [store.attrs(PRIORS_SEGMENT.at(seg=s)) for s in store.children(PRIORS.path)] if done else []
+    counted = [
+        (float(a["sky_share"]), int(a["frames"]))
+        for a in segs
+        if isinstance(a.get("sky_share"), int | float) and isinstance(a.get("frames"), int)
+    ]
+    frames = sum(n for _, n in counted)
+    sky = round(sum(x * n for x, n in counted) / frames, 4) if frames else None
     words = priors_words(depth, normal) + ("" if sky is None else f"; {100 * sky:.1f} % of pixels sky")
     return {"depth_backend": depth, "normal_backend": normal, "computed": done, "sky_share": sky, "words": words}
 
