@@ -31,12 +31,13 @@ with and without the defects of real AI video.
   points, precision over the mesh points whose nearest world point is one): what the reconstruction makes of what
   the video determines.
 
-Usage: `python -m benchmarks.enhancement [--quick] [--preset preview|standard] [--worlds outdoor indoor]
+Usage: `python -m benchmarks.enhancement [--quick] [--preset preview|standard|high] [--worlds outdoor indoor]
 [--conditions clean texture_poor ai_like] [--variants rgb depth normal both] [--loss KEY=VALUE ...]
 [--mesh KEY=VALUE ...] [--train KEY=VALUE ...] [--out ROWS.json]`, and `--merge A.json B.json ...` to report runs
-made apart (in parallel);
-`--quick` shrinks the video to 160x112 and 9 frames per segment with 120 iterations (a smoke run); `--train`
-overrides the preset's `steps.splats.train` (e.g. `iterations=2000` at the preset's video and training sizes).
+made apart (in parallel; a later file's row replaces an earlier one of the same world, condition and variant,
+so a re-measured variant goes last); `--quick` shrinks the video to 160x112 and 9 frames per segment with 120
+iterations (a smoke run); `--train` overrides the preset's `steps.splats.train` (e.g. `iterations=2000` at the
+preset's video and training sizes).
 Last-line keys (means over the worlds run): `fscore_gain_lowtex`, `fscore_gain_ai` (F@1 % of "both" minus
 "rgb_seeded", texture-poor and AI-like conditions: what the loss terms add), `depth_gain_ai` (1 - AbsRel both /
 AbsRel rgb_seeded, AI-like), `psnr_cost_clean_db` (PSNR rgb_seeded minus both, clean), the same four against
@@ -322,6 +323,13 @@ def headline(rows: list[dict[str, Any]], preset: str) -> dict[str, float]:
     return {k: round(v, 4) for k, v in head.items()}
 
 
+def merge_rows(runs: list[list[dict[str, Any]]]) -> list[dict[str, Any]]:
+    """The rows of several runs, a later run's row replacing an earlier one of the same world, condition and
+    variant (a re-measured variant in place of the old one)."""
+    merged = {(r["world"], r["condition"], r["variant"]): r for rows in runs for r in rows}
+    return list(merged.values())
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--quick", action="store_true", help="160x112 frames, 9 per segment, 120 iterations")
@@ -336,7 +344,7 @@ def main() -> None:
     ap.add_argument("--merge", nargs="*", type=Path, help="only merge rows written by --out runs and report them")
     args = ap.parse_args()
     if args.merge:
-        rows = [r for f in args.merge for r in json.loads(f.read_text())]
+        rows = merge_rows([json.loads(f.read_text()) for f in args.merge])
         report(f"Enhancement ablation, {args.preset}, merged {len(args.merge)} runs", rows, headline(rows, args.preset))
         return
     from wonderverse.config import build_config

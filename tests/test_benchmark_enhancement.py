@@ -30,3 +30,19 @@ def test_a_point_one_camera_alone_frames_is_not_determinable():
     cams = np.stack([look_at(np.zeros(3), np.array([0.0, 10.0, 0.0]), np.array([0.0, 0.0, 1.0]))] * 2)
     _, ok = determinable(np.array([[0.0, 5.0, 0.0], [0.0, -5.0, 0.0]]), K, cams, 1.0, H, W)
     assert not ok.any()  # no baseline in front, nothing framed behind
+
+
+def test_merging_runs_puts_a_later_rows_variant_in_place_of_the_earlier_one():
+    from benchmarks.enhancement import merge_rows
+
+    def row(world: str, condition: str, variant: str, f1: float) -> dict:
+        return {"world": world, "condition": condition, "variant": variant, "f1": f1}
+
+    first = [
+        row("outdoor", "clean", "both", 0.5),
+        row("outdoor", "clean", "rgb", 0.3),
+        row("indoor", "clean", "both", 0.8),
+    ]
+    merged = merge_rows([first, [row("outdoor", "clean", "both", 0.6)]])
+    got = {(r["world"], r["variant"]): r["f1"] for r in merged}
+    assert got == {("outdoor", "both"): 0.6, ("outdoor", "rgb"): 0.3, ("indoor", "both"): 0.8}
