@@ -33,11 +33,13 @@ with and without the defects of real AI video.
 
 Usage: `python -m benchmarks.enhancement [--quick] [--preset preview|standard|high] [--worlds outdoor indoor]
 [--conditions clean texture_poor ai_like] [--variants rgb depth normal both] [--loss KEY=VALUE ...]
-[--mesh KEY=VALUE ...] [--train KEY=VALUE ...] [--out ROWS.json]`, and `--merge A.json B.json ...` to report runs
-made apart (in parallel; a later file's row replaces an earlier one of the same world, condition and variant,
-so a re-measured variant goes last); `--quick` shrinks the video to 160x112 and 9 frames per segment with 120
-iterations (a smoke run); `--train` overrides the preset's `steps.splats.train` (e.g. `iterations=2000` at the
-preset's video and training sizes).
+[--mesh KEY=VALUE ...] [--train KEY=VALUE ...] [--defects KEY=VALUE ...] [--out ROWS.json]`, and `--merge A.json
+B.json ...` to report runs made apart (in parallel; a later file's row replaces an earlier one of the same world,
+condition, variant and defects, so a re-measured variant goes last); `--quick` shrinks the video to 160x112 and
+9 frames per segment with 120 iterations (a smoke run); `--train` overrides the preset's `steps.splats.train`
+(e.g. `iterations=2000` at the preset's video and training sizes); `--defects` changes the conditions' defects
+(`DefectParams` fields, e.g. `geometric_drift_m=0` to leave one of `ai_like`'s out; rows then carry a `defects`
+column).
 Last-line keys (means over the worlds run): `fscore_gain_lowtex`, `fscore_gain_ai` (F@1 % of "both" minus
 "rgb_seeded", texture-poor and AI-like conditions: what the loss terms add), `depth_gain_ai` (1 - AbsRel both /
 AbsRel rgb_seeded, AI-like), `psnr_cost_clean_db` (PSNR rgb_seeded minus both, clean), the same four against
@@ -98,8 +100,11 @@ def corner_mask(frame: np.ndarray, share: float) -> np.ndarray:
     return (response >= cut) & (response > 1e-6)
 
 
-def prepare(world: str, condition: str, cfg: Any, seed: int = 0) -> dict[str, Any]:
-    """Frames, true poses, K, priors and ground truth of one scene at the preset's training size."""
+def prepare(
+    world: str, condition: str, cfg: Any, seed: int = 0, defect_update: dict[str, Any] | None = None
+) -> dict[str, Any]:
+    """Frames, true poses, K, priors and ground truth of one scene at the preset's training size;
+    `defect_update` changes fields of the condition's defects (`DefectParams`), e.g. one defect off."""
     from wonderverse.camera import move_path
     from wonderverse.priors import align_scale_shift
     from wonderverse.priors.from_depth import NormalsFromDepth
@@ -108,12 +113,13 @@ def prepare(world: str, condition: str, cfg: Any, seed: int = 0) -> dict[str, An
     from wonderverse.splats.trainer import Views
     from wonderverse.video import initial_pose
     from wonderverse.video.procedural import ProceduralVideo
+    from wonderverse.video.procedural_options import DEFECT_LEVELS
 
     prompt, forward = WORLDS[world]
     v = cfg.scene.video
     options: dict[str, Any] = {"fault_probability": 0.0}
-    if condition != "clean":
-        options["defects"] = DEFECTS[condition]
+    if condition != "clean" or defect_update:
+        options["defects"] = DEFECT_LEVELS[DEFECTS[condition]].model_copy(update=defect_update or {})
     model = ProceduralVideo(prompt, seed, v.width, v.height, v.fov_deg, options)
     n = v.frames_per_segment
     p0 = move_path(initial_pose(model), np.radians(-30), 0.0, forward, -0.6 * forward, n)
@@ -324,9 +330,9 @@ def headline(rows: list[dict[str, Any]], preset: str) -> dict[str, float]:
 
 
 def merge_rows(runs: list[list[dict[str, Any]]]) -> list[dict[str, Any]]:
-    """The rows of several runs, a later run's row replacing an earlier one of the same world, condition and
-    variant (a re-measured variant in place of the old one)."""
-    merged = {(r["world"], r["condition"], r["variant"]): r for rows in runs for r in rows}
+    """The rows of several runs, a later run's row replacing an earlier one of the same world, condition,
+    variant and defect changes (a re-measured variant in place of the old one)."""
+    merged = {(r["world"], r["condition"], r["variant"], r.get("defects", "")): r for rows in runs for r in rows}
     return list(merged.values())
 
 
@@ -340,6 +346,7 @@ def main() -> None:
     ap.add_argument("--loss", nargs="*", default=[], help="LossParams overrides KEY=VALUE for every variant")
     ap.add_argument("--mesh", nargs="*", default=[], help="MeshParams overrides KEY=VALUE (steps.outputs.mesh)")
     ap.add_argument("--train", nargs="*", default=[], help="steps.splats.train overrides KEY=VALUE (not loss)")
+    ap.add_argument("--defects", nargs="*", default=[], help="DefectParams overrides KEY=VALUE of each condition")
     ap.add_argument("--out", type=Path, help="also write the rows here (JSON), to merge runs made apart")
     ap.add_argument("--merge", nargs="*", type=Path, help="only merge rows written by --out runs and report them")
     args = ap.parse_args()
@@ -362,17 +369,19 @@ def main() -> None:
         splats["train"] = {**splats.get("train", {}), **parse_overrides(args.train)}
     cfg = build_config("benchmark", preset=args.preset, overrides=overrides)
     loss_update = parse_overrides(args.loss)
+    defect_update = parse_overrides(args.defects)
     rows = []
     for world in args.worlds:
         for condition in args.conditions:
             t0 = time.perf_counter()
-            data = prepare(world, condition, cfg)
+            data = prepare(world, condition, cfg, defect_update=defect_update)
             prep_s = time.perf_counter() - t0
             top = ceiling(data, cfg)
             print(json.dumps({"world": world, "condition": condition, "ceiling": top}), flush=True)
             for variant in args.variants:
                 run = train_variant(data, cfg, variant, loss_update)
                 row = {"world": world, "condition": condition, "variant": variant}
+                row |= {"defects": " ".join(args.defects)} if args.defects else {}
                 row |= {"psnr": run["psnr"], **score(data, run, cfg), "gaussians": run["gaussians"]}
                 row |= {"ceiling_f1": top["f1"], "ceiling_f1_full_reach": top["f1_full_reach"]}
                 row |= {"parallax_bound": top["parallax_bound"]}
@@ -384,7 +393,7 @@ def main() -> None:
     iterations = cfg.steps.splats.train.iterations
     title = (
         f"Enhancement ablation, {args.preset}, {iterations} iterations, {machine()}, "
-        f"loss {loss_update or '-'}, mesh {args.mesh or '-'}, train {args.train or '-'}"
+        f"loss {loss_update or '-'}, mesh {args.mesh or '-'}, train {args.train or '-'}, defects {args.defects or '-'}"
     )
     report(title, rows, headline(rows, args.preset))
 

@@ -1,4 +1,5 @@
-"""benchmarks.enhancement's parallax bound: which world points triangulation can place within a tolerance."""
+"""benchmarks.enhancement: the parallax bound (which world points triangulation can place within a tolerance),
+merging runs, and changing a condition's defects."""
 
 import numpy as np
 
@@ -46,3 +47,22 @@ def test_merging_runs_puts_a_later_rows_variant_in_place_of_the_earlier_one():
     merged = merge_rows([first, [row("outdoor", "clean", "both", 0.6)]])
     got = {(r["world"], r["variant"]): r["f1"] for r in merged}
     assert got == {("outdoor", "both"): 0.6, ("outdoor", "rgb"): 0.3, ("indoor", "both"): 0.8}
+
+
+def test_turning_every_defect_of_a_condition_off_gives_the_clean_frames():
+    from benchmarks.enhancement import prepare
+    from wonderverse.config import build_config
+
+    small = {
+        "scene": {"video": {"width": 64, "height": 48, "frames_per_segment": 3}},
+        "steps": {"splats": {"max_side_px": 64}},
+    }
+    cfg = build_config("benchmark", preset="preview", overrides=small)
+    off = dict(texture_poor_share=0, exposure_drift_stops=0, white_balance_drift_frac=0, detail_flicker_contrast=0)
+    off |= dict(geometric_drift_m=0, blur_sigma_px=0, motion_blur_shutter=0, jpeg_quality=None, parallax_scale=1)
+    clean = prepare("indoor", "clean", cfg)["views"].frames
+    ai_like = prepare("indoor", "ai_like", cfg)["views"].frames
+    all_off = prepare("indoor", "ai_like", cfg, defect_update=off)["views"].frames
+    one_on = prepare("indoor", "ai_like", cfg, defect_update=off | {"blur_sigma_px": 0.5})["views"].frames
+    assert np.array_equal(all_off, clean)
+    assert not np.array_equal(ai_like, clean) and not np.array_equal(one_on, clean)
