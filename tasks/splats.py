@@ -162,6 +162,7 @@ def run(store: SceneStore, p: SplatsStepParams, ctx: StepContext) -> str:
         focus_views=start.new_views,
         focus_share=p.extend_new_view_share,
         progress=callback("iterations"),
+        view_gap=p.frame_stride,
     )
     arrays = model.to_numpy()
     sky_map = metrics.pop("sky_map", None)

@@ -628,7 +628,8 @@ def small_views():
 
 @pytest.mark.usefixtures("one_thread")
 @pytest.mark.parametrize("case", ["tiny_scales", "huge_scales", "zero_quats", "saturated_opacity", "all_pruned"])
-def test_trainer_survives_extreme_models(small_views, case: str) -> None:
+@pytest.mark.parametrize("shutter", [0.0, 0.5])  # renders smeared like motion-blurred video, or not
+def test_trainer_survives_extreme_models(small_views, case: str, shutter: float) -> None:
     from wonderverse.splats.params import DensifyParams, TrainParams
     from wonderverse.splats.renderer import make_renderer
     from wonderverse.splats.trainer import train
@@ -648,7 +649,9 @@ def test_trainer_survives_extreme_models(small_views, case: str) -> None:
         else:  # every Gaussian below the prune threshold: the first refinement removes them all
             model.logit_opacities.fill_(-12.0)
     dens = DensifyParams(start_iter=2, every_iters=2, stop_iter=6, reset_opacity_every_iters=0)
-    params = TrainParams(iterations=8, sh_degree=0, holdout_every=0, strategy="default", densify=dens)
+    params = TrainParams(
+        iterations=8, sh_degree=0, holdout_every=0, strategy="default", densify=dens, motion_blur_shutter=shutter
+    )
     model, curves, metrics = train(model, views, params, make_renderer("torch"))
     assert np.isfinite(curves["total"]).all() and len(curves["total"]) == 8, case
     assert metrics["skipped_steps"] == 0
@@ -682,7 +685,13 @@ def test_all_sky_views_looking_at_the_poles_train_the_sky_map_alone(small_views)
         prior_normals=np.zeros_like(views.prior_normals),
     )
     params = TrainParams(
-        iterations=40, sh_degree=0, holdout_every=0, sky_map_rows=4, lr_background=0.05, background_rgb=(0, 0, 0)
+        iterations=40,
+        sh_degree=0,
+        holdout_every=0,
+        sky_map_rows=4,
+        lr_background=0.05,
+        background_rgb=(0, 0, 0),
+        motion_blur_shutter=1.0,  # the sky's pixels move as directions, and a turn through the pole is a long smear
     )
     _, curves, metrics = train(GaussianModel.empty(0), sky, params, make_renderer("torch"))
     assert np.isfinite(curves["total"]).all() and metrics["skipped_steps"] == 0

@@ -125,6 +125,15 @@ class TrainParams(BaseModel):
         description="0: the sky is one colour; else a colour per ray direction, a latitude-longitude map of "
         "this many rows and twice as many columns (`wonderverse.splats.sky`)",
     )
+    motion_blur_shutter: float = Field(
+        0.0,
+        ge=0,
+        le=1,
+        description="share of the frame interval the video's shutter was open (0.5: a 180° shutter); > 0 smears "
+        "each training render along its image motion before the photometric loss (`wonderverse.splats.motion_blur`)",
+    )
+    motion_blur_samples: int = Field(5, ge=2, le=64, description="points averaged along each pixel's smear")
+    motion_blur_max_px: float = Field(32.0, gt=0, description="cap on a smear's length in pixels (a cut, a jump)")
     sky_from_invalid_prior: bool = Field(True, description="treat pixels with an invalid depth prior as sky")
     sky_alpha_weight: float = Field(0.1, ge=0, description="weight of mean alpha over sky pixels")
     holdout_every: int = Field(8, ge=0, description="every Nth view is held out for evaluation; 0 = none")

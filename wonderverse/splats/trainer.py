@@ -10,6 +10,10 @@ are explained by a learnable sky composited behind the Gaussians, rgb = Σ w c +
 their rendered alpha is pushed to 0 (`sky_alpha_weight` * mean alpha over sky pixels), so the sky is not
 modelled by Gaussians at infinity. Depth/normal terms ignore sky pixels (their priors are invalid).
 
+Motion blur: with `motion_blur_shutter` > 0 each training render is smeared along its image motion over the
+shutter before the photometric loss (`wonderverse.splats.motion_blur`), so blurred video does not pull the
+Gaussians into streaks; held-out metrics compare the render smeared the same way with the frame.
+
 Held-out views (every `holdout_every`-th, starting with view `holdout_every - 1`) are never trained on and
 give the evaluation metrics. A step whose loss or gradients are not finite is skipped: fused Adam's
 `found_inf` flag leaves parameters and moments untouched, its gradients add nothing to the densification
@@ -39,6 +43,7 @@ from wonderverse.progress import ProgressFn, no_progress
 from wonderverse.splats.compiled import Compiled
 from wonderverse.splats.losses import flatten_loss, masked_mean, texture_weight, total_loss
 from wonderverse.splats.model import GaussianModel
+from wonderverse.splats.motion_blur import image_velocity, smear
 from wonderverse.splats.params import LossParams, TrainParams
 from wonderverse.splats.renderer import Renderer
 from wonderverse.splats.sky import composite, initial_sky, is_map, mean_colour
@@ -263,6 +268,19 @@ def _render_view(model: GaussianModel, data: _Data, i: int, renderer: Renderer, 
     return rgb, depth, alpha, normals, info
 
 
+def _blurred_like_the_video(
+    rgb: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor, data: _Data, i: int, params: TrainParams, gap: int
+) -> torch.Tensor:
+    """The render of view i smeared along its image motion over the shutter (`wonderverse.splats.motion_blur`):
+    the velocity from the neighbouring views, `gap` frames apart, and the render's own depth (no gradient)."""
+    a, b = max(i - 1, 0), min(i + 1, len(data.w2c) - 1)
+    with torch.no_grad():
+        a_ = alpha[..., 0]
+        z = depth[..., 0] / a_.clamp_min(1e-6)
+        vel = image_velocity(z, a_, data.w2c[i], data.w2c[a], data.w2c[b], (b - a) * gap, data.K[i])
+    return smear(rgb, vel, params.motion_blur_shutter, params.motion_blur_samples, params.motion_blur_max_px)
+
+
 def view_order(train_ids: list[int], focus: Collection[int], share: float, gen: torch.Generator) -> list[int]:
     """One shuffled pass over `train_ids` (popped from the end). With `focus` views and 0 < share < 1, the
     focus views are repeated so that about `share` of the pass is theirs (each other view still appears once)."""
@@ -420,9 +438,16 @@ def _flush(pending: list[_Pending], curves: dict[str, list[float]]) -> None:
 
 @torch.no_grad()
 def evaluate(
-    model: GaussianModel, views: Views, indices: list[int], renderer: Renderer, params: TrainParams, background
+    model: GaussianModel,
+    views: Views,
+    indices: list[int],
+    renderer: Renderer,
+    params: TrainParams,
+    background,
+    view_gap: int = 1,
 ) -> dict[str, float]:
-    """Mean PSNR / SSIM (wonderverse.metrics) of the renders of `indices` against their frames."""
+    """Mean PSNR / SSIM (wonderverse.metrics) of the renders of `indices` against their frames; with
+    `motion_blur_shutter` the renders are smeared as the camera smeared the frames (`train`'s view_gap)."""
     from wonderverse.metrics import psnr, ssim
 
     if not indices:
@@ -431,7 +456,10 @@ def evaluate(
     sh = min(params.sh_degree, model.sh_degree)
     ps, ss = [], []
     for i in indices:
-        rgb = _render_view(model, data, i, renderer, params, background, sh)[0].clamp(0, 1).cpu().numpy()
+        rgb, depth, alpha, _, _ = _render_view(model, data, i, renderer, params, background, sh)
+        if params.motion_blur_shutter > 0:
+            rgb = _blurred_like_the_video(rgb, depth, alpha, data, i, params, view_gap)
+        rgb = rgb.clamp(0, 1).cpu().numpy()
         gt = data.frames[i].cpu().numpy()
         ps.append(psnr(rgb, gt))
         if min(rgb.shape[:2]) >= 11:
@@ -453,6 +481,7 @@ def train(
     focus_views: Collection[int] = (),
     focus_share: float = 0.0,
     progress: ProgressFn | None = None,
+    view_gap: int = 1,
 ) -> tuple[GaussianModel, dict[str, list[float]], dict[str, Any]]:
     """Optimise `model` on `views` (see the module docstring). Returns (model, curves, metrics).
 
@@ -462,6 +491,7 @@ def train(
     such a state as `resume_state` continues training from it (same views and params). The first
     `fixed_gaussians` Gaussians (an extended scene's existing ones) are optimised but never densified;
     about `focus_share` of the steps train on `focus_views` (an extension's new frames), see `view_order`.
+    Consecutive views are `view_gap` video frames apart (the motion-blur model's frame interval).
     progress(iterations done, iterations, "loss 0.0521, 21468 Gaussians") is called at the start, about every
     1 % of the iterations and at the end; the loss is the last one copied to the host (module docstring).
     """
@@ -563,6 +593,8 @@ def train(
                 g["lr"] = lr_m
         sh = min(step // params.sh_degree_interval_iters, params.sh_degree, model.sh_degree)
         rgb, depth, alpha, normals, info = _render_view(model, data, i, renderer, params, background, sh)
+        if params.motion_blur_shutter > 0:
+            rgb = _blurred_like_the_video(rgb, depth, alpha, data, i, params, view_gap)
         if strategy is not None and model.num_gaussians:
             strategy.step_pre_backward(pdict, optimizers, strategy_state, step, info)
         loss, terms, grads = loss_fn(
@@ -637,7 +669,7 @@ def train(
         "skipped_steps": len(curves.get("skipped", [])),
     }
     for name, ids in (("test", test_ids), ("train", train_ids[:8])):
-        for k, v in evaluate(model, views, ids, renderer, params, bg_final).items():
+        for k, v in evaluate(model, views, ids, renderer, params, bg_final, view_gap).items():
             metrics[f"{name}_{k}"] = v
     if is_map(bg_final):
         metrics["sky_map"] = bg_final.cpu().numpy()
