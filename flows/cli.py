@@ -230,6 +230,10 @@ def reconstruct(
         str, typer.Option(help="a clip that fails its check: keep_best (keep it, warned), drop, or fail")
     ] = "keep_best",
     fov_deg: Annotated[float | None, typer.Option(help="horizontal field of view when known (else estimated)")] = None,
+    shutter: Annotated[
+        float | None,
+        typer.Option(help="motion-blurred clips: the share of a frame's interval the shutter was open (0.5: 180°)"),
+    ] = None,
     until: Annotated[str | None, typer.Option(help="run only the steps this step needs")] = None,
     engine: Engine = "auto",
     replace_segments: ReplaceSegments = False,
@@ -258,6 +262,8 @@ def reconstruct(
         "scene": {"video": {"backend": "files", "clips": paths, "options": options}, "extensions": {"rounds": 0}},
         "steps": {"check": {"on_failure": on_failure}},
     }
+    if shutter is not None:  # the splats then smear their renders like the camera did (motion_blur_shutter)
+        overrides["steps"]["splats"] = {"train": {"motion_blur_shutter": shutter}}
     if depth_model is not None:
         models = {"depth_backend": "depth_anything", "depth_model": str(depth_model.resolve()), "allow_download": False}
         overrides["steps"]["priors"] = {"models": {**models, "normal_backend": "from_depth"}}

@@ -15,6 +15,8 @@ import yaml
 from conftest import TINY_VIDEO, run_cli
 from plyfile import PlyData
 
+from flows.pipeline import stored_config
+
 RE10K_CLIP = "cameractrl_re10k/reference_videos/0bf152ef84195293.mp4"
 
 
@@ -49,6 +51,7 @@ def bad_clips(tmp_path_factory) -> dict[str, Path]:
         ("mixed", [], "f2.png: image is 128x64 but the clip's first frame f0.png is 96x64"),  # refused, not resized
         ("one.mp4", ["--fov-deg", "nan"], "scene.video.options.fov_deg"),
         ("one.mp4", ["--fov-deg", "-5"], "scene.video.options.fov_deg"),
+        ("one.mp4", ["--shutter", "2"], "steps.splats.train.motion_blur_shutter"),
         ("one.mp4", ["--depth-model", "/nonexistent/da"], "--depth-model /nonexistent/da: no such folder"),
     ],
 )
@@ -82,8 +85,13 @@ def test_a_failed_step_is_one_error_line_under_either_engine(tmp_path):
 @pytest.mark.slow
 def test_a_real_estate_clip_reconstructs_to_outputs_with_no_weights(data_dir: Path, tmp_path: Path):
     out = tmp_path / "scene"
-    r = run_cli("reconstruct", str(data_dir / RE10K_CLIP), "--out", str(out), "--preset", "preview", timeout=900)
+    # a phone-like walkthrough, its motion blur modelled (a 180° shutter)
+    r = run_cli(
+        "reconstruct", str(data_dir / RE10K_CLIP), "--out", str(out), "--preset", "preview", "--shutter", "0.5",
+        timeout=900,
+    )  # fmt: skip
     assert r.returncode == 0, r.stderr[-3000:]
+    assert stored_config(out).steps.splats.train.motion_blur_shutter == 0.5
     assert "priors: none (no depth model named)" in r.stderr
     for name in ("splats.ply", "mesh.ply", "mesh.glb", "points.ply", "novel.mp4", "report.html"):
         assert (out / name).stat().st_size > 0, name
