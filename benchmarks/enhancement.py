@@ -32,14 +32,15 @@ with and without the defects of real AI video.
   the video determines.
 
 Usage: `python -m benchmarks.enhancement [--quick] [--preset preview|standard|high] [--worlds outdoor indoor]
-[--conditions clean texture_poor ai_like] [--variants rgb depth normal both] [--loss KEY=VALUE ...]
-[--mesh KEY=VALUE ...] [--train KEY=VALUE ...] [--defects KEY=VALUE ...] [--out ROWS.json]`, and `--merge A.json
-B.json ...` to report runs made apart (in parallel; a later file's row replaces an earlier one of the same world,
-condition, variant and defects, so a re-measured variant goes last); `--quick` shrinks the video to 160x112 and
-9 frames per segment with 120 iterations (a smoke run); `--train` overrides the preset's `steps.splats.train`
-(e.g. `iterations=2000` at the preset's video and training sizes); `--defects` changes the conditions' defects
-(`DefectParams` fields, e.g. `geometric_drift_m=0` to leave one of `ai_like`'s out; rows then carry a `defects`
-column).
+[--conditions clean texture_poor ai_like] [--variants rgb depth normal both] [--loss KEY=VALUE ...] [--mesh
+KEY=VALUE ...] [--train KEY=VALUE ...] [--defects KEY=VALUE ...] [--prior KEY=VALUE ...] [--out ROWS.json]`, and
+`--merge A.json B.json ...` to report runs made apart (in parallel; a later file's row replaces an earlier one of
+the same world, condition, variant, defects and prior, so a re-measured variant goes last); `--quick` shrinks the
+video to 160x112 and 9 frames per segment with 120 iterations (a smoke run); `--train` overrides the preset's
+`steps.splats.train` (e.g. `iterations=2000` at the preset's video and training sizes); `--defects` changes the
+conditions' defects (`DefectParams` fields, e.g. `geometric_drift_m=0` to leave one of `ai_like`'s out; rows then
+carry a `defects` column); `--prior` changes the oracle's "realistic" level (`OracleDegradation` fields, e.g.
+`world_warp_log_amp=0.05` for an error fixed to the world's surfaces; rows then carry a `prior` column).
 Last-line keys (means over the worlds run): `fscore_gain_lowtex`, `fscore_gain_ai` (F@1 % of "both" minus
 "rgb_seeded", texture-poor and AI-like conditions: what the loss terms add), `depth_gain_ai` (1 - AbsRel both /
 AbsRel rgb_seeded, AI-like), `psnr_cost_clean_db` (PSNR rgb_seeded minus both, clean), the same four against
@@ -101,14 +102,21 @@ def corner_mask(frame: np.ndarray, share: float) -> np.ndarray:
 
 
 def prepare(
-    world: str, condition: str, cfg: Any, seed: int = 0, defect_update: dict[str, Any] | None = None
+    world: str,
+    condition: str,
+    cfg: Any,
+    seed: int = 0,
+    defect_update: dict[str, Any] | None = None,
+    prior_update: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Frames, true poses, K, priors and ground truth of one scene at the preset's training size;
-    `defect_update` changes fields of the condition's defects (`DefectParams`), e.g. one defect off."""
+    `defect_update` changes fields of the condition's defects (`DefectParams`), e.g. one defect off;
+    `prior_update` fields of the oracle's "realistic" level (`OracleDegradation`)."""
     from wonderverse.camera import move_path
     from wonderverse.priors import align_scale_shift
     from wonderverse.priors.from_depth import NormalsFromDepth
     from wonderverse.priors.oracle import OracleDepth
+    from wonderverse.priors.params import ORACLE_LEVELS
     from wonderverse.splats.data import _resize, downscale_views
     from wonderverse.splats.trainer import Views
     from wonderverse.video import initial_pose
@@ -130,7 +138,9 @@ def prepare(
     h, w = views.frames.shape[1:3]
     depth = _resize(gt.depth, (w, h), True)
     normals = _resize(gt.normals, (w, h), True)
-    pred = OracleDepth(depth, "realistic", "inverse_depth", seed=seed + 1).predict(views.frames)
+    level = ORACLE_LEVELS["realistic"].model_copy(update=prior_update or {})
+    oracle = OracleDepth(depth, level, "inverse_depth", seed=seed + 1, K=views.K, w2c=gt.poses)
+    pred = oracle.predict(views.frames)
     prior = np.empty_like(depth)
     points, colors = [], []
     for t in range(len(depth)):
@@ -331,8 +341,12 @@ def headline(rows: list[dict[str, Any]], preset: str) -> dict[str, float]:
 
 def merge_rows(runs: list[list[dict[str, Any]]]) -> list[dict[str, Any]]:
     """The rows of several runs, a later run's row replacing an earlier one of the same world, condition,
-    variant and defect changes (a re-measured variant in place of the old one)."""
-    merged = {(r["world"], r["condition"], r["variant"], r.get("defects", "")): r for rows in runs for r in rows}
+    variant, defect and prior changes (a re-measured variant in place of the old one)."""
+    merged = {
+        (r["world"], r["condition"], r["variant"], r.get("defects", ""), r.get("prior", "")): r
+        for rows in runs
+        for r in rows
+    }
     return list(merged.values())
 
 
@@ -347,6 +361,7 @@ def main() -> None:
     ap.add_argument("--mesh", nargs="*", default=[], help="MeshParams overrides KEY=VALUE (steps.outputs.mesh)")
     ap.add_argument("--train", nargs="*", default=[], help="steps.splats.train overrides KEY=VALUE (not loss)")
     ap.add_argument("--defects", nargs="*", default=[], help="DefectParams overrides KEY=VALUE of each condition")
+    ap.add_argument("--prior", nargs="*", default=[], help="OracleDegradation overrides KEY=VALUE of the prior")
     ap.add_argument("--out", type=Path, help="also write the rows here (JSON), to merge runs made apart")
     ap.add_argument("--merge", nargs="*", type=Path, help="only merge rows written by --out runs and report them")
     args = ap.parse_args()
@@ -370,11 +385,12 @@ def main() -> None:
     cfg = build_config("benchmark", preset=args.preset, overrides=overrides)
     loss_update = parse_overrides(args.loss)
     defect_update = parse_overrides(args.defects)
+    prior_update = parse_overrides(args.prior)
     rows = []
     for world in args.worlds:
         for condition in args.conditions:
             t0 = time.perf_counter()
-            data = prepare(world, condition, cfg, defect_update=defect_update)
+            data = prepare(world, condition, cfg, defect_update=defect_update, prior_update=prior_update)
             prep_s = time.perf_counter() - t0
             top = ceiling(data, cfg)
             print(json.dumps({"world": world, "condition": condition, "ceiling": top}), flush=True)
@@ -382,6 +398,7 @@ def main() -> None:
                 run = train_variant(data, cfg, variant, loss_update)
                 row = {"world": world, "condition": condition, "variant": variant}
                 row |= {"defects": " ".join(args.defects)} if args.defects else {}
+                row |= {"prior": " ".join(args.prior)} if args.prior else {}
                 row |= {"psnr": run["psnr"], **score(data, run, cfg), "gaussians": run["gaussians"]}
                 row |= {"ceiling_f1": top["f1"], "ceiling_f1_full_reach": top["f1_full_reach"]}
                 row |= {"parallax_bound": top["parallax_bound"]}
@@ -393,7 +410,8 @@ def main() -> None:
     iterations = cfg.steps.splats.train.iterations
     title = (
         f"Enhancement ablation, {args.preset}, {iterations} iterations, {machine()}, "
-        f"loss {loss_update or '-'}, mesh {args.mesh or '-'}, train {args.train or '-'}, defects {args.defects or '-'}"
+        f"loss {loss_update or '-'}, mesh {args.mesh or '-'}, train {args.train or '-'}, "
+        f"defects {args.defects or '-'}, prior {args.prior or '-'}"
     )
     report(title, rows, headline(rows, args.preset))
 

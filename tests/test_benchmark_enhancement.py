@@ -66,3 +66,25 @@ def test_turning_every_defect_of_a_condition_off_gives_the_clean_frames():
     one_on = prepare("indoor", "ai_like", cfg, defect_update=off | {"blur_sigma_px": 0.5})["views"].frames
     assert np.array_equal(all_off, clean)
     assert not np.array_equal(ai_like, clean) and not np.array_equal(one_on, clean)
+
+
+def test_a_world_fixed_prior_error_makes_the_aligned_prior_worse_and_keeps_the_sky():
+    from benchmarks.enhancement import prepare
+    from wonderverse.config import build_config
+    from wonderverse.metrics import depth_errors
+
+    small = {
+        "scene": {"video": {"width": 96, "height": 64, "frames_per_segment": 4}},
+        "steps": {"splats": {"max_side_px": 96}},
+    }
+    cfg = build_config("benchmark", preset="preview", overrides=small)
+    plain = prepare("outdoor", "clean", cfg)
+    fixed = prepare("outdoor", "clean", cfg, prior_update={"world_warp_log_amp": 0.1})
+    truth = plain["gt_depth"]
+    ok = np.isfinite(truth)
+
+    def absrel(data: dict) -> float:
+        return depth_errors(data["views"].prior_depth, truth, mask=ok)["absrel"]
+
+    assert absrel(fixed) > 1.2 * absrel(plain)
+    assert np.array_equal(np.isinf(fixed["views"].prior_depth), ~ok)

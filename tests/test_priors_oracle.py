@@ -158,3 +158,49 @@ def test_labelled_as_oracle_and_only_built_with_ground_truth() -> None:
     assert isinstance(dm, OracleDepth) and isinstance(nm, OracleNormals)
     assert dm.predict(FRAMES).depth.shape == (T, H, W)
     assert nm.predict(FRAMES).normals.shape == (T, H, W, 3)
+
+
+def _shifted_pair(z: float, offset: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A fronto-parallel wall at camera z `z` seen by two cameras at `offset`, the second moved right by one
+    pixel's footprint on the wall: pixel column u of the first sees what column u - 1 of the second sees."""
+    depth = np.full((2, H, W), z, dtype=np.float32)
+    w2c = np.tile(np.eye(4), (2, 1, 1))
+    step = z / K[0, 0]
+    for i, centre in enumerate((offset, offset + np.array([step, 0.0, 0.0]))):
+        w2c[i, :3, 3] = -centre  # identity rotation: t = -C
+    return depth, w2c
+
+
+@pytest.mark.parametrize("offset", [0.0, 1e6])
+def test_world_fixed_error_is_the_same_on_a_surface_in_every_frame(offset: float) -> None:
+    level = ORACLE_LEVELS["none"].model_copy(update={"world_warp_log_amp": 0.1})
+    depth, w2c = _shifted_pair(5.0, np.array([offset, -offset, offset]))
+    pred = OracleDepth(depth, level, "depth", seed=2, K=K, w2c=w2c).predict(FRAMES[:2]).depth
+    sky_far = OracleDepth(depth, "none", "depth").predict(FRAMES[:2]).depth
+    log_err = np.log(pred / sky_far)
+    assert np.isfinite(log_err).all() and log_err.std() > 0.02  # an error, and not a constant one
+    np.testing.assert_allclose(log_err[0][:, 1:], log_err[1][:, :-1], atol=2e-3 if offset else 1e-5)
+    # the per-frame warp of the named levels is different in each frame: the same comparison fails for it
+    warped = OracleDepth(depth, ORACLE_LEVELS["none"].model_copy(update={"warp_log_amp": 0.1}), "depth", seed=2)
+    w_err = np.log(warped.predict(FRAMES[:2]).depth / sky_far)
+    assert np.abs(w_err[0][:, 1:] - w_err[1][:, :-1]).max() > 0.02
+
+
+def test_world_fixed_error_has_the_std_it_is_given_and_leaves_the_sky() -> None:
+    depth = np.full((1, H, W), 80.0, dtype=np.float32)  # a wall ~150 m wide: many wavelengths of 1-4 m
+    depth[0, :8] = np.inf
+    level = ORACLE_LEVELS["none"].model_copy(update={"world_warp_log_amp": 0.05})
+    pred = OracleDepth(depth, level, "depth", seed=5, K=K, w2c=np.eye(4)[None]).predict(FRAMES[:1]).depth[0]
+    exact = OracleDepth(depth, "none", "depth").predict(FRAMES[:1]).depth[0]
+    assert np.log(pred[8:] / exact[8:]).std() == pytest.approx(0.05, rel=0.3)
+    np.testing.assert_array_equal(pred[:8], exact[:8])
+
+
+def test_world_fixed_error_needs_the_cameras() -> None:
+    level = ORACLE_LEVELS["realistic"].model_copy(update={"world_warp_log_amp": 0.05})
+    with pytest.raises(ValueError, match="needs K"):
+        OracleDepth(GT_DEPTH, level)
+    with pytest.raises(ValueError, match="needs K"):
+        OracleDepth(GT_DEPTH, level, K=K, w2c=np.eye(4)[None])
+    with pytest.raises(ValueError, match="wavelengths"):
+        level.model_validate(level.model_dump() | {"world_warp_wavelength_m": (2.0, 1.0)})

@@ -16,6 +16,8 @@ from wonderverse.priors.params import ORACLE_LEVELS, OracleDegradation, OracleLe
 
 _STREAM_DEPTH = 0
 _STREAM_NORMALS = 1
+_STREAM_WORLD = 2
+_WORLD_WAVES = 6
 
 
 def _frame_rng(seed: int, index: int, stream: int) -> np.random.Generator:
@@ -54,12 +56,40 @@ def _edge_band(values: np.ndarray, valid: np.ndarray, rel_step: float, width_px:
     return ndimage.binary_dilation(edges, iterations=iters)
 
 
-def degrade_depth(depth: np.ndarray, deg: OracleDegradation, space: DepthKind, rng: np.random.Generator) -> np.ndarray:
+def world_warp(depth: np.ndarray, K: np.ndarray, w2c: np.ndarray, deg: OracleDegradation, seed: int) -> np.ndarray:
+    """A zero-mean, unit-std (H,W) field fixed to the world: six sinusoids over the world point each pixel of
+    camera z `depth` sees (K (3,3) at the depth's size, W2C (4,4)), with directions, wavelengths and phases drawn
+    once per `seed`, so the same surface gets the same value in every frame. 0 where there is no surface (sky)."""
+    rng = np.random.default_rng([seed, _STREAM_WORLD])
+    dirs = rng.standard_normal((_WORLD_WAVES, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    lo, hi = deg.world_warp_wavelength_m
+    waves = 2.0 * np.pi / np.exp(rng.uniform(np.log(lo), np.log(hi), _WORLD_WAVES))
+    phases = rng.uniform(0.0, 2.0 * np.pi, _WORLD_WAVES)
+    h, w = depth.shape
+    valid = np.isfinite(depth) & (depth > 0)
+    z = np.where(valid, depth, 0.0).astype(np.float64)
+    v, u = np.mgrid[0:h, 0:w] + 0.5
+    cam = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=-1)
+    rot, t = np.asarray(w2c, np.float64)[:3, :3], np.asarray(w2c, np.float64)[:3, 3]
+    world = (cam - t) @ rot  # R^T (x - t), row-wise
+    field = sum(np.sin(world @ dirs[i] * waves[i] + phases[i]) for i in range(_WORLD_WAVES))
+    return np.where(valid, field / np.sqrt(_WORLD_WAVES / 2.0), 0.0)
+
+
+def degrade_depth(
+    depth: np.ndarray,
+    deg: OracleDegradation,
+    space: DepthKind,
+    rng: np.random.Generator,
+    world: np.ndarray | None = None,
+) -> np.ndarray:
     """One degraded (H,W) float32 map in `space` from camera z with +inf (or NaN / <= 0) for sky.
 
     Sky becomes a far constant (sky_far_ratio times the farthest surface) before anything else, so the
-    output is finite everywhere; then edge blur, a smooth multiplicative warp, multiplicative noise and an
-    affine map with an unknown scale and shift, all in `space` (the inverse-depth one mimics DA-V2).
+    output is finite everywhere; then edge blur, a smooth multiplicative warp, the world-fixed error `world`
+    (`world_warp`'s field, scaled by world_warp_log_amp; None: none), multiplicative noise and an affine map
+    with an unknown scale and shift, all in `space` (the inverse-depth one mimics DA-V2).
     """
     z = depth.astype(np.float64)
     valid = np.isfinite(z) & (z > 0)
@@ -72,6 +102,8 @@ def degrade_depth(depth: np.ndarray, deg: OracleDegradation, space: DepthKind, r
         x = np.where(band, ndimage.gaussian_filter(x, deg.edge_blur_px, mode="nearest"), x)
     if deg.warp_log_amp > 0:
         x = x * np.exp(deg.warp_log_amp * _smooth_field(rng, x.shape, deg.warp_cells))
+    if world is not None and deg.world_warp_log_amp > 0:
+        x = x * np.exp(deg.world_warp_log_amp * world)
     if deg.noise_rel > 0:
         x = x * np.clip(1.0 + deg.noise_rel * rng.standard_normal(x.shape), 0.5, 1.5)
     lo, hi = deg.scale_range
@@ -136,19 +168,36 @@ class OracleDepth:
     """ORACLE depth prior — for benchmarks only, never the default for user videos.
 
     gt_depth: (T,H,W) camera z with +inf for sky (the procedural world's GroundTruth.depth). predict()
-    returns a degraded copy at `level` ("none": exact, sky at a far constant), in `space`
-    ("inverse_depth" mimics Depth Anything V2 and is the default), seeded per (seed, frame index).
+    returns a degraded copy at `level` (a named level, "none": exact, sky at a far constant, or an
+    OracleDegradation), in `space` ("inverse_depth" mimics Depth Anything V2 and is the default), seeded per
+    (seed, frame index). A level with `world_warp_log_amp` > 0 needs the cameras: K (3,3) and W2C (T,4,4).
     """
 
     def __init__(
-        self, gt_depth: np.ndarray, level: OracleLevel = "realistic", space: DepthKind = "inverse_depth", seed: int = 0
+        self,
+        gt_depth: np.ndarray,
+        level: OracleLevel | OracleDegradation = "realistic",
+        space: DepthKind = "inverse_depth",
+        seed: int = 0,
+        K: np.ndarray | None = None,
+        w2c: np.ndarray | None = None,
     ) -> None:
         if gt_depth.ndim != 3:
             raise ValueError(f"gt_depth must be (T,H,W), got {gt_depth.shape}")
         self.gt_depth = gt_depth
-        self.degradation = ORACLE_LEVELS[level]
+        self.degradation = level if isinstance(level, OracleDegradation) else ORACLE_LEVELS[level]
         self.space: DepthKind = space
         self.seed = seed
+        self.K, self.w2c = K, w2c
+        if self.degradation.world_warp_log_amp > 0 and (
+            K is None or w2c is None or np.shape(w2c) != (gt_depth.shape[0], 4, 4)
+        ):
+            raise ValueError(f"a world-fixed error needs K and one W2C per frame ({gt_depth.shape[0]}, 4, 4)")
+
+    def _world(self, i: int) -> np.ndarray | None:
+        if self.degradation.world_warp_log_amp == 0 or self.K is None or self.w2c is None:
+            return None
+        return world_warp(self.gt_depth[i], self.K, self.w2c[i], self.degradation, self.seed)
 
     def predict(self, frames: np.ndarray, indices: np.ndarray | None = None) -> DepthPrediction:
         """Degraded depth for frames[i] = video frame indices[i] (all T frames in order when None)."""
@@ -159,7 +208,11 @@ class OracleDepth:
         out = np.stack(
             [
                 degrade_depth(
-                    self.gt_depth[i], self.degradation, self.space, _frame_rng(self.seed, int(i), _STREAM_DEPTH)
+                    self.gt_depth[i],
+                    self.degradation,
+                    self.space,
+                    _frame_rng(self.seed, int(i), _STREAM_DEPTH),
+                    self._world(int(i)),
                 )
                 for i in idx
             ]

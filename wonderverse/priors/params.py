@@ -7,7 +7,7 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 DepthBackend = Literal["depth_anything", "oracle", "none"]  # none: no depth prior (the splats train on colours)
 NormalBackend = Literal["from_depth", "dpt", "oracle", "none"]
@@ -66,6 +66,15 @@ class OracleDegradation(_Model):
     edge_blur_px: float = Field(0.0, ge=0, description="Gaussian sigma of the blur across depth edges")
     edge_rel_step: float = Field(0.05, gt=0, description="neighbour |dz|/z that counts as a depth edge")
     sky_far_ratio: float = Field(3.0, gt=1, description="sky depth = this * farthest ground-truth depth")
+    world_warp_log_amp: float = Field(
+        0.0,
+        ge=0,
+        description="std of a log-multiplicative depth error fixed to the world's surfaces, the same in every frame "
+        "(a network's consistent mistakes, which averaging over frames cannot remove); needs the cameras",
+    )
+    world_warp_wavelength_m: tuple[float, float] = Field(
+        (1.0, 4.0), description="wavelengths of its six world-space sinusoids, log-uniform in this range (world units)"
+    )
     normal_warp_amp: float = Field(
         0.0, ge=0, description="std of a low-frequency additive field on unit normals (structured error)"
     )
@@ -73,6 +82,13 @@ class OracleDegradation(_Model):
     normal_smooth_px: float = Field(0.0, ge=0, description="Gaussian sigma of the normal smoothing")
     normal_edge_blur_px: float = Field(0.0, ge=0, description="extra sigma at normal creases")
     normal_crease_deg: float = Field(30.0, gt=0, lt=180, description="neighbour angle that counts as a crease")
+
+    @field_validator("world_warp_wavelength_m")
+    @classmethod
+    def _positive_range(cls, v: tuple[float, float]) -> tuple[float, float]:
+        if not 0 < v[0] <= v[1] < float("inf"):
+            raise ValueError(f"wavelengths must satisfy 0 < low <= high < inf, got {v}")
+        return v
 
 
 # Levels are named presets of OracleDegradation. Measured at 480x320 on a ground + wall + sky scene
