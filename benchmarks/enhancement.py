@@ -166,10 +166,10 @@ def prepare(
 def _backproject(
     z: np.ndarray, frame: np.ndarray, K: np.ndarray, w2c: np.ndarray, mask: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
+    from wonderverse.camera import pixels_to_world
+
     v, u = np.nonzero(mask)
-    d = z[v, u].astype(np.float64)
-    cam = np.stack([(u + 0.5 - K[0, 2]) / K[0, 0] * d, (v + 0.5 - K[1, 2]) / K[1, 1] * d, d], -1)
-    return (cam - w2c[:3, 3]) @ w2c[:3, :3], frame[v, u]
+    return pixels_to_world(u + 0.5, v + 0.5, z[v, u], K, w2c), frame[v, u]
 
 
 def train_variant(data: dict[str, Any], cfg: Any, variant: str, loss_update: dict[str, Any]) -> dict[str, Any]:

@@ -17,6 +17,7 @@ from wonderverse.camera import (
     look_at,
     matrix_from_quat,
     move_path,
+    pixels_to_world,
     quat_from_matrix,
     quat_slerp,
     relative_motion_steps,
@@ -579,3 +580,13 @@ def test_fit_intrinsics_scales_rows_and_never_enlarges() -> None:
     w, h, per_frame = fit_intrinsics(100, 3, np.stack([K, 2 * K]), 10)
     assert (w, h) == (10, 1) and per_frame.shape == (2, 3, 3)
     np.testing.assert_allclose(per_frame[1, 1], 2 * K[1] / 3)  # each side's own ratio, at least one pixel
+
+
+def test_pixels_to_world_land_where_the_camera_projects_them_back():
+    K = np.array([[50.0, 0.0, 32.0], [0.0, 50.0, 24.0], [0.0, 0.0, 1.0]])
+    w2c = look_at(np.array([1.0, 2.0, 3.0]), np.array([5.0, 5.0, 3.0]))
+    u, v, z = np.array([10.5, 40.25]), np.array([3.5, 30.0]), np.array([2.0, 7.5])
+    cam = pixels_to_world(u, v, z, K, w2c) @ w2c[:3, :3].T + w2c[:3, 3]
+    np.testing.assert_allclose(cam[:, 2], z)
+    np.testing.assert_allclose(K[0, 0] * cam[:, 0] / cam[:, 2] + K[0, 2], u)
+    np.testing.assert_allclose(K[1, 1] * cam[:, 1] / cam[:, 2] + K[1, 2], v)

@@ -71,6 +71,15 @@ def camera_centers(w2c: np.ndarray) -> np.ndarray:
     return -np.einsum("...ji,...j->...i", R, t)
 
 
+def pixels_to_world(u: np.ndarray, v: np.ndarray, z: np.ndarray, K: np.ndarray, w2c: np.ndarray) -> np.ndarray:
+    """World points (..., 3) float64 of pixel positions u, v (pixel centres at +0.5) at camera z `z` (arrays of one
+    shape), seen through K (3,3) from W2C (4,4): R^T (x_cam - t)."""
+    z = np.asarray(z, np.float64)
+    cam = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=-1)
+    w2c = np.asarray(w2c, np.float64)
+    return (cam - w2c[:3, 3]) @ w2c[:3, :3]
+
+
 def camera_radius(w2c: np.ndarray) -> float:
     """Largest distance (world units) of a camera centre from the centres' mean, for finite W2C poses
     (N,4,4); 0 for none. What the splats' normalisation and their training scale are relative to."""

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 from scipy import ndimage
 
+from wonderverse.camera import pixels_to_world
 from wonderverse.priors.base import DepthKind, DepthPrediction, NormalPrediction, check_frames
 from wonderverse.priors.params import ORACLE_LEVELS, OracleDegradation, OracleLevel
 
@@ -68,11 +69,8 @@ def world_warp(depth: np.ndarray, K: np.ndarray, w2c: np.ndarray, deg: OracleDeg
     phases = rng.uniform(0.0, 2.0 * np.pi, _WORLD_WAVES)
     h, w = depth.shape
     valid = np.isfinite(depth) & (depth > 0)
-    z = np.where(valid, depth, 0.0).astype(np.float64)
     v, u = np.mgrid[0:h, 0:w] + 0.5
-    cam = np.stack([(u - K[0, 2]) / K[0, 0] * z, (v - K[1, 2]) / K[1, 1] * z, z], axis=-1)
-    rot, t = np.asarray(w2c, np.float64)[:3, :3], np.asarray(w2c, np.float64)[:3, 3]
-    world = (cam - t) @ rot  # R^T (x - t), row-wise
+    world = pixels_to_world(u, v, np.where(valid, depth, 0.0), K, w2c)
     field = sum(np.sin(world @ dirs[i] * waves[i] + phases[i]) for i in range(_WORLD_WAVES))
     return np.where(valid, field / np.sqrt(_WORLD_WAVES / 2.0), 0.0)
 

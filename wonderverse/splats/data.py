@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from wonderverse.camera import fit_intrinsics
+from wonderverse.camera import fit_intrinsics, pixels_to_world
 from wonderverse.splats.trainer import Views
 
 
@@ -51,10 +51,7 @@ def backproject_depth(views: Views, stride_px: int, frame_stride: int) -> tuple[
         h, w = views.prior_depth.shape[1:]
         v, u = np.mgrid[0:h:stride_px, 0:w:stride_px] + 0.5
         ok = np.isfinite(z) & (z > 0)
-        K = views.K_of(i)
-        cam = np.stack([(u[ok] - K[0, 2]) / K[0, 0] * z[ok], (v[ok] - K[1, 2]) / K[1, 1] * z[ok], z[ok]], -1)
-        R, t = views.w2c[i, :3, :3], views.w2c[i, :3, 3]
-        pts.append((cam - t) @ R)  # R^T (x - t)
+        pts.append(pixels_to_world(u[ok], v[ok], z[ok], views.K_of(i), views.w2c[i]))
         frame = views.frames[i]
         c = frame[::stride_px, ::stride_px][ok]
         cols.append(c if c.dtype == np.uint8 else np.clip(c * 255, 0, 255).astype(np.uint8))
