@@ -246,13 +246,12 @@ def mesh_scores(
     from scipy.spatial import cKDTree
 
     from benchmarks.mesh import visible_gt_points
-    from wonderverse.camera import scene_extent
     from wonderverse.mesh import TsdfFusion, clean_mesh
     from wonderverse.metrics import chamfer_fscore, sample_mesh_points
 
     views = data["views"]
     h, w = views.frames.shape[1:3]
-    extent = scene_extent(views.w2c, data["gt_depth"])
+    extent = scene_extent_of(data)
     mesh_params = cfg.steps.outputs.mesh
     if max_depth_frac is not None:
         mesh_params = mesh_params.model_copy(update={"max_depth_frac": max_depth_frac})
@@ -298,12 +297,43 @@ def determinable(
     return sub, sigma < tolerance
 
 
+def placed_by_prior(
+    points: np.ndarray, K: np.ndarray, w2c: np.ndarray, prior: np.ndarray, tolerance: float
+) -> np.ndarray:
+    """(M,) bool: whether some view that frames the point (W2C (N,4,4), K, aligned prior depth (N,H,W)) has a
+    prior that puts it within `tolerance` along its ray (an occluded point meets the occluder's depth and fails)."""
+    h, w = prior.shape[1:]
+    placed = np.zeros(len(points), bool)
+    for pose, depth in zip(w2c, prior, strict=True):
+        cam = points @ pose[:3, :3].T + pose[:3, 3]
+        z = cam[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u, v = K[0, 0] * cam[:, 0] / z + K[0, 2], K[1, 1] * cam[:, 1] / z + K[1, 2]
+        framed = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        zp = np.full(len(points), np.nan)
+        zp[framed] = depth[v[framed].astype(int), u[framed].astype(int)]
+        with np.errstate(invalid="ignore"):
+            off = np.abs(zp - z) * np.linalg.norm(cam, axis=1) / z  # along the ray, in metres
+        placed |= framed & (off < tolerance)
+    return placed
+
+
 def ceiling(data: dict[str, Any], cfg: Any) -> dict[str, float]:
-    """The fusion's ceiling: the same mesh from the true depth at every view."""
-    frames = data["views"].frames
+    """The fusion's ceiling: the same mesh from the true depth at every view; and what the inputs determine."""
+    views = data["views"]
+    frames = views.frames
     images = [(f, d) for f, d in zip(frames, data["gt_depth"], strict=True)]
     top = mesh_scores(data, images, cfg) | {"f1_full_reach": mesh_scores(data, images, cfg, FULL_REACH)["f1"]}
-    return top | {"parallax_bound": float(np.mean(data["determinable"][1]))}
+    sub, parallax = data["determinable"]
+    tolerance = 0.01 * scene_extent_of(data)
+    prior = placed_by_prior(sub, views.K, views.w2c, views.prior_depth, tolerance)
+    return top | {"parallax_bound": float(np.mean(parallax)), "input_bound": float(np.mean(parallax | prior))}
+
+
+def scene_extent_of(data: dict[str, Any]) -> float:
+    from wonderverse.camera import scene_extent
+
+    return float(scene_extent(data["views"].w2c, data["gt_depth"]))
 
 
 def parse_overrides(items: list[str]) -> dict[str, Any]:
@@ -336,14 +366,15 @@ def headline(rows: list[dict[str, Any]], preset: str) -> dict[str, float]:
         head[f"fscore_{preset}"] = float(np.mean([r["f1"] for r in both]))
         head[f"fscore_{preset}_determined"] = float(np.mean([r.get("f1_determined", np.nan) for r in both]))
         head["parallax_bound"] = float(np.mean([r.get("parallax_bound", np.nan) for r in both]))
+        head["input_bound"] = float(np.mean([r.get("input_bound", np.nan) for r in both]))
     return {k: round(v, 4) for k, v in head.items()}
 
 
 def merge_rows(runs: list[list[dict[str, Any]]]) -> list[dict[str, Any]]:
     """The rows of several runs, a later run's row replacing an earlier one of the same world, condition,
-    variant, defect and prior changes (a re-measured variant in place of the old one)."""
+    variant, defect, prior, loss and train changes (a re-measured variant in place of the old one)."""
     merged = {
-        (r["world"], r["condition"], r["variant"], r.get("defects", ""), r.get("prior", "")): r
+        (r["world"], r["condition"], r["variant"], *(r.get(k, "") for k in ("defects", "prior", "loss", "train"))): r
         for rows in runs
         for r in rows
     }
@@ -399,9 +430,11 @@ def main() -> None:
                 row = {"world": world, "condition": condition, "variant": variant}
                 row |= {"defects": " ".join(args.defects)} if args.defects else {}
                 row |= {"prior": " ".join(args.prior)} if args.prior else {}
+                row |= {"loss": " ".join(args.loss)} if args.loss else {}
+                row |= {"train": " ".join(args.train)} if args.train else {}
                 row |= {"psnr": run["psnr"], **score(data, run, cfg), "gaussians": run["gaussians"]}
                 row |= {"ceiling_f1": top["f1"], "ceiling_f1_full_reach": top["f1_full_reach"]}
-                row |= {"parallax_bound": top["parallax_bound"]}
+                row |= {"parallax_bound": top["parallax_bound"], "input_bound": top["input_bound"]}
                 row |= {"train_s": run["seconds"], "prepare_s": prep_s}
                 rows.append(row)
                 print(json.dumps({k: round(x, 4) if isinstance(x, float) else x for k, x in row.items()}), flush=True)

@@ -10,7 +10,7 @@
 #   bench M A.. run `python3 -m benchmarks.M A..` in the background (another benchmark on the same install)
 #   wait-bench  wait for it (at most $WAIT_S s); its output into $OUT/M.log
 # `install` checks the imports the tradeoff needs; IMPORTS="open3d gsplat torch" checks fewer (what was staged).
-# What the image lacks, carried (cp312 manylinux wheels; the two large ones split with `split -b 60m` into
+# What the image lacks, carried (cp312 manylinux wheels; the two large ones split with `split -b 55m` into
 # NAME.whl.part-aa, -ab, ... across the carried folders): open3d-cpu 0.19.0 (100 MB), imageio-ffmpeg (68 MB:
 # the image has no ffmpeg), pycolmap 4.2.1, zarr and its codecs, pydantic, dask/distributed and their small
 # dependencies, trimesh, plyfile, rich, the gsplat 1.5.3 sdist, diffusers; and `.gl/` (the libGL/libglvnd

@@ -1,9 +1,9 @@
 """benchmarks.enhancement: the parallax bound (which world points triangulation can place within a tolerance),
-merging runs, and changing a condition's defects."""
+which points the aligned prior places, merging runs, and changing a condition's defects."""
 
 import numpy as np
 
-from benchmarks.enhancement import MATCH_SIGMA_PX, determinable
+from benchmarks.enhancement import MATCH_SIGMA_PX, determinable, placed_by_prior
 from wonderverse.camera import look_at
 
 F_PX, W, H = 200.0, 320, 240
@@ -31,6 +31,19 @@ def test_a_point_one_camera_alone_frames_is_not_determinable():
     cams = np.stack([look_at(np.zeros(3), np.array([0.0, 10.0, 0.0]), np.array([0.0, 0.0, 1.0]))] * 2)
     _, ok = determinable(np.array([[0.0, 5.0, 0.0], [0.0, -5.0, 0.0]]), K, cams, 1.0, H, W)
     assert not ok.any()  # no baseline in front, nothing framed behind
+
+
+def test_the_prior_places_points_where_its_depth_is_within_the_tolerance_along_the_ray():
+    """A plane 10 m ahead seen by one camera; its prior is exact on the left third, 0.3 m off in the middle
+    and an occluder 5 m ahead on the right; one point lies behind the camera."""
+    cam = look_at(np.zeros(3), np.array([0.0, 10.0, 0.0]), np.array([0.0, 0.0, 1.0]))[None]
+    prior = np.full((1, H, W), 10.0)
+    prior[0, :, W // 3 : 2 * W // 3] = 10.3
+    prior[0, :, 2 * W // 3 :] = 5.0
+    xs = np.array([-4.0, 0.0, 4.0])  # pixel columns 80, 160, 240 at f = 200
+    points = np.concatenate([np.stack([xs, np.full(3, 10.0), np.zeros(3)], 1), [[0.0, -10.0, 0.0]]])
+    assert placed_by_prior(points, K, cam, prior, 0.2).tolist() == [True, False, False, False]
+    assert placed_by_prior(points, K, cam, prior, 0.4).tolist() == [True, True, False, False]
 
 
 def test_merging_runs_puts_a_later_rows_variant_in_place_of_the_earlier_one():

@@ -332,6 +332,7 @@ def test_loss_and_grads_by_torch_func_match_autograd_of_the_loss_and_sky_term(un
 
 ENHANCED = LossParams(
     prior_texture_ref=0.02,
+    prior_parallax_ref=0.05,
     prior_decay_start_frac=0.3,
     prior_final_ratio=0.05,
     normal_target="both",
@@ -342,7 +343,7 @@ ENHANCED = LossParams(
 
 @pytest.mark.parametrize(("scale", "log_scale_shift"), [(1e-3, 0.0), (1e3, 0.0), (1.0, -6.0), (1.0, 6.0)])
 def test_enhanced_prior_terms_train_at_the_extremes(scene: dict, scale: float, log_scale_shift: float) -> None:
-    """Texture weights, the decay, the rendered depth's normals, depth-normal consistency and the flatten term:
+    """Texture weights gated by parallax, the decay, the rendered depth's normals, depth-normal consistency and the flatten term:
     finite, no skipped step, at scene scales 1e-3 / 1e3 (the views and points scaled alike) and with tiny / huge
     Gaussians."""
     views: Views = scene["views"]

@@ -38,6 +38,13 @@ class LossParams(BaseModel):
         description="texture-aware prior weights: a pixel's depth/normal prior weight is 1 / (1 + (g / ref)²) with "
         "g its grey-level gradient magnitude (Sobel / 8, grey in [0, 1], per pixel); None: every pixel weighs 1",
     )
+    prior_parallax_ref: float | None = Field(
+        None,
+        gt=0,
+        description="texture lowers the prior weights only where parallax places the surface: by q = 1 / (1 + (u / "
+        "ref)²), u the relative depth error of triangulating the pixel (1 px over the widest angle to another "
+        "training view), ref the prior's relative error (`splats.parallax`); None: wherever there is texture",
+    )
     prior_decay_start_frac: float = Field(
         0.3, ge=0, le=1, description="share of the iterations after which λ_d and λ_n start to decay (1: never)"
     )

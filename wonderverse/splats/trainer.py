@@ -44,6 +44,7 @@ from wonderverse.splats.compiled import Compiled
 from wonderverse.splats.losses import flatten_loss, masked_mean, texture_weight, total_loss
 from wonderverse.splats.model import GaussianModel
 from wonderverse.splats.motion_blur import image_velocity, smear
+from wonderverse.splats.parallax import parallax_gate, triangulation_error
 from wonderverse.splats.params import LossParams, TrainParams
 from wonderverse.splats.renderer import Renderer
 from wonderverse.splats.sky import composite, initial_sky, is_map, mean_colour
@@ -212,7 +213,9 @@ def _lr_means(params: TrainParams, scene_scale: float, step: int) -> float:
 class _Data:
     """The views as tensors on the renderer's device, with per-view sky and validity masks."""
 
-    def __init__(self, views: Views, params: TrainParams, device: str) -> None:
+    def __init__(
+        self, views: Views, params: TrainParams, device: str, train_ids: Sequence[int] | None = None
+    ) -> None:
         frames = np.asarray(views.frames)
         frames = frames.astype(np.float32) / 255.0 if frames.dtype == np.uint8 else frames.astype(np.float32)
         self.frames = torch.from_numpy(frames).to(device)
@@ -239,6 +242,18 @@ class _Data:
         ref = params.loss.prior_texture_ref
         if ref is not None and (self.depth is not None or self.normals is not None):
             self.prior_weight = torch.stack([texture_weight(f, ref) for f in self.frames])
+            if params.loss.prior_parallax_ref is not None and self.depth is not None:
+                self._gate_by_parallax(params.loss.prior_parallax_ref, train_ids)
+
+    def _gate_by_parallax(self, ref: float, train_ids: Sequence[int] | None) -> None:
+        """Texture weights only as far as the training views determine the surface (`splats.parallax`); frames
+        whose prior is not aligned (its depth's scale unknown) keep their texture weights."""
+        ids = list(range(len(self.frames))) if train_ids is None else list(train_ids)
+        others, others_K = self.w2c[ids], torch.stack([self.K[j] for j in ids])
+        for i in range(len(self.frames)):
+            if bool(self.aligned[i]):
+                err = triangulation_error(self.depth[i], self.K[i], self.w2c[i], others, others_K)
+                self.prior_weight[i] = parallax_gate(self.prior_weight[i], err, ref)
 
     def sky_colour(self) -> np.ndarray | None:
         if not bool(self.sky.any()):
@@ -498,8 +513,8 @@ def train(
     report = progress or no_progress
     device = renderer.device
     model = model.to(device)
-    data = _Data(views, params, device)
     train_ids, test_ids = split_views(len(views), params.holdout_every)
+    data = _Data(views, params, device, train_ids)
     if not train_ids:
         raise ValueError("no views to train on")
     gen = torch.Generator().manual_seed(params.seed)
