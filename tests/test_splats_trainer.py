@@ -343,9 +343,9 @@ ENHANCED = LossParams(
 
 @pytest.mark.parametrize(("scale", "log_scale_shift"), [(1e-3, 0.0), (1e3, 0.0), (1.0, -6.0), (1.0, 6.0)])
 def test_enhanced_prior_terms_train_at_the_extremes(scene: dict, scale: float, log_scale_shift: float) -> None:
-    """Texture weights gated by parallax, the decay, the rendered depth's normals, depth-normal consistency and the flatten term:
-    finite, no skipped step, at scene scales 1e-3 / 1e3 (the views and points scaled alike) and with tiny / huge
-    Gaussians."""
+    """Texture weights gated by parallax, the decay, the rendered depth's normals, depth-normal consistency and
+    the flatten term: finite, no skipped step, at scene scales 1e-3 / 1e3 (the views and points scaled alike) and
+    with tiny / huge Gaussians."""
     views: Views = scene["views"]
     w2c = views.w2c.copy()
     w2c[:, :3, 3] *= scale

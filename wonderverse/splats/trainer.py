@@ -213,9 +213,7 @@ def _lr_means(params: TrainParams, scene_scale: float, step: int) -> float:
 class _Data:
     """The views as tensors on the renderer's device, with per-view sky and validity masks."""
 
-    def __init__(
-        self, views: Views, params: TrainParams, device: str, train_ids: Sequence[int] | None = None
-    ) -> None:
+    def __init__(self, views: Views, params: TrainParams, device: str, train_ids: Sequence[int] | None = None) -> None:
         frames = np.asarray(views.frames)
         frames = frames.astype(np.float32) / 255.0 if frames.dtype == np.uint8 else frames.astype(np.float32)
         self.frames = torch.from_numpy(frames).to(device)
