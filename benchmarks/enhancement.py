@@ -29,7 +29,9 @@ with and without the defects of real AI video.
   `parallax_bound` is the share of the seen world (by area) where that is below the F-score's threshold: no method
   that gets depth from parallax recalls more. `f1_determined` is the F-score there (recall over those world
   points, precision over the mesh points whose nearest world point is one): what the reconstruction makes of what
-  the video determines.
+  the video determines. `input_bound` adds what the aligned depth prior gives: the share of the seen world that
+  parallax determines OR that the prior of some view framing it places within the threshold along that view's
+  ray (generous: it assumes a method that knows which view's prior to trust where). A recall above it is luck.
 
 Usage: `python -m benchmarks.enhancement [--quick] [--preset preview|standard|high] [--worlds outdoor indoor]
 [--conditions clean texture_poor ai_like] [--variants rgb depth normal both] [--loss KEY=VALUE ...] [--mesh
@@ -40,13 +42,16 @@ video to 160x112 and 9 frames per segment with 120 iterations (a smoke run); `--
 `steps.splats.train` (e.g. `iterations=2000` at the preset's video and training sizes); `--defects` changes the
 conditions' defects (`DefectParams` fields, e.g. `geometric_drift_m=0` to leave one of `ai_like`'s out; rows then
 carry a `defects` column); `--prior` changes the oracle's "realistic" level (`OracleDegradation` fields, e.g.
-`world_warp_log_amp=0.05` for an error fixed to the world's surfaces; rows then carry a `prior` column).
+`world_warp_log_amp=0.05` for an error fixed to the world's surfaces; rows then carry a `prior` column); `--loss`
+and `--train` likewise add `loss` and `train` columns (e.g. `--loss prior_parallax_ref=0.05` for the parallax gate
+of the prior weights, `wonderverse.splats.parallax`).
 Last-line keys (means over the worlds run): `fscore_gain_lowtex`, `fscore_gain_ai` (F@1 % of "both" minus
 "rgb_seeded", texture-poor and AI-like conditions: what the loss terms add), `depth_gain_ai` (1 - AbsRel both /
 AbsRel rgb_seeded, AI-like), `psnr_cost_clean_db` (PSNR rgb_seeded minus both, clean), the same four against
 "rgb" with the suffix `_vs_rgb` (what the priors add as a whole), and with --preset standard/high
 `fscore_standard` / `fscore_high` (F@1 % of "both", mean over worlds and conditions), `fscore_standard_determined`
-/ `fscore_high_determined` (the same as `f1_determined`) and `parallax_bound` (its mean). A baseline not run: NaN.
+/ `fscore_high_determined` (the same as `f1_determined`), `parallax_bound` and `input_bound` (their means). A
+baseline not run: NaN.
 """
 
 from __future__ import annotations

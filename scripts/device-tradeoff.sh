@@ -15,6 +15,10 @@
 # the image has no ffmpeg), pycolmap 4.2.1, zarr and its codecs, pydantic, dask/distributed and their small
 # dependencies, trimesh, plyfile, rich, the gsplat 1.5.3 sdist, diffusers; and `.gl/` (the libGL/libglvnd
 # .debs the device README names: open3d's module links libGL.so.1), unpacked with dpkg -x by `install`.
+# Fewer calls: the wheels installed here for cp312 (`pip install --target DIR --python-version 3.12
+# --only-binary=:all: --platform ...`) and packed as `tar cf - -C DIR . | xz -9` (split like a wheel when large)
+# are unpacked into /tmp/site. A machine left idle 30 s between calls is given back and starts bare, so stage
+# and install back to back; `install` stops when open3d did not arrive.
 # open3d imports its plotly viewer and its ML package eagerly; the installed copy makes both optional.
 set -uo pipefail
 REPO=$(pwd)
@@ -29,7 +33,10 @@ install)
   for f in "$REPO"/.gl/*.deb; do dpkg -x "$f" /; done; ldconfig
   cd /tmp/stage
   for first in *.part-aa; do cat "${first%.part-aa}".part-* > "${first%.part-aa}" && rm "${first%.part-aa}".part-*; done
-  python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site ./*.whl || exit 1
+  mkdir -p /tmp/site
+  for t in *.tar.xz; do [ -e "$t" ] && { tar xJf "$t" -C /tmp/site || exit 1; }; done
+  ! ls ./*.whl > /dev/null 2>&1 || python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site ./*.whl || exit 1
+  [ -e /tmp/site/open3d ] || { echo "open3d missing: was every part staged on this machine?"; ls /tmp/stage; exit 1; }
   sed -i -E 's/^from .draw_plotly import (draw_plotly|draw_plotly_server)$/try:\n    from .draw_plotly import \1\nexcept ImportError:\n    pass/' \
     /tmp/site/open3d/visualization/__init__.py
   sed -i -E 's/^( *)import open3d\.ml$/\1try:\n\1    import open3d.ml\n\1except ImportError:\n\1    pass/' /tmp/site/open3d/__init__.py
