@@ -12,6 +12,8 @@
   - `psnr`: held-out PSNR from the splat step (frames the optimisation never saw);
   - `fscore_1pct`: the exported mesh.ply mapped into the world by that Sim(3), against points sampled on the
     world's surfaces that the true cameras see within the fusion's reach; threshold 1 % of the scene extent;
+    `by_range` (rows only) splits it by distance to the nearest camera (bands of 0.5, 1, 2 extents and beyond):
+    the share of the seen surface and of the mesh in each band, its recall and its precision;
   - `extra_trials`: regenerated segment attempts per segment (check step); `niqe`: mean NIQE (no reference,
     lower is better) of 8 frames of novel.mp4.
 - Pareto: per machine, presets sorted by mean seconds; `pareto` is true when, on every machine that ran two
@@ -56,6 +58,7 @@ NIQE_FRAMES = 8
 PARETO_MIN_FSCORE_GAIN = 0.01
 PARETO_MIN_PSNR_GAIN_DB = 0.1
 KEYS = ("seconds", "peak_mb", "ate_frac", "depth_absrel", "psnr", "fscore_1pct")
+RANGE_EDGES = (0.0, 0.5, 1.0, 2.0, np.inf)  # distance to the nearest camera, in scene extents (`by_range`)
 
 
 def scene_config(preset: str, prompt: str, quick: bool) -> Any:
@@ -129,6 +132,31 @@ def _scored_frames(store: Any) -> dict[str, Any]:
     }
 
 
+def by_range(
+    pred: np.ndarray, gt: np.ndarray, centres: np.ndarray, extent: float, tolerance: float
+) -> list[dict[str, Any]]:
+    """Where a mesh's F-score comes from: per band of distance to the nearest camera (`RANGE_EDGES`, in units of
+    `extent`), the share of the seen surface `gt` (M,3) and of the mesh sample `pred` (N,3) that lie there, the
+    recall of that surface and the precision of that part of the mesh at `tolerance` (NaN for an empty band)."""
+    from scipy.spatial import cKDTree
+
+    err_pred, err_gt = cKDTree(gt).query(pred)[0], cKDTree(pred).query(gt)[0]
+    range_pred, range_gt = (cKDTree(centres).query(x)[0] / extent for x in (pred, gt))
+    bands = []
+    for lo, hi in itertools.pairwise(RANGE_EDGES):
+        in_pred, in_gt = (range_pred >= lo) & (range_pred < hi), (range_gt >= lo) & (range_gt < hi)
+        bands.append(
+            {
+                "band": f"{lo:g}-{hi:g}",
+                "seen_share": float(in_gt.mean()),
+                "recall": float((err_gt[in_gt] < tolerance).mean()) if in_gt.any() else float("nan"),
+                "mesh_share": float(in_pred.mean()),
+                "precision": float((err_pred[in_pred] < tolerance).mean()) if in_pred.any() else float("nan"),
+            }
+        )
+    return bands
+
+
 def score(scene_dir: Path, cfg: Any) -> dict[str, Any]:
     import imageio.v3 as iio
     import trimesh
@@ -182,6 +210,7 @@ def score(scene_dir: Path, cfg: Any) -> dict[str, Any]:
         "recall_1pct": float(fs["recall"][0]),
         "niqe": niqe_many(list(picks)) if min(picks.shape[1:3]) >= 192 else float("nan"),
         "gaussians": int(metrics["n_gaussians"]),
+        "by_range": by_range(pred, gt_pts, camera_centers(f["gt_w2c"]), extent, 0.01 * extent),
     }
 
 
