@@ -307,18 +307,16 @@ def placed_by_prior(
 ) -> np.ndarray:
     """(M,) bool: whether some view that frames the point (W2C (N,4,4), K, aligned prior depth (N,H,W)) has a
     prior that puts it within `tolerance` along its ray (an occluded point meets the occluder's depth and fails)."""
+    from wonderverse.camera import world_to_pixels
+
     h, w = prior.shape[1:]
     placed = np.zeros(len(points), bool)
     for pose, depth in zip(w2c, prior, strict=True):
-        cam = points @ pose[:3, :3].T + pose[:3, 3]
-        z = cam[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u, v = K[0, 0] * cam[:, 0] / z + K[0, 2], K[1, 1] * cam[:, 1] / z + K[1, 2]
-        framed = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        u, v, z, framed = world_to_pixels(points, K, pose, h, w)
         zp = np.full(len(points), np.nan)
         zp[framed] = depth[v[framed].astype(int), u[framed].astype(int)]
-        with np.errstate(invalid="ignore"):
-            off = np.abs(zp - z) * np.linalg.norm(cam, axis=1) / z  # along the ray, in metres
+        with np.errstate(invalid="ignore"):  # along the ray, in metres
+            off = np.abs(zp - z) * np.hypot(np.hypot((u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1]), 1.0)
         placed |= framed & (off < tolerance)
     return placed
 

@@ -102,7 +102,7 @@ def load_trained(scene_dir: Path) -> dict[str, Any]:
 
 def visible_gt_points(world: Any, K: np.ndarray, w2c: np.ndarray, depth: np.ndarray, max_depth: float) -> np.ndarray:
     """Points sampled by area on the world triangles near the cameras that some camera sees (see module doc)."""
-    from wonderverse.camera import camera_centers
+    from wonderverse.camera import camera_centers, world_to_pixels
     from wonderverse.metrics import sample_mesh_points
 
     v, f = np.asarray(world.vertices, np.float64), np.asarray(world.triangles, np.int64)
@@ -114,12 +114,8 @@ def visible_gt_points(world: Any, K: np.ndarray, w2c: np.ndarray, depth: np.ndar
     h, w = depth.shape[1:]
     seen = np.zeros(len(pts), bool)
     for pose, d in zip(w2c, depth, strict=True):
-        cam = pts @ pose[:3, :3].T + pose[:3, 3]
-        z = cam[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            u = np.floor(cam[:, 0] / z * K[0, 0] + K[0, 2])
-            r = np.floor(cam[:, 1] / z * K[1, 1] + K[1, 2])
-        inside = (z > 0) & (z <= max_depth) & (u >= 0) & (u < w) & (r >= 0) & (r < h)
+        u, r, z, framed = world_to_pixels(pts, K, pose, h, w)
+        inside = framed & (z <= max_depth)
         ui, ri = u[inside].astype(int), r[inside].astype(int)
         seen[np.flatnonzero(inside)[np.abs(d[ri, ui] - z[inside]) < VISIBLE_REL_TOL * z[inside]]] = True
     return pts[seen]

@@ -590,3 +590,21 @@ def test_pixels_to_world_land_where_the_camera_projects_them_back():
     np.testing.assert_allclose(cam[:, 2], z)
     np.testing.assert_allclose(K[0, 0] * cam[:, 0] / cam[:, 2] + K[0, 2], u)
     np.testing.assert_allclose(K[1, 1] * cam[:, 1] / cam[:, 2] + K[1, 2], v)
+
+
+def test_world_to_pixels_inverts_pixels_to_world_and_frames_only_what_is_in_front() -> None:
+    from wonderverse.camera import intrinsics, world_to_pixels
+
+    K = intrinsics(64, 48, 70.0)
+    w2c = look_at(np.array([3.0, -2.0, 1.5]), np.array([0.0, 0.0, 1.0]))
+    u, v, z = np.array([0.5, 31.7, 63.9]), np.array([0.5, 20.2, 47.9]), np.array([0.1, 5.0, 1e4])
+    pts = pixels_to_world(u, v, z, K, w2c)
+    u2, v2, z2, framed = world_to_pixels(pts, K, w2c, 48, 64)
+    np.testing.assert_allclose(np.stack([u2, v2, z2]), np.stack([u, v, z]), rtol=1e-9, atol=1e-7)
+    assert framed.all()
+    centre = pixels_to_world(np.array([32.0]), np.array([24.0]), np.array([2.0]), K, w2c)[0]
+    eye = np.array([3.0, -2.0, 1.5])
+    behind = 2 * eye - centre  # the mirror image through the camera centre: projects inside, but z < 0
+    outside = pixels_to_world(np.array([80.0]), np.array([24.0]), np.array([2.0]), K, w2c)[0]
+    _, _, zb, framed = world_to_pixels(np.stack([behind, outside, eye]), K, w2c, 48, 64)
+    assert zb[0] < 0 and not framed.any()  # behind, beside the image, at the centre (z = 0)

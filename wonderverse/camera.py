@@ -80,6 +80,20 @@ def pixels_to_world(u: np.ndarray, v: np.ndarray, z: np.ndarray, K: np.ndarray, 
     return (cam - w2c[:3, 3]) @ w2c[:3, :3]
 
 
+def world_to_pixels(
+    points: np.ndarray, K: np.ndarray, w2c: np.ndarray, h: int, w: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The inverse of `pixels_to_world`: pixel positions u, v (centres at +0.5) and camera z of world points (M,3)
+    seen through K (3,3) from W2C (4,4), and whether each lies in front of the camera inside an h×w image
+    ((M,) float64 ×3, (M,) bool; u and v are inf or NaN where z is 0)."""
+    cam = np.asarray(points, np.float64) @ w2c[:3, :3].T + w2c[:3, 3]
+    z = cam[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u, v = K[0, 0] * cam[:, 0] / z + K[0, 2], K[1, 1] * cam[:, 1] / z + K[1, 2]
+    framed = (z > 0) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+    return u, v, z, framed
+
+
 def camera_radius(w2c: np.ndarray) -> float:
     """Largest distance (world units) of a camera centre from the centres' mean, for finite W2C poses
     (N,4,4); 0 for none. What the splats' normalisation and their training scale are relative to."""
