@@ -35,7 +35,9 @@ install)
   for first in *.part-aa; do cat "${first%.part-aa}".part-* > "${first%.part-aa}" && rm "${first%.part-aa}".part-*; done
   mkdir -p /tmp/site
   for t in *.tar.xz; do [ -e "$t" ] && { tar xJf "$t" -C /tmp/site || exit 1; }; done
-  ! ls ./*.whl > /dev/null 2>&1 || python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site ./*.whl || exit 1
+  if ls ./*.whl > /dev/null 2>&1; then
+    python3 -m pip install -q --no-index --no-deps --no-compile --target /tmp/site ./*.whl || exit 1
+  fi
   [ -e /tmp/site/open3d ] || { echo "open3d missing: was every part staged on this machine?"; ls /tmp/stage; exit 1; }
   sed -i -E 's/^from .draw_plotly import (draw_plotly|draw_plotly_server)$/try:\n    from .draw_plotly import \1\nexcept ImportError:\n    pass/' \
     /tmp/site/open3d/visualization/__init__.py
