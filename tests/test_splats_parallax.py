@@ -101,6 +101,8 @@ def test_the_trainer_gates_aligned_frames_and_leaves_unaligned_ones_to_texture()
     assert float(plain.prior_weight.mean()) < 0.5
     assert float(gated.prior_weight[:2].min()) > 0.95
     assert torch.equal(gated.prior_weight[2], plain.prior_weight[2])
+    params = TrainParams(loss=LossParams(prior_parallax_ref=0.05))
+    assert _Data(views, params, "cpu", prior_weights=False).prior_weight is None  # what evaluation builds
 
 
 def test_an_all_sky_prior_weighs_one_everywhere() -> None:

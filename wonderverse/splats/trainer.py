@@ -211,9 +211,17 @@ def _lr_means(params: TrainParams, scene_scale: float, step: int) -> float:
 
 
 class _Data:
-    """The views as tensors on the renderer's device, with per-view sky and validity masks."""
+    """The views as tensors on the renderer's device, with per-view sky and validity masks, and (unless
+    `prior_weights` is False: evaluation renders and never weighs a prior) the per-pixel prior weights."""
 
-    def __init__(self, views: Views, params: TrainParams, device: str, train_ids: Sequence[int] | None = None) -> None:
+    def __init__(
+        self,
+        views: Views,
+        params: TrainParams,
+        device: str,
+        train_ids: Sequence[int] | None = None,
+        prior_weights: bool = True,
+    ) -> None:
         frames = np.asarray(views.frames)
         frames = frames.astype(np.float32) / 255.0 if frames.dtype == np.uint8 else frames.astype(np.float32)
         self.frames = torch.from_numpy(frames).to(device)
@@ -238,7 +246,7 @@ class _Data:
         self.height, self.width = h, w
         self.prior_weight = None
         ref = params.loss.prior_texture_ref
-        if ref is not None and (self.depth is not None or self.normals is not None):
+        if prior_weights and ref is not None and (self.depth is not None or self.normals is not None):
             self.prior_weight = torch.stack([texture_weight(f, ref) for f in self.frames])
             if params.loss.prior_parallax_ref is not None and self.depth is not None:
                 self._gate_by_parallax(params.loss.prior_parallax_ref, train_ids)
@@ -465,7 +473,7 @@ def evaluate(
 
     if not indices:
         return {}
-    data = _Data(views, params, renderer.device)
+    data = _Data(views, params, renderer.device, prior_weights=False)
     sh = min(params.sh_degree, model.sh_degree)
     ps, ss = [], []
     for i in indices:
