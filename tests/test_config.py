@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import copy
-import time
 import typing
 from pathlib import Path
 from typing import Any, Literal
@@ -319,10 +318,8 @@ def test_a_preset_like_file_is_a_config() -> None:
 
 
 def _error(path: Path) -> str:
-    t0 = time.perf_counter()
     with pytest.raises(ConfigError) as e:
         build_config(config_file=path)
-    assert time.perf_counter() - t0 < 5.0
     message = str(e.value)
     assert "\n" not in message and len(message) < 400 + len(str(path)), message
     return message
