@@ -82,16 +82,20 @@ def data_dir() -> Path:
     return DATA
 
 
+# Step settings for a whole scene in ~15-20 s (with TINY_VIDEO): one attempt per segment, short training, few
+# rendered frames. Merged one level deep into the steps of a config.
+SHORT_STEPS: dict[str, dict[str, Any]] = {
+    "check": {"max_attempts": 1},
+    "splats": {"max_side_px": 96, "train": {"iterations": 60, "holdout_every": 0}},
+    "outputs": {"video_frames": 4, "quality_frames": 1},
+}
+
+
 def complete_config() -> RunConfig:
-    """tiny_config with one attempt per segment and short training: a whole scene, every step, in ~15-20 s."""
+    """tiny_config with SHORT_STEPS: a whole scene, every step, in ~15-20 s."""
     cfg = tiny_config()
-    overrides = {
-        "check": {"max_attempts": 1},
-        "splats": {"max_side_px": 96, "train": {"iterations": 60, "holdout_every": 0}},
-        "outputs": {"video_frames": 4, "quality_frames": 1},
-    }
     dumped = cfg.steps.model_dump()
-    steps = cfg.steps.model_validate(dumped | {k: dumped[k] | v for k, v in overrides.items()})
+    steps = cfg.steps.model_validate(dumped | {k: dumped[k] | v for k, v in SHORT_STEPS.items()})
     return cfg.model_copy(update={"steps": steps})
 
 

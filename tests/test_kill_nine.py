@@ -21,22 +21,17 @@ from pathlib import Path
 import psutil
 import pytest
 import yaml
-from conftest import ROOT, run_cli, tiny_config
+from conftest import ROOT, SHORT_STEPS, run_cli, tiny_config
 
 MARKER = "WONDERVERSE_TEST_RUN"
 OUTPUTS = ("splats.ply", "mesh.ply", "points.ply")
 
 
 def tiny_spec(folder: Path) -> Path:
-    """tiny_config as a --config file, with short training and outputs (the whole run takes ~20 s on 2 cores) and
-    the global SfM on one thread: COLMAP's mapper with two threads is not bit-reproducible (two clean runs of this
-    scene with num_threads 2 gave 525 and 507 splats), with one it is."""
-    steps = {
-        "check": {"max_attempts": 1},
-        "poses": {"sfm": {"num_threads": 1}},
-        "splats": {"max_side_px": 96, "train": {"iterations": 60, "holdout_every": 0}},
-        "outputs": {"video_frames": 4, "quality_frames": 1},
-    }
+    """tiny_config as a --config file, with SHORT_STEPS (the whole run takes ~20 s on 2 cores) and the global SfM
+    on one thread: COLMAP's mapper with two threads is not bit-reproducible (two clean runs of this scene with
+    num_threads 2 gave 525 and 507 splats), with one it is."""
+    steps = {**SHORT_STEPS, "poses": {"sfm": {"num_threads": 1}}}
     f = folder / "tiny.yaml"
     f.write_text(
         yaml.safe_dump({"preset": "preview", "scene": tiny_config().scene.model_dump(mode="json"), "steps": steps})

@@ -15,7 +15,7 @@ from pathlib import Path
 import psutil
 import pytest
 import yaml
-from conftest import ROOT, TINY_VIDEO, run_cli, tree_digest
+from conftest import ROOT, SHORT_STEPS, TINY_VIDEO, run_cli, tree_digest
 
 from flows.pipeline import execute
 from tasks.segments import segment_ids
@@ -24,9 +24,11 @@ from wonderverse.store import SceneStore
 
 
 def tiny_spec(tmp_path: Path, prompt: str = "a small house decorated for Christmas", **scene) -> Path:
+    """A --config file of the tiny video with SHORT_STEPS (a whole run in ~20 s on 2 cores)."""
     f = tmp_path / f"spec-{abs(hash((prompt, str(scene))))}.yaml"
     video = {**TINY_VIDEO, "options": {"fault_probability": 0.0}}
-    f.write_text(yaml.safe_dump({"preset": "preview", "scene": {"prompt": prompt, "video": video, **scene}}))
+    spec = {"preset": "preview", "scene": {"prompt": prompt, "video": video, **scene}, "steps": SHORT_STEPS}
+    f.write_text(yaml.safe_dump(spec))
     return f
 
 
