@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import os
+import re
 import subprocess
 import sys
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -67,6 +69,7 @@ CHROMIUM_ARGS = [
 
 def launch_browser(playwright: Any) -> Any:
     """Headless Chromium from the system package; its absence fails the test unless explicitly allowed."""
+    refuse_unless_e2e("a browser (launch_browser)")
     if not CHROMIUM.is_file():
         message = f"{CHROMIUM} is missing: install it with `bash scripts/install-browser.sh`"
         if os.environ.get("WONDERVERSE_ALLOW_NO_BROWSER") == "1":
@@ -126,3 +129,125 @@ def lock_held_elsewhere(scene: Path) -> Iterator[subprocess.Popen]:
         if proc.poll() is None:
             proc.kill()
         proc.wait(timeout=10)
+
+
+# --- Two tiers ---------------------------------------------------------------------------------------------------
+# `pytest -m "not e2e"` is the fast tier. A test that runs a pipeline, the CLI, a server or a browser belongs to the
+# e2e tier and says so (@pytest.mark.e2e, or `pytestmark = pytest.mark.e2e` for a module). While a test without the
+# marker runs, its fixtures included (a module-scoped fixture that builds a scene is set up inside the first test
+# that uses it), those entry points fail it, so the fast tier cannot grow slow unnoticed. E2e tests run untouched.
+
+E2E = "e2e"
+
+# Command lines of the CLI, a benchmark, or a server (Prefect's API runs under uvicorn, ephemeral or `prefect server`).
+_E2E_COMMAND = re.compile(
+    r"(^|[\s/])wonderverse(\s|$)|\bflows\.(cli|serve|view)\b|-m\s+benchmarks\.|\buvicorn\b|\bprefect\s+server\b"
+)
+
+_unmarked_test: str | None = None  # node id of the test running now when it lacks the e2e marker
+
+
+def refuse_unless_e2e(what: str) -> None:
+    """Fail the running test when it is not marked e2e (a no-op in e2e tests and outside tests)."""
+    if _unmarked_test is not None:
+        pytest.fail(
+            f"{_unmarked_test} runs {what} but is not marked e2e: "
+            f"add @pytest.mark.{E2E} (or `pytestmark = pytest.mark.{E2E}` for the whole module)"
+        )
+
+
+def _command_line(args: Any) -> str:
+    if isinstance(args, (str, bytes, os.PathLike)):
+        return os.fsdecode(args)
+    return " ".join(os.fsdecode(a) for a in args)
+
+
+def _guards() -> list[tuple[Any, str, str]]:
+    """(owner, attribute, what it runs) of every entry point an unmarked test may not call (besides commands, see
+    `_guarded_popen_init`, and `launch_browser`, which checks itself: tests import it by name). The modules load once
+    per process; those a test file did not import cost ~0.3 s then."""
+    import click.testing
+    import typer.main
+    import typer.testing
+
+    import flows.pipeline
+    import flows.serve
+    import flows.view
+    import tasks
+    import tasks.parallel
+    from tasks.base import Step
+
+    found = [
+        (flows.pipeline, "_execute", "a pipeline (flows.pipeline)"),
+        (Step, "run_in", "a pipeline step (Step.run_in)"),
+        (click.testing.CliRunner, "invoke", "the CLI (CliRunner)"),
+        (typer.testing.CliRunner, "invoke", "the CLI (CliRunner)"),  # its own invoke, not click's
+        (typer.main.Typer, "__call__", "the CLI (the typer app)"),
+        (flows.serve, "serve", "a server (flows.serve.serve)"),
+        (flows.serve, "run_batch", "a batch of scenes (flows.serve.run_batch)"),
+        (flows.view, "make_server", "a server (flows.view.make_server)"),
+        (flows.view, "serve_scene", "a server (flows.view.serve_scene)"),
+        (tasks.parallel, "_open_client", "a Dask cluster (tasks.parallel)"),
+    ]
+    for step in tasks.STEPS:  # each step's `run`, which a test may call on a store directly
+        module = sys.modules.get(step.run.__module__)
+        if module is not None and getattr(module, step.run.__name__, None) is step.run:
+            found.append((module, step.run.__name__, f"the {step.name} step ({module.__name__}.{step.run.__name__})"))
+    # Names a refactor removed are simply not guarded; a class's own attribute only (restoring puts back exactly that).
+    return [g for g in found if (g[1] in vars(g[0]) if isinstance(g[0], type) else hasattr(g[0], g[1]))]
+
+
+def _guarded(original: Callable[..., Any], what: str) -> Callable[..., Any]:
+    @functools.wraps(original)
+    def guarded(*args: Any, **kwargs: Any) -> Any:
+        refuse_unless_e2e(what)
+        return original(*args, **kwargs)
+
+    return guarded
+
+
+def _guarded_popen_init(original: Callable[..., Any]) -> Callable[..., Any]:
+    @functools.wraps(original)
+    def init(self: subprocess.Popen, args: Any, *rest: Any, **kwargs: Any) -> None:
+        line = _command_line(args)
+        if _E2E_COMMAND.search(line):
+            refuse_unless_e2e(f"the command `{line[:200]}`")
+        original(self, args, *rest, **kwargs)
+
+    return init
+
+
+@contextlib.contextmanager
+def _entry_points_refused(nodeid: str) -> Iterator[None]:
+    """Every guarded entry point wrapped (and the steps' `run` fields, which a frozen dataclass holds) while `nodeid`
+    runs; all restored afterwards."""
+    global _unmarked_test
+    import tasks
+
+    patched: list[tuple[Any, str, Any]] = []
+    for owner, name, what in _guards():
+        original = vars(owner)[name] if isinstance(owner, type) else getattr(owner, name)
+        patched.append((owner, name, original))
+        setattr(owner, name, _guarded(original, what))
+    patched.append((subprocess.Popen, "__init__", subprocess.Popen.__dict__["__init__"]))
+    subprocess.Popen.__init__ = _guarded_popen_init(subprocess.Popen.__dict__["__init__"])  # type: ignore[method-assign]
+    step_runs = [(step, step.run) for step in tasks.STEPS]
+    for step, run in step_runs:
+        object.__setattr__(step, "run", _guarded(run, f"the {step.name} step"))
+    _unmarked_test = nodeid
+    try:
+        yield
+    finally:
+        _unmarked_test = None
+        for step, run in step_runs:
+            object.__setattr__(step, "run", run)
+        for owner, name, original in reversed(patched):
+            setattr(owner, name, original)
+
+
+@pytest.hookimpl(wrapper=True)
+def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> Any:
+    if item.get_closest_marker(E2E) is not None:
+        return (yield)
+    with _entry_points_refused(item.nodeid):
+        return (yield)

@@ -312,7 +312,7 @@ def _fox_gt_w2c(names: list[str]) -> np.ndarray:
     return np.stack(out)
 
 
-@pytest.mark.slow
+@pytest.mark.e2e
 def test_fox_capture_real_jump_is_flagged() -> None:
     if not (FOX / "images").is_dir():
         pytest.skip(f"fox capture not found at {FOX}")

@@ -273,7 +273,7 @@ def test_nan_pose_marked_registered_counts_as_unregistered() -> None:
     assert "unregistered frame 4 splits the segment" in res.reasons
 
 
-@pytest.mark.slow
+@pytest.mark.e2e
 def test_pure_rotation_video_fails_the_gates_in_words() -> None:
     res = reconstruct(_pure_rotation_video())
     # Without parallax almost nothing triangulates: whatever registers, the model must not pass. Without a

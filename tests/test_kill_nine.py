@@ -96,7 +96,7 @@ def wait_until(what: str, condition, timeout: float, proc: subprocess.Popen, lin
     pytest.fail(f"no {what} within {timeout} s:\n{''.join(lines)}")
 
 
-@pytest.mark.slow
+@pytest.mark.e2e
 def test_kill_9_of_wonderverse_alone_leaves_no_prefect_server_and_no_run(tmp_path: Path):
     marker = uuid.uuid4().hex
     env = {MARKER: marker, "PREFECT_HOME": str(tmp_path / "prefect"), "PREFECT_SERVER_ANALYTICS_ENABLED": "false"}
@@ -143,7 +143,7 @@ def kill_everything(proc: subprocess.Popen) -> None:
     proc.wait(timeout=10)
 
 
-@pytest.mark.slow
+@pytest.mark.e2e
 def test_a_run_killed_at_random_moments_resumes_to_byte_identical_outputs(tmp_path: Path):
     spec = tiny_spec(tmp_path)
     reference = tmp_path / "reference"

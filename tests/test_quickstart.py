@@ -21,7 +21,7 @@ def test_the_readme_holds_exactly_two_commands_the_second_running_the_tests():
     assert "pytest" in second
 
 
-@pytest.mark.slow
+@pytest.mark.e2e
 def test_the_readme_first_command_makes_a_scene_on_a_fresh_copy(tmp_path: Path):
     work = fresh_copy(tmp_path / "wonderverse")
     r = run_readme_command(work)

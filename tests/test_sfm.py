@@ -36,7 +36,7 @@ def re10k_clip(clip_id: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return frames, poses, vals[:, 1:5]
 
 
-@pytest.mark.slow
+@pytest.mark.e2e
 @pytest.mark.parametrize("clip_id", ["0bf152ef84195293", "0f68374b76390082", "3c35b868a8ec3433"])
 def test_real_estate_clips_register_fully_and_match_their_poses(clip_id: str) -> None:
     from wonderverse.metrics import ate
@@ -57,7 +57,7 @@ def test_real_estate_clips_register_fully_and_match_their_poses(clip_id: str) ->
     assert res.mapper in ("incremental", "global")
 
 
-@pytest.mark.slow
+@pytest.mark.e2e
 def test_same_seed_single_thread_is_reproducible_and_workdir_is_reusable(tmp_path: Path) -> None:
     frames, _, _ = re10k_clip("0f68374b76390082")
     params = SfmParams(num_threads=1, random_seed=3)
@@ -69,7 +69,7 @@ def test_same_seed_single_thread_is_reproducible_and_workdir_is_reusable(tmp_pat
     assert (tmp_path / "database.db").is_file() and len(list((tmp_path / "images").glob("*.png"))) == 10
 
 
-@pytest.mark.slow
+@pytest.mark.e2e
 def test_focal_prior_reaches_colmap_and_focal_is_estimated(tmp_path: Path) -> None:
     import pycolmap
 
@@ -143,7 +143,7 @@ def _pure_rotation_video(n: int = 12) -> np.ndarray:
     return np.stack(frames)
 
 
-@pytest.mark.slow
+@pytest.mark.e2e
 def test_reconstruct_from_images_reports_k_in_full_size_pixels() -> None:
     paths = sorted(need(FOX / "images").glob("*.jpg"))[:8]
     res = reconstruct_from_images(paths, SfmParams(max_image_size_px=320, camera_model="PINHOLE"))
