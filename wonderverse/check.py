@@ -46,7 +46,11 @@ class CheckParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    translation_mode: Literal["scale_free", "absolute"] = "scale_free"
+    translation_mode: Literal["scale_free", "absolute"] = Field(
+        "scale_free",
+        description="scale_free: a step is judged against the median of the others (`max_step_ratio`); absolute: "
+        "the paper's T1 (`abs_trans_thresh`) in SfM's arbitrary units",
+    )
     abs_trans_thresh: float = Field(5.0, gt=0, description="T1 in SfM units (absolute mode, the paper's)")
     max_step_ratio: float = Field(3.5, gt=1, description="step ÷ median of the other steps (scale-free mode)")
     rot_thresh_rad: float = Field(0.5, gt=0, le=math.pi, description="T2: rotation between consecutive frames")
@@ -54,7 +58,9 @@ class CheckParams(BaseModel):
         3.0, gt=1, description="also abnormal: a rotation step this many times the median one (None: off) ..."
     )
     min_rot_jump_rad: float = Field(0.1, ge=0, description="... and above this, so jitter of a still camera is not")
-    min_registered_frac: float = Field(0.8, ge=0, le=1)
+    min_registered_frac: float = Field(
+        0.8, ge=0, le=1, description="a segment with a smaller share of its frames registered by SfM is abnormal"
+    )
     allow_gaps: bool = Field(False, description="judge steps across unregistered frames instead of rejecting")
     min_step_depth_frac: float = Field(
         1e-3, ge=0, description="translation below this × scene depth counts as none (pure rotation / static)"

@@ -104,10 +104,22 @@ class VideoSpec(Model):
         "diffusers: a video diffusion model (CogVideoX, Wan, HunyuanVideo; `options` = DiffusionParams)",
     )
     clips: tuple[str, ...] = Field((), description="files backend: video files, image folders or globs, in order")
-    frames_per_segment: int = Field(25, ge=2, le=1000)
-    width: int = Field(480, ge=32, le=4096)
-    height: int = Field(320, ge=32, le=4096)
-    fps: float = Field(8.0, gt=0, le=240)
+    frames_per_segment: int = Field(
+        25,
+        ge=2,
+        le=1000,
+        description="frames each generated segment is rendered with (diffusers: 8k+1 for CogVideoX, 4k+1 for Wan "
+        "and HunyuanVideo); user clips keep their own count (`options.max_frames`)",
+    )
+    width: int = Field(
+        480, ge=32, le=4096, description="generated frames' width in px (diffusers: a multiple of 16); not for clips"
+    )
+    height: int = Field(
+        320, ge=32, le=4096, description="generated frames' height in px (diffusers: a multiple of 16); not for clips"
+    )
+    fps: float = Field(
+        8.0, gt=0, le=240, description="frames per second the stitched video is played at in `preview.mp4`"
+    )
     fov_deg: float = Field(DEFAULT_FOV_DEG, gt=5, lt=170, description="horizontal field of view")
     options: ProceduralOptions | ClipParams | DiffusionParams = Field(
         default_factory=dict,
@@ -164,8 +176,17 @@ class VideoSource(Model):
 class SceneSpec(Model):
     """What the user asks for: everything that defines the scene's content."""
 
-    prompt: str
-    seed: int = Field(0, ge=0, lt=2**32)
+    prompt: str = Field(
+        description="the scene's description, at most 2000 characters; tabs and line breaks become spaces, other "
+        "control characters are refused"
+    )
+    seed: int = Field(
+        0,
+        ge=0,
+        lt=2**32,
+        description="the scene's seed: the procedural world's layout and every attempt's seed (with the segment and "
+        "the attempt number) derive from it",
+    )
     extensions: ExtensionSpec = ExtensionSpec()
     video: VideoSpec = VideoSpec()
     planner: PlannerSpec = PlannerSpec()
@@ -255,7 +276,7 @@ class PriorsStepParams(Model):
         1.5,
         gt=1,
         description="aligned depth beyond this many times the farthest SfM point seen in the frame is sky "
-        "(at 4, 96 % of the realistic oracle's far sky stayed a surface; docs/benchmarks.md, session 13)",
+        "(at 4, 96 % of the realistic oracle's far sky stayed a surface: docs/benchmarks.md)",
     )
 
 
@@ -269,7 +290,7 @@ class SplatsStepParams(Model):
     init_depth_stride_px: int = Field(8, ge=1, description="pixel stride of the depth back-projection")
     init_depth_frame_stride: int = Field(4, ge=1, description="views back-projected: every Nth")
     init_voxel_frac: float = Field(0.01, gt=0, description="seeding voxel size, fraction of the scene scale")
-    init_opacity: float = Field(0.1, gt=0, lt=1)
+    init_opacity: float = Field(0.1, gt=0, lt=1, description="opacity every seeded Gaussian starts with")
     extend_iterations_frac: float = Field(
         0.2, gt=0, le=1, description="after `extend`: iterations (share of train.iterations) continuing the old splats"
     )
@@ -290,7 +311,9 @@ class OutputsParams(Model):
     )
     render_max_side_px: int = Field(480, ge=16, le=8192, description="renders for TSDF and videos: longer side")
     video_frames: int = Field(120, ge=2, le=10_000, description="frames of the fly-through and novel-view videos")
-    video_fps: float = Field(24.0, gt=0, le=240)
+    video_fps: float = Field(
+        24.0, gt=0, le=240, description="frames per second of the videos and of the camera-path files' timing"
+    )
     novel_offset_frac: float = Field(
         0.1, ge=0, le=1, description="the novel-view path runs this share of the scene extent off the training path"
     )
@@ -320,6 +343,8 @@ class ExecutionParams(Model):
 
 
 class StepsConfig(Model):
+    """Every step's parameters, by step name."""
+
     plan: PlanParams = PlanParams()
     generate_segments: GenerateStepParams = GenerateStepParams()
     check: CheckStepParams = CheckStepParams()
@@ -332,8 +357,13 @@ class StepsConfig(Model):
 class RunConfig(Model):
     """A full run: the scene and every step's parameters."""
 
-    preset: str = "standard"
+    preset: str = Field(
+        "standard",
+        description="the preset the settings were composed on (`configs/presets/NAME.yaml`): `--preset`, else the "
+        "config file's `preset`, else preview without a CUDA GPU and standard with one",
+    )
     scene: SceneSpec
+
     steps: StepsConfig = StepsConfig()
     execution: ExecutionParams = ExecutionParams()
 

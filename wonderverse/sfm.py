@@ -106,9 +106,13 @@ class SfmParams(BaseModel):
     mapper: Literal["incremental", "global", "auto"] = Field(
         "auto", description="auto: the mappers of `auto_order` in turn, until a model passes the gates"
     )
-    init_min_tri_angle_deg: float = Field(4.0, gt=0, le=60)
-    init_min_num_inliers: int = Field(50, ge=8)
-    abs_pose_min_num_inliers: int = Field(15, ge=6)
+    init_min_tri_angle_deg: float = Field(
+        4.0, gt=0, le=60, description="incremental mapper: smallest triangulation angle of the initial pair (°)"
+    )
+    init_min_num_inliers: int = Field(50, ge=8, description="incremental mapper: inlier matches of the initial pair")
+    abs_pose_min_num_inliers: int = Field(
+        15, ge=6, description="incremental mapper: 2D-3D inliers needed to register a further frame"
+    )
     min_tri_angle_deg: float = Field(1.0, gt=0, le=30, description="triangulation and filtering")
     max_runtime_s: float = Field(
         120.0, gt=0, le=86400, description="cap on incremental mapping (global has no cancel hook in 4.2.1)"
@@ -133,7 +137,7 @@ class SfmParams(BaseModel):
     num_threads: int = Field(
         1, ge=1, le=256, description="every COLMAP stage; 1 is bit-reproducible with random_seed, >1 is not"
     )
-    random_seed: int = Field(0, ge=0, lt=2**31)
+    random_seed: int = Field(0, ge=0, lt=2**31, description="seed of every COLMAP stage's random sampling")
     camera_model: Literal["SIMPLE_PINHOLE", "PINHOLE"] = Field(
         "SIMPLE_PINHOLE", description="generated video has no lens distortion and square pixels"
     )

@@ -79,8 +79,8 @@ class TwoViewParams(BaseModel):
         3.0, gt=0, description="a pair with the first frame is kept when a loop through a neighbour closes to this"
     )
     rotation_trials: int = Field(300, ge=1, le=100000, description="RANSAC trials of the rotation-only model")
-    random_seed: int = Field(0, ge=0, lt=2**31)
-    num_threads: int = Field(1, ge=1, le=256)
+    random_seed: int = Field(0, ge=0, lt=2**31, description="seed of both RANSAC estimators")
+    num_threads: int = Field(1, ge=1, le=256, description="threads of SIFT extraction and RANSAC")
 
 
 @dataclass

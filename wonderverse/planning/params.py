@@ -20,7 +20,12 @@ class ExtensionSpec(Model):
     """How the scene grows beyond the initial video (the paper repeats left+right `rounds` times)."""
 
     rounds: int = Field(1, ge=0, le=16, description="extension iterations n; each adds one segment per direction")
-    directions: tuple[Direction, ...] = Field(("left", "right"), min_length=1)
+    directions: tuple[Direction, ...] = Field(
+        ("left", "right"),
+        min_length=1,
+        description="the directions each round extends in, in order (left, right, up, down, forward, back); words "
+        "in `intents` that name another direction win",
+    )
     intents: tuple[str, ...] = Field((), description="the user's words for each extension, in order")
     added: tuple[str, ...] = Field(
         (), description="extensions added later (`wonderverse extend`), the user's words, oldest first"
@@ -30,14 +35,20 @@ class ExtensionSpec(Model):
 class PlannerSpec(Model):
     """Which planner turns the description and the user's words into camera moves."""
 
-    backend: Literal["rules", "chat"] = "rules"
+    backend: Literal["rules", "chat"] = Field(
+        "rules",
+        description="rules: the deterministic planner; chat: an OpenAI-compatible endpoint asked with the paper's "
+        "prompt, falling back to the rules on any failure",
+    )
     base_url: str = Field("http://127.0.0.1:8000/v1", description="OpenAI-compatible endpoint (chat backend)")
-    model: str = "gpt-4o-mini"
+    model: str = Field("gpt-4o-mini", description="model name sent to the chat endpoint")
     api_key_env: str = Field("OPENAI_API_KEY", description="name of the environment variable holding the key")
     timeout_s: float = Field(
         30.0, gt=0, le=600, description="seconds for each attempt as a whole: connect, send, every byte of the answer"
     )
-    max_retries: int = Field(1, ge=0, le=5)
+    max_retries: int = Field(
+        1, ge=0, le=5, description="requests repeated after a transport error, timeout or HTTP 5xx (not a bad answer)"
+    )
 
 
 class PlanParams(Model):
@@ -46,9 +57,23 @@ class PlanParams(Model):
     initial_move: str = Field(
         "up 0, right 30, forward 2", max_length=200, description="paper format, for the initial video"
     )
-    yaw_step_deg: float = Field(35.0, gt=0, le=180)
-    pitch_step_deg: float = Field(15.0, gt=0, le=89)
-    forward_step_m: float = Field(2.0, gt=0, le=100)
+    yaw_step_deg: float = Field(
+        35.0,
+        gt=0,
+        le=180,
+        description="degrees of a left/right extension whose words give no amount; shrunk so that every planned "
+        "turn plus the field of view fits in 360°",
+    )
+    pitch_step_deg: float = Field(
+        15.0,
+        gt=0,
+        le=89,
+        description="degrees of an up/down extension whose words give no amount; shrunk to keep `max_pitch_deg`",
+    )
+    forward_step_m: float = Field(
+        2.0, gt=0, le=100, description="travel (scene units) of a forward/back extension whose words give no amount"
+    )
+
     yaw_forward_m: float = Field(0.5, gt=0, le=100, description="forward travel added to each turn")
     step_variation_ratio: float = Field(0.15, ge=0, lt=1, description="shrink of a repeated move on one side")
     max_pitch_deg: float = Field(60.0, gt=0, le=89, description="pitch limit of each extension chain")

@@ -22,11 +22,15 @@ class _Model(BaseModel):
 class AlignParams(_Model):
     """Per-image scale/shift alignment of a monocular prior to reference depths (SfM points)."""
 
-    method: AlignMethod = "trimmed"
+    method: AlignMethod = Field(
+        "trimmed",
+        description="lstsq: one least-squares fit; trimmed: refit without the worst `trim_fraction`, up to "
+        "`max_iters` passes; ransac: scale/shift from point pairs, refit on the inliers",
+    )
     min_points: int = Field(20, ge=2, description="fewer usable reference points than this -> fallback")
     trim_fraction: float = Field(0.2, ge=0.0, lt=0.9, description="share of worst residuals dropped per pass")
     max_iters: int = Field(10, ge=1, le=100, description="trimmed-LS passes")
-    ransac_iters: int = Field(256, ge=1, le=100_000)
+    ransac_iters: int = Field(256, ge=1, le=100_000, description="RANSAC hypotheses (point pairs) tried per image")
     ransac_rel_thresh: float = Field(
         0.05, gt=0, description="inlier if |a*p+b - t| <= thresh * |t| (relative, so scale-free)"
     )
@@ -34,7 +38,7 @@ class AlignParams(_Model):
     depth_clamp_ratio: float = Field(
         10.0, gt=1, description="aligned depth is clamped to [min_ref/ratio, max_ref*ratio]"
     )
-    seed: int = Field(0, ge=0)
+    seed: int = Field(0, ge=0, description="seed of RANSAC's sampling")
 
 
 class FromDepthParams(_Model):
@@ -141,8 +145,16 @@ class PriorsParams(_Model):
     DPT-hybrid normal checkpoint (.ckpt / .pth / .pt / .safetensors), needed only for normal_backend="dpt".
     """
 
-    depth_backend: DepthBackend = "depth_anything"
-    normal_backend: NormalBackend = "from_depth"
+    depth_backend: DepthBackend = Field(
+        "depth_anything",
+        description="depth_anything: Depth Anything V2 (`depth_model`); oracle: the procedural world's degraded ground "
+        "truth (benchmarks only); none: no depth prior",
+    )
+    normal_backend: NormalBackend = Field(
+        "from_depth",
+        description="from_depth: back-projected from the depth prior; dpt: Omnidata's DPT-hybrid (`normal_model`); "
+        "oracle: degraded ground truth; none: no normal prior",
+    )
     depth_model: str = Field(
         "depth-anything/Depth-Anything-V2-Small-hf", description="local directory or hub id (transformers format)"
     )
@@ -154,18 +166,24 @@ class PriorsParams(_Model):
     allow_unsafe_pickle: bool = Field(
         False, description="load a normal checkpoint that is not a plain tensor file (runs pickled code)"
     )
-    device: Literal["auto", "cpu", "cuda"] = "auto"
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        "auto", description="where the depth and normal networks run; auto: CUDA when available"
+    )
     fp16: bool = Field(True, description="half precision on CUDA; ignored on CPU")
-    batch_size: int = Field(8, ge=1, le=512)
+    batch_size: int = Field(8, ge=1, le=512, description="frames per forward pass of a depth or normal network")
     depth_input_size_px: int | None = Field(
         None, ge=14, le=4096, description="network input size; None: the image processor's own (518 for DA-V2)"
     )
     normal_input_size_px: int = Field(384, ge=32, le=4096, description="short side fed to the DPT normal model")
-    oracle_level: OracleLevel = "realistic"
+    oracle_level: OracleLevel = Field(
+        "realistic",
+        description="how far the oracle degrades the truth: none, mild (~3 % AbsRel), realistic (~7 %, a monocular "
+        "network's range), harsh (~15 %)",
+    )
     oracle_space: Literal["depth", "inverse_depth"] = Field(
         "inverse_depth", description="space the oracle degrades in and reports (DA-V2 predicts inverse depth)"
     )
-    oracle_seed: int = Field(0, ge=0)
+    oracle_seed: int = Field(0, ge=0, description="seed of the oracle's per-frame degradation")
     from_depth: FromDepthParams = FromDepthParams()
     align: AlignParams = AlignParams()
 

@@ -27,6 +27,8 @@ class QualityParams(BaseModel):
         "five_point", description="five_point: 1..5 as the paper's table; unit: 0..1 (weights 1, .75, .5, .25, 0)"
     )
     clip_weight: float = Field(2.5, gt=0, description="w of CLIP-S = w * max(cos, 0) (Hessel et al. use 2.5)")
-    device: Literal["auto", "cpu", "cuda"] = "auto"
+    device: Literal["auto", "cpu", "cuda"] = Field(
+        "auto", description="where CLIP and Q-Align run; auto: CUDA when available (NIQE runs on the CPU)"
+    )
     fp16: bool = Field(True, description="half precision on CUDA (ignored on CPU)")
     batch_size: int = Field(8, ge=1, description="images per forward pass of CLIP / Q-Align")

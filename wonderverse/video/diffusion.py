@@ -157,7 +157,9 @@ class DiffusionParams(BaseModel):
     )
     steps: int = Field(50, ge=1, le=1000, description="denoising steps")
     guidance_scale: float | None = Field(None, ge=0, le=50, description="None: the pipeline's default")
-    negative_prompt: str = Field("", max_length=2000)
+    negative_prompt: str = Field(
+        "", max_length=2000, description="what the model should steer away from; empty: none passed to the pipeline"
+    )
     allow_download: bool = Field(False, description="let from_pretrained fetch hub ids missing from the local cache")
     vae_tiling: bool = Field(False, description="decode in tiles (less GPU memory, slower)")
     vae_slicing: bool = Field(False, description="decode batch items one at a time")

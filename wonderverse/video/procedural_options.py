@@ -30,33 +30,33 @@ class WorldParams(BaseModel):
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     terrain_radius_m: float = Field(60.0, gt=10, description="half-size of the square terrain")
-    terrain_cell_m: float = Field(1.0, gt=0.1, le=5)
+    terrain_cell_m: float = Field(1.0, gt=0.1, le=5, description="grid spacing of the terrain mesh")
     hill_height_m: float = Field(1.5, ge=0, description="amplitude of the gentle hills")
-    hill_wavelength_m: Range = (18.0, 45.0)
+    hill_wavelength_m: Range = Field((18.0, 45.0), description="the hills' five sinusoids draw wavelengths from this")
     flat_radius_m: float = Field(10.0, ge=0, description="hills fade in from the origin out to here")
     rim_height_m: float = Field(9.0, ge=0, description="skyline hills rising at the terrain's edge")
-    rim_start_m: float = Field(42.0, gt=0)
+    rim_start_m: float = Field(42.0, gt=0, description="distance from the origin where the skyline rim starts rising")
     clear_radius_m: float = Field(4.0, ge=0, description="no object intrudes on this disc (camera zone)")
-    object_radius_m: Range = (5.0, 40.0)
+    object_radius_m: Range = Field((5.0, 40.0), description="outdoor objects stand at distances in this range")
     object_gap_m: float = Field(0.6, ge=0, description="free space between object footprints")
     outdoor_objects: int = Field(60, ge=0, le=400, description="objects of a meadow; themes scale it")
     placement_tries: int = Field(60, ge=1, description="rejection-sampling tries per object")
-    camera_height_m: float = Field(3.0, gt=0)
+    camera_height_m: float = Field(3.0, gt=0, description="outdoors: the start pose's height above the ground")
     camera_pitch_deg: float = Field(10.0, ge=-60, le=60, description="downwards pitch of the start pose")
     shore_distance_m: float = Field(14.0, gt=0, description="beach: the sea begins this far out")
-    shore_drop_m: float = Field(3.5, gt=0)
+    shore_drop_m: float = Field(3.5, gt=0, description="beach: how far the ground sinks beyond the shore")
     room_size_m: tuple[float, float, float] = Field(
         (10.0, 12.0, 3.0), description="x, y, z; the camera starts looking along y, the long side"
     )
-    wall_thickness_m: float = Field(0.2, gt=0)
-    indoor_camera_height_m: float = Field(1.6, gt=0)
-    indoor_camera_pitch_deg: float = Field(8.0, ge=-60, le=60)
-    indoor_clear_radius_m: float = Field(1.5, ge=0)
-    indoor_objects: int = Field(30, ge=0, le=200)
-    sun_elevation_deg: Range = (30.0, 60.0)
-    sun_azimuth_deg: Range = (100.0, 260.0)
-    indoor_light_elevation_deg: float = Field(65.0, gt=0, le=90)
-    cylinder_segments: int = Field(12, ge=3, le=64)
+    wall_thickness_m: float = Field(0.2, gt=0, description="thickness of the room's walls")
+    indoor_camera_height_m: float = Field(1.6, gt=0, description="indoors: the start pose's height above the floor")
+    indoor_camera_pitch_deg: float = Field(8.0, ge=-60, le=60, description="indoors: downwards pitch of the start pose")
+    indoor_clear_radius_m: float = Field(1.5, ge=0, description="indoors: furniture keeps off this disc")
+    indoor_objects: int = Field(30, ge=0, le=200, description="pieces of furniture of a room; room types share it out")
+    sun_elevation_deg: Range = Field((30.0, 60.0), description="outdoors: the sun's elevation is drawn from this")
+    sun_azimuth_deg: Range = Field((100.0, 260.0), description="outdoors: the sun's azimuth is drawn from this")
+    indoor_light_elevation_deg: float = Field(65.0, gt=0, le=90, description="indoors: elevation of the main light")
+    cylinder_segments: int = Field(12, ge=3, le=64, description="sides of every cylinder and cone (trunks, posts)")
 
 
 class PatternParams(BaseModel):
@@ -64,20 +64,20 @@ class PatternParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    brick_m: Range = (0.25, 0.085)
-    mortar_frac: float = Field(0.12, ge=0, lt=0.5)
-    plank_width_m: float = Field(0.16, gt=0)
-    plank_length_m: float = Field(1.8, gt=0)
-    shingle_m: Range = (0.32, 0.22)
-    tile_m: float = Field(0.4, gt=0)
-    grout_frac: float = Field(0.06, ge=0, lt=0.5)
-    stripe_m: float = Field(0.11, gt=0)
+    brick_m: Range = Field((0.25, 0.085), description="a brick's width and height")
+    mortar_frac: float = Field(0.12, ge=0, lt=0.5, description="share of a brick or shingle cell that is mortar gap")
+    plank_width_m: float = Field(0.16, gt=0, description="width of a floor or wall plank")
+    plank_length_m: float = Field(1.8, gt=0, description="length of a plank between joints")
+    shingle_m: Range = Field((0.32, 0.22), description="a roof shingle's width and height")
+    tile_m: float = Field(0.4, gt=0, description="side of a square tile")
+    grout_frac: float = Field(0.06, ge=0, lt=0.5, description="share of a tile cell that is grout")
+    stripe_m: float = Field(0.11, gt=0, description="width of a wallpaper stripe")
     motif_m: float = Field(0.3, gt=0, description="wallpaper diamonds")
-    check_m: float = Field(0.15, gt=0)
-    window_cell_m: Range = (2.2, 3.2)
-    window_frac: Range = (0.55, 0.5)
+    check_m: float = Field(0.15, gt=0, description="side of a fabric check")
+    window_cell_m: Range = Field((2.2, 3.2), description="facades: width and height of the cell holding one window")
+    window_frac: Range = Field((0.55, 0.5), description="facades: share of the cell's width, height a window fills")
     lit_window_share: float = Field(0.6, ge=0, le=1, description="at night")
-    bark_groove_m: float = Field(0.06, gt=0)
+    bark_groove_m: float = Field(0.06, gt=0, description="width of the grooves in bark")
     bark_stretch: float = Field(6.0, gt=1, description="bark streaks are this many times longer than wide")
 
 
@@ -223,7 +223,9 @@ class ProceduralOptions(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    world: Literal["auto", "outdoor", "indoor"] = "auto"
+    world: Literal["auto", "outdoor", "indoor"] = Field(
+        "auto", description="outdoor terrain or a room; auto: whichever the prompt's words name more of"
+    )
     layout: WorldParams = WorldParams()
     scene_scale: float = Field(
         1.0,
@@ -235,18 +237,22 @@ class ProceduralOptions(BaseModel):
     )
     patterns: PatternParams = PatternParams()
     # faults (per generation attempt)
-    fault_probability: float = Field(0.2, ge=0, le=1)
-    fault_types: tuple[FaultType, ...] = Field(("teleport", "rotation", "morph", "freeze"), min_length=1)
+    fault_probability: float = Field(0.2, ge=0, le=1, description="chance that a generation attempt gets a fault")
+    fault_types: tuple[FaultType, ...] = Field(
+        ("teleport", "rotation", "morph", "freeze"),
+        min_length=1,
+        description="the faults drawn from, with equal chance (`ignore` only when listed or forced)",
+    )
     force_fault: FaultType | None = Field(None, description="always inject this fault (tests, benchmarks)")
     fault_window: Range = Field((0.25, 0.75), description="the fault starts in this fraction of the segment")
-    teleport_m: Range = (0.8, 2.5)
+    teleport_m: Range = Field((0.8, 2.5), description="teleport fault: length of the camera's jump")
     teleport_vertical_share: float = Field(0.3, ge=0, le=1, description="vertical part of a jump, relative")
-    sudden_rotation_deg: Range = (10.0, 25.0)
-    morph_m: Range = (0.8, 2.0)
-    morph_scale: Range = (0.7, 1.4)
-    morph_objects: int = Field(3, ge=1)
+    sudden_rotation_deg: Range = Field((10.0, 25.0), description="rotation fault: angle of the camera's sudden turn")
+    morph_m: Range = Field((0.8, 2.0), description="morph fault: how far the chosen objects move")
+    morph_scale: Range = Field((0.7, 1.4), description="morph fault: each moved object is rescaled by this")
+    morph_objects: int = Field(3, ge=1, description="morph fault: objects moved, picked among those in view")
     morph_probe_stride_px: int = Field(4, ge=1, description="pixel stride of the pass finding visible objects")
-    freeze_frames: int = Field(5, ge=2)
+    freeze_frames: int = Field(5, ge=2, description="freeze fault: frames that repeat one frame")
     ignore_min_turn_deg: float = Field(
         5.0, ge=0, description="ignore fault: a planned turn at least this large may be reversed or left out"
     )
@@ -261,14 +267,14 @@ class ProceduralOptions(BaseModel):
     )
     # texture
     texture_detail: float = Field(1.0, ge=0, description="contrast of the surface texture; 0 = flat colours")
-    texture_octaves: int = Field(4, ge=1, le=8)
+    texture_octaves: int = Field(4, ge=1, le=8, description="noise octaves of the surface texture")
     octave_gain: float = Field(0.7, gt=0, lt=1, description="amplitude ratio of successive octaves")
     octave_lacunarity: float = Field(2.5, gt=1, description="frequency ratio of octaves; not 2, so they do not line up")
     noise_contrast: float = Field(2.0, gt=0, description="maps the noise sum onto the colour ramp")
     brightness_variation: float = Field(0.3, ge=0, lt=1, description="texture-driven brightness swing")
     lod_fade_px: Range = Field((1.5, 3.0), description="an octave fades out as its wavelength drops to these px")
     min_cos_incidence: float = Field(0.15, gt=0, le=1, description="caps texture blur at grazing angles")
-    noise_seed: int = Field(7, ge=0)
+    noise_seed: int = Field(7, ge=0, description="seed of the texture noise (the sky's is this plus 1)")
     chunk_px: int = Field(16384, ge=256, description="pixels shaded at once; small chunks stay in cache")
     shading_threads: int = Field(2, ge=1, le=64, description="threads shading pixel chunks")
     # lighting and atmosphere
@@ -279,12 +285,16 @@ class ProceduralOptions(BaseModel):
     shadow_bias_m: float = Field(0.02, gt=0, description="shadow rays start this far off the surface")
     shadow_map_px: int = Field(1024, ge=64, le=8192, description="texels per side of each cascade")
     shadow_near_m: float = Field(20.0, gt=0, description="half-size of the fine cascade around the origin")
-    shadow_bias_texels: float = Field(1.5, ge=0)
+    shadow_bias_texels: float = Field(
+        1.5, ge=0, description="shadow map: points are pushed this many texels off their surface before the lookup"
+    )
     fog_distance_m: float = Field(220.0, ge=0, description="e-folding distance of the haze; 0 = none")
-    cloud_height_m: float = Field(800.0, gt=0)
-    cloud_scale_m: float = Field(500.0, gt=0)
-    cloud_octaves: int = Field(4, ge=1, le=8)
-    sun_disc_cos: float = Field(0.9995, gt=0.9, lt=1)
+    cloud_height_m: float = Field(800.0, gt=0, description="height of the plane the clouds are drawn on")
+    cloud_scale_m: float = Field(500.0, gt=0, description="size of the cloud pattern on that plane")
+    cloud_octaves: int = Field(4, ge=1, le=8, description="noise octaves of the clouds")
+    sun_disc_cos: float = Field(
+        0.9995, gt=0.9, lt=1, description="cosine of the sun disc's angular radius (0.9995: about 1.8°)"
+    )
     # the defects of real AI video
     defects: DefectLevel | DefectParams = Field(
         "none",
