@@ -78,8 +78,10 @@ def launch_browser(playwright: Any) -> Any:
     return playwright.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
 
 
-@pytest.fixture
+@pytest.fixture(scope="session")
 def data_dir() -> Path:
+    """The shared folder of real footage and model files (../shared/data next to the repository); tests that need it
+    are skipped, saying why, where it is absent."""
     if not DATA.is_dir():
         pytest.skip(f"shared data folder {DATA} is absent (tests with real footage need it)")
     return DATA

@@ -13,7 +13,7 @@ import pytest
 from wonderverse.camera import camera_centers, look_at
 from wonderverse.check import CheckParams, CheckResult, check_trajectory
 
-FOX = Path("/work/shared/data/instant_ngp_fox")
+FOX = "instant_ngp_fox"  # inside the shared data folder (the `data_dir` fixture)
 
 
 def orbit(angles_deg: np.ndarray, radius: float = 5.0, height: float = 0.5) -> np.ndarray:
@@ -301,9 +301,9 @@ def test_pycolmap_mapping_of_synthetic_orbit_with_injected_jump() -> None:
 # ---------------------------------------------------------------------------------- real footage
 
 
-def _fox_gt_w2c(names: list[str]) -> np.ndarray:
+def _fox_gt_w2c(fox: Path, names: list[str]) -> np.ndarray:
     """W2C (OpenCV axes) of the fox frames from transforms.json (C2W, OpenGL axes)."""
-    frames = {Path(f["file_path"]).stem: f for f in json.loads((FOX / "transforms.json").read_text())["frames"]}
+    frames = {Path(f["file_path"]).stem: f for f in json.loads((fox / "transforms.json").read_text())["frames"]}
     out = []
     for n in names:
         c2w = np.array(frames[n]["transform_matrix"], dtype=float)
@@ -313,9 +313,10 @@ def _fox_gt_w2c(names: list[str]) -> np.ndarray:
 
 
 @pytest.mark.e2e
-def test_fox_capture_real_jump_is_flagged() -> None:
-    if not (FOX / "images").is_dir():
-        pytest.skip(f"fox capture not found at {FOX}")
+def test_fox_capture_real_jump_is_flagged(data_dir: Path) -> None:
+    fox = data_dir / FOX
+    if not (fox / "images").is_dir():
+        pytest.skip(f"fox capture not found at {fox}")
     from PIL import Image
 
     from wonderverse.camera import geodesic_angle
@@ -323,7 +324,7 @@ def test_fox_capture_real_jump_is_flagged() -> None:
 
     # 0030..0081: 20 frames around the 0054 -> 0072 jump. Fewer do not work: SIFT finds no matches
     # across the 44° jump itself; the model is bridged by 0030/0031 <-> 0076/0077 (measured).
-    paths = sorted((FOX / "images").glob("*.jpg"))
+    paths = sorted((fox / "images").glob("*.jpg"))
     names = [p.stem for p in paths]
     sel = paths[names.index("0030") : names.index("0081") + 1]
     frames = []
@@ -335,7 +336,7 @@ def test_fox_capture_real_jump_is_flagged() -> None:
     assert res.registered.all(), res.problems
     check = check_trajectory(res.poses, res.registered, sfm_problems=res.problems, points=res.points)
     j = [p.stem for p in sel].index("0054")
-    gt = _fox_gt_w2c([p.stem for p in sel])
+    gt = _fox_gt_w2c(fox, [p.stem for p in sel])
     gt_angle = float(geodesic_angle(gt[j, :3, :3], gt[j + 1, :3, :3]))
     assert gt_angle == pytest.approx(np.radians(44.0), abs=np.radians(1.5))  # the data's own jump
     assert not check.accepted

@@ -274,8 +274,8 @@ def test_nan_pose_marked_registered_counts_as_unregistered() -> None:
 
 
 @pytest.mark.e2e
-def test_pure_rotation_video_fails_the_gates_in_words() -> None:
-    res = reconstruct(_pure_rotation_video())
+def test_pure_rotation_video_fails_the_gates_in_words(data_dir: Path) -> None:
+    res = reconstruct(_pure_rotation_video(data_dir))
     # Without parallax almost nothing triangulates: whatever registers, the model must not pass. Without a
     # known K, the look before mapping (`wonderverse.parallax`) already says so and nothing is mapped.
     assert not res.gates_passed

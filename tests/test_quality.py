@@ -19,9 +19,9 @@ from wonderverse.quality import QualityParams, niqe, niqe_many
 from wonderverse.quality.niqe_metric import aggd_fit, pristine_model
 from wonderverse.quality.qalign import LEVELS, expand_to_square
 
-DATA = Path("/work/shared/data")
-FOX = DATA / "instant_ngp_fox/images/0025.jpg"
-RE10K = DATA / "cameractrl_re10k/reference_videos/0c11dbe781b1c11c.mp4"
+# inside the shared data folder (the `data_dir` fixture)
+FOX = "instant_ngp_fox/images/0025.jpg"
+RE10K = "cameractrl_re10k/reference_videos/0c11dbe781b1c11c.mp4"
 GRAY = np.array([0.298936021293775, 0.587043074451121, 0.114020904255103])  # MATLAB rgb2gray
 BLUR_PX = (0.0, 1.0, 2.0, 4.0)
 NOISE = (5.0, 10.0, 20.0, 40.0)
@@ -40,21 +40,21 @@ def strictly_increasing(xs: list[float]) -> bool:
 
 
 @pytest.fixture(scope="module")
-def fox() -> np.ndarray:
-    if not FOX.exists():
-        pytest.skip(f"real photo {FOX} is absent (shared data not mounted)")
+def fox(data_dir: Path) -> np.ndarray:
+    if not (data_dir / FOX).exists():
+        pytest.skip(f"real photo {data_dir / FOX} is absent")
     import imageio.v3 as iio
 
-    return gray_of(np.asarray(iio.imread(FOX))[..., :3])[300:780, 100:580]  # 480x480 around the fox
+    return gray_of(np.asarray(iio.imread(data_dir / FOX))[..., :3])[300:780, 100:580]  # 480x480 around the fox
 
 
 @pytest.fixture(scope="module")
-def re10k_frame() -> np.ndarray:
-    if not RE10K.exists():
-        pytest.skip(f"real clip {RE10K} is absent (shared data not mounted)")
+def re10k_frame(data_dir: Path) -> np.ndarray:
+    if not (data_dir / RE10K).exists():
+        pytest.skip(f"real clip {data_dir / RE10K} is absent")
     import imageio.v3 as iio
 
-    return np.asarray(iio.imread(RE10K))[7]  # 256x384; odd frames are not in the pristine fit (every 5th is)
+    return np.asarray(iio.imread(data_dir / RE10K))[7]  # 256x384; odd frames are not in the pristine fit (every 5th is)
 
 
 @pytest.fixture(scope="module")

@@ -13,9 +13,10 @@ from pydantic import ValidationError
 
 from wonderverse.sfm import SfmParams, SfmResult, _gate_problems, reconstruct, reconstruct_from_images
 
-RE10K = Path("/work/shared/data/cameractrl_re10k")
-FOX = Path("/work/shared/data/instant_ngp_fox")
-BEDROOM = Path("/work/shared/data/viewcrafter_re10k_bedroom/images/00.png")
+# inside the shared data folder (the `data_dir` fixture)
+RE10K = "cameractrl_re10k"
+FOX = "instant_ngp_fox"
+BEDROOM = "viewcrafter_re10k_bedroom/images/00.png"
 
 
 def need(path: Path) -> Path:
@@ -24,12 +25,12 @@ def need(path: Path) -> Path:
     return path
 
 
-def re10k_clip(clip_id: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def re10k_clip(data_dir: Path, clip_id: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(frames (16,256,384,3) uint8, W2C poses (16,4,4), normalised fx/fy/cx/cy per frame) of one clip."""
     import imageio.v3 as iio
 
-    frames = iio.imread(need(RE10K / "reference_videos" / f"{clip_id}.mp4"))
-    rows = [line.split() for line in (RE10K / "pose_files" / f"{clip_id}.txt").read_text().splitlines()[1:]]
+    frames = iio.imread(need(data_dir / RE10K / "reference_videos" / f"{clip_id}.mp4"))
+    rows = [line.split() for line in (data_dir / RE10K / "pose_files" / f"{clip_id}.txt").read_text().splitlines()[1:]]
     vals = np.array([[float(x) for x in r] for r in rows])
     poses = np.tile(np.eye(4), (len(vals), 1, 1))
     poses[:, :3, :] = vals[:, 7:19].reshape(-1, 3, 4)  # world-to-camera, OpenCV axes (SOURCE.md)
@@ -38,10 +39,10 @@ def re10k_clip(clip_id: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 @pytest.mark.e2e
 @pytest.mark.parametrize("clip_id", ["0bf152ef84195293", "0f68374b76390082", "3c35b868a8ec3433"])
-def test_real_estate_clips_register_fully_and_match_their_poses(clip_id: str) -> None:
+def test_real_estate_clips_register_fully_and_match_their_poses(data_dir: Path, clip_id: str) -> None:
     from wonderverse.metrics import ate
 
-    frames, gt, _ = re10k_clip(clip_id)
+    frames, gt, _ = re10k_clip(data_dir, clip_id)
     res = reconstruct(frames, SfmParams())
     assert res.registered.all(), res.problems
     assert res.gates_passed, res.problems
@@ -58,8 +59,8 @@ def test_real_estate_clips_register_fully_and_match_their_poses(clip_id: str) ->
 
 
 @pytest.mark.e2e
-def test_same_seed_single_thread_is_reproducible_and_workdir_is_reusable(tmp_path: Path) -> None:
-    frames, _, _ = re10k_clip("0f68374b76390082")
+def test_same_seed_single_thread_is_reproducible_and_workdir_is_reusable(data_dir: Path, tmp_path: Path) -> None:
+    frames, _, _ = re10k_clip(data_dir, "0f68374b76390082")
     params = SfmParams(num_threads=1, random_seed=3)
     a = reconstruct(frames[:10], params, workdir=tmp_path)
     b = reconstruct(frames[:10], params, workdir=tmp_path)  # reuses the folder: must not append to it
@@ -70,10 +71,10 @@ def test_same_seed_single_thread_is_reproducible_and_workdir_is_reusable(tmp_pat
 
 
 @pytest.mark.e2e
-def test_focal_prior_reaches_colmap_and_focal_is_estimated(tmp_path: Path) -> None:
+def test_focal_prior_reaches_colmap_and_focal_is_estimated(data_dir: Path, tmp_path: Path) -> None:
     import pycolmap
 
-    frames, _, intr = re10k_clip("0bf152ef84195293")
+    frames, _, intr = re10k_clip(data_dir, "0bf152ef84195293")
     W = frames.shape[2]
     fx = intr[0, 0] * W  # the clip's horizontal focal in pixels of these frames
     K = np.array([[fx, 0, W / 2], [0, fx, frames.shape[1] / 2], [0, 0, 1.0]])
@@ -125,12 +126,12 @@ def test_invalid_arguments_raise_value_error() -> None:
         reconstruct(np.zeros((4, 32, 32, 3), np.uint8), K_prior=np.eye(2))
 
 
-def _pure_rotation_video(n: int = 12) -> np.ndarray:
+def _pure_rotation_video(data_dir: Path, n: int = 12) -> np.ndarray:
     """A camera turning about its own centre: a real photo warped by K R K^-1 (exact for pure rotation,
     whatever the scene depth), then one fixed crop (a shifted principal point, the same for all frames)."""
     from PIL import Image
 
-    src = Image.open(need(BEDROOM)).convert("RGB").resize((480, 270), Image.LANCZOS)
+    src = Image.open(need(data_dir / BEDROOM)).convert("RGB").resize((480, 270), Image.LANCZOS)
     f = 400.0
     K = np.array([[f, 0, 240.0], [0, f, 135.0], [0, 0, 1.0]])
     frames = []
@@ -144,8 +145,8 @@ def _pure_rotation_video(n: int = 12) -> np.ndarray:
 
 
 @pytest.mark.e2e
-def test_reconstruct_from_images_reports_k_in_full_size_pixels() -> None:
-    paths = sorted(need(FOX / "images").glob("*.jpg"))[:8]
+def test_reconstruct_from_images_reports_k_in_full_size_pixels(data_dir: Path) -> None:
+    paths = sorted(need(data_dir / FOX / "images").glob("*.jpg"))[:8]
     res = reconstruct_from_images(paths, SfmParams(max_image_size_px=320, camera_model="PINHOLE"))
     assert res.registered.all(), res.problems
     # SIFT ran on 320 px copies; keypoints (and so K) are in pixels of the 1080x1920 files.

@@ -28,8 +28,6 @@ from wonderverse.video.files import (
     read_clip,
 )
 
-DATA = Path("/work/shared/data")
-
 
 def frame(i: int, w: int = 160, h: int = 96, level: int = 20) -> np.ndarray:
     """(h,w,3) uint8: green = level * i everywhere, a white block in the top-left quarter (shows orientation)."""
@@ -337,28 +335,30 @@ def test_thinner_keeps_bounded_evenly_spaced_subset(n: int, stride: int, max_fra
 # ---------------------------------------------------------------------------------------------- real data
 
 
-def _real(rel: str) -> Path:
-    p = DATA / rel
+def _real(data_dir: Path, rel: str) -> Path:
+    p = data_dir / rel
     if not p.exists():
         pytest.skip(f"shared test data not found: {p}")
     return p
 
 
-def test_real_realestate10k_mp4_and_cameractrl_gif() -> None:
+def test_real_realestate10k_mp4_and_cameractrl_gif(data_dir: Path) -> None:
     # SOURCE.md: 16 frames, 384x256, 8 fps for both the RealEstate10K mp4s and the CameraCtrl GIFs.
-    mp4 = read_clip(_real("cameractrl_re10k/reference_videos/0bf152ef84195293.mp4"), ClipParams(max_side_px=None))
+    mp4 = read_clip(
+        _real(data_dir, "cameractrl_re10k/reference_videos/0bf152ef84195293.mp4"), ClipParams(max_side_px=None)
+    )
     assert mp4.frames.shape == (16, 256, 384, 3) and mp4.fps == pytest.approx(8.0)
     assert mp4.frames.std() > 10  # real picture content, not a blank decode
     # Consecutive frames of a walkthrough are similar, far-apart ones less so: the order is the video's.
     d = [np.abs(mp4.frames[0].astype(int) - mp4.frames[k].astype(int)).mean() for k in (1, 15)]
     assert d[0] < d[1]
-    gif = read_clip(_real("cameractrl_re10k/generated_gifs/sunflowers_3b9420585a1e66fc.gif"))
+    gif = read_clip(_real(data_dir, "cameractrl_re10k/generated_gifs/sunflowers_3b9420585a1e66fc.gif"))
     assert gif.frames.shape == (16, 256, 384, 3) and gif.frames.std() > 10
 
 
-def test_real_cogvideox_clip_default_params() -> None:
+def test_real_cogvideox_clip_default_params(data_dir: Path) -> None:
     # SOURCE.md: 49 frames at 720x480, 8 fps; defaults keep 49 frames and scale the longer side to 480.
-    clip = read_clip(_real("cogvideox_samples/cogvideox2b_gallery_1.mp4"))
+    clip = read_clip(_real(data_dir, "cogvideox_samples/cogvideox2b_gallery_1.mp4"))
     assert clip.frames.shape == (49, 320, 480, 3)
     assert clip.fps == pytest.approx(8.0)
     assert "resized 720x480 -> 480x320" in clip.notes and clip.k_is_guess
