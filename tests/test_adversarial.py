@@ -1,4 +1,4 @@
-"""Every bad input of issue 21 (and those that already held), at the command line, under both engines.
+"""Every known bad input at the command line, under both engines.
 
 Each case is one `wonderverse` call that must be refused: exit code 2, exactly one non-empty stderr line, starting
 with `error: ` and saying what is wrong, no traceback, no raw control character on the terminal, and the scene

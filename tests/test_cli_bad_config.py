@@ -1,4 +1,4 @@
-"""Bad configuration at the command line (issue 18's list): one `error:` line naming the field, exit code 2, and
+"""Bad configuration at the command line: one `error:` line naming the field, exit code 2, and
 the scene folder byte-identical before and after, under both engines; nothing reaches Prefect either."""
 
 from __future__ import annotations

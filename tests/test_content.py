@@ -1,4 +1,4 @@
-"""What the user's words name appears in the procedural world (issue 23 item 4): parsing, placement, labels.
+"""What the user's words name appears in the procedural world: parsing, placement, labels.
 
 Ground truth is the renderer's depth (exact ray-cast camera z) and the camera maths: labelled pixels are lifted
 into the world with their depth and the path's poses, so where the content stands is measured, not read back

@@ -1,4 +1,4 @@
-"""Guided flows (issue 23 item 2): with a video model that takes guides, each extension is generated from what its
+"""Guided flows: with a video model that takes guides, each extension is generated from what its
 parent already shows (its checked frames placed in the plan's world), so branches run generate -> check ->
 geometry -> children inside generate_segments. Checked against the procedural ground truth: the guides' coverage
 and error, the geometry's poses and depth; keys chain so that nothing runs twice and a changed parent regenerates

@@ -15,7 +15,7 @@ from wonderverse.parallax import homography_residuals, measure_parallax, pairs_t
 from wonderverse.sfm import reconstruct, write_png_frames
 from wonderverse.video.files import read_clip
 
-SECONDS_BOUND = 20.0  # per 49-frame clip, check included (issue 19; 1.5-4 s measured on the 2-core machine)
+SECONDS_BOUND = 20.0  # per 49-frame clip, check included (1.5-4 s measured on the 2-core machine)
 
 
 def _clip(data_dir: Path, name: str):
