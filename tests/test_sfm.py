@@ -48,11 +48,13 @@ def test_real_estate_clips_register_fully_and_match_their_poses(data_dir: Path, 
     assert res.gates_passed, res.problems
     assert res.poses.shape == (16, 4, 4) and res.poses.dtype == np.float64
     np.testing.assert_allclose(res.poses[:, 3], np.tile([0, 0, 0, 1.0], (16, 1)))
+    # Measured on 2026-12-04 (commit 088e394) over the three clips: ATE 0.16-0.47 % of the path, 396-1286 points,
+    # reprojection error 0.32-0.42 px; the bounds leave a margin of 2x.
     err = ate(res.poses, gt)
-    assert err["rmse_frac"] < 0.05, err
-    assert res.n_points == len(res.points) == len(res.colors) >= 100
+    assert err["rmse_frac"] < 0.01, err
+    assert res.n_points == len(res.points) == len(res.colors) >= 200
     assert res.colors.dtype == np.uint8
-    assert 0 < res.reproj_error_px < 2.0
+    assert 0 < res.reproj_error_px < 1.0
     assert {"write", "extract", "match", "total"} <= set(res.timings)
     assert any(k.startswith("map_") for k in res.timings)
     assert res.mapper in ("incremental", "global")
