@@ -15,10 +15,11 @@ Last-line keys:
   `ROUND_STEPS` more training steps resumed from the trained state (their mean step time without the
   first `ROUND_WARMUP`), then the median of 50 bare passes on the same Gaussians; the median of the
   rounds' ratios. Alternating matters: both sides are host-bound, and the device machine's host speed
-  drifted by up to 50 % between measurements minutes apart (session 8). Our step is a mean because the
-  trainer queues work without waiting for the device (except inside gsplat's tile intersection).
-- `ours_step_ms`, `gsplat_fwd_bwd_ms`: the rounds' medians; `step_ratio_in_run`: the figure of sessions
-  1-7 (mean step over the run's last 1000 iterations ÷ one bare measurement after the run).
+  drifted by up to 50 % between measurements minutes apart (2026-11-23, docs/benchmarks.md). Our step is a
+  mean because the trainer queues work without waiting for the device (except inside gsplat's tile
+  intersection).
+- `ours_step_ms`, `gsplat_fwd_bwd_ms`: the rounds' medians; `step_ratio_in_run`: the figure of the runs
+  before 2026-11-23 (mean step over the run's last 1000 iterations ÷ one bare measurement after the run).
 - `iters_per_s`, `peak_gpu_gb` (standard preset), `psnr_heldout`, `psnr_heldout_no_geo` (without depth
   and normal losses), `depth_absrel`, `depth_absrel_no_geo` (rendered depth on held-out views against
   ground truth).

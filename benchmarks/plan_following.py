@@ -1,4 +1,4 @@
-"""Does a segment go where the words say? The plan-following check, guided extensions and named content (issue 23).
+"""Does a segment go where the words say? The plan-following check, guided extensions and named content.
 
 1. Plan-following test (`wonderverse.plan_following.judge_segment`). N segments (--quick: 8 at 224x144, 13
    frames; else 48 at the preview preset's 320x208, 17 frames), each a planned move from the procedural world's

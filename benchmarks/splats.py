@@ -1,7 +1,7 @@
 """Splats on the CPU: rasteriser speed, and quality with and without the depth and normal losses.
 
 - Speed: seconds per forward + backward of the torch rasteriser, 20k image-filling Gaussians at 256x144
-  (depth 2-8, on-screen sigma log-normal around 1.5 px, one thread).
+  (depth 2-8, on-screen sigma log-normal about 1.5 px, one thread).
 - Quality (the paper's ablation, small scale for a CPU): a procedural scene (12 views at 96x64, every 4th
   held out) trained 300 iterations from back-projected prior depth, with priors at the oracle's
   "realistic" level aligned to sparse ground-truth depths: held-out PSNR/SSIM and rendered-depth AbsRel
@@ -41,7 +41,7 @@ def cpu_seconds_per_iter(n: int = 20_000, width: int = 256, height: int = 144, r
     xy = (torch.rand(n, 2, generator=g) - 0.5) * torch.tensor([width / K[0, 0], height / K[1, 1]]) * z[:, None]
     means = torch.cat([xy, z[:, None]], 1).requires_grad_()
     quats = torch.randn(n, 4, generator=g).requires_grad_()
-    # per-axis sigma log-normal around 1.5 px on screen: the size of Gaussians in a trained scene
+    # per-axis sigma log-normal about 1.5 px on screen: the size of Gaussians in a trained scene
     scales = (z[:, None] * 1.5 / K[0, 0] * torch.exp(0.5 * torch.randn(n, 3, generator=g))).requires_grad_()
     opac = (torch.rand(n, generator=g) * 0.8 + 0.1).requires_grad_()
     colors = torch.rand(n, 3, generator=g).requires_grad_()

@@ -1,4 +1,4 @@
-"""Fit the project's NIQE pristine model from real camera images in /work/shared/data.
+"""Fit the project's NIQE pristine model from real camera images (the project's real-data folder, `--data`).
 
 As estimatemodelparam.m: per image, 96x96 blocks whose mean local sigma is >= 0.75 x the image's sharpest block
 are kept; the mean and covariance of their 36 features (rows with NaN dropped) form the model. Writes
@@ -9,7 +9,10 @@ viewcrafter_re10k_bedroom/images (25 frames of a real indoor clip, 1280x720) and
 (7 real RealEstate10K clips, 384x256, every 5th frame). The AI-generated clips (cogvideox_samples, cameractrl
 generated_gifs) are not used.
 
-Usage: python scripts/fit_niqe.py [--data /work/shared/data] [--out wonderverse/data/niqe_pristine.npz]
+Usage: python scripts/fit_niqe.py [--data DIR] [--out wonderverse/data/niqe_pristine.npz]
+
+`--data` is the folder holding those sources; by default `../shared/data` beside the repository, the folder the
+tests read real data from.
 """
 
 from __future__ import annotations
@@ -26,6 +29,8 @@ import numpy as np
 from wonderverse.quality.niqe_metric import SHARPNESS_FRACTION, image_features
 
 VIDEO_FRAME_STEP = 5
+ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_DATA = ROOT.parent / "shared" / "data"
 
 
 def real_images(data: Path) -> list[tuple[str, np.ndarray]]:
@@ -44,10 +49,10 @@ def real_images(data: Path) -> list[tuple[str, np.ndarray]]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--data", type=Path, default=Path("/work/shared/data"))
     ap.add_argument(
-        "--out", type=Path, default=Path(__file__).resolve().parents[1] / "wonderverse/data/niqe_pristine.npz"
+        "--data", type=Path, default=DEFAULT_DATA, help="folder of the real sources (default: ../shared/data)"
     )
+    ap.add_argument("--out", type=Path, default=ROOT / "wonderverse/data/niqe_pristine.npz")
     args = ap.parse_args()
     t0 = time.perf_counter()
     images = real_images(args.data)

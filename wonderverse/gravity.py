@@ -18,7 +18,7 @@ Evidence:
 Which decides (`estimate_gravity`) was measured on the procedural worlds, whose cameras are level: the x axes
 gave the true up to 0.00° wherever the headings spread, the ground plane 0.05° indoors but up to 3.2°
 outdoors, where the terrain slopes; with one heading the image-up mean was 8–10° off (the cameras' pitch),
-the floor 0.1° and the outdoor ground 1.6–2.1°. So the x axes decide when the headings spread and the x axes
+the floor 0.1° and the outdoor terrain 1.6–2.1°. So the x axes decide when the headings spread and the x axes
 are level (rms tilt at most `max_level_tilt_deg`); otherwise the ground plane when there is one (with one
 heading, its normal made perpendicular to the shared x axis); otherwise the cameras alone.
 

@@ -1,4 +1,4 @@
-"""Did a segment go where its plan said? (issue 23: the plan-following check)
+"""Did a segment go where its plan said? The plan-following check.
 
 A segment is generated along a planned camera path (`camera.move_path` of a `CameraMove`); SfM then
 estimates the segment's own path, up to a similarity (its world frame and scale are arbitrary). Both

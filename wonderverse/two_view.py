@@ -1,4 +1,4 @@
-"""A segment's camera motion from two-view geometry alone: each looked-at frame against the first (issue 23).
+"""A segment's camera motion from two-view geometry alone: each looked-at frame against the first.
 
 Why: SfM's path can be wrong in a way its own gates do not see. Where one plane carries most of the matches
 (the ground of an outdoor scene, seen over a short baseline), the motion between two calibrated views has two

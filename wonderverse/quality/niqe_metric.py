@@ -10,10 +10,11 @@ the two betas) and of the four pairwise products with circularly shifted neighbo
 Gaussian (rows with a NaN feature dropped, as MATLAB's nancov does) and the score is
 sqrt((mu_p - mu_t)^T ((S_p + S_t) / 2)^+ (mu_p - mu_t)).
 
-The pristine model (mu_p, S_p) is THIS PROJECT's: fitted by `scripts/fit_niqe.py` on real camera images from
-/work/shared/data (the MATLAB model was fitted on 125 other photographs and cannot be downloaded here). Absolute
-scores therefore differ from MATLAB/pyiqa NIQE values; the ordering properties (blur and noise raise the score,
-natural images score lower than noise) hold and are tested. Differences from MATLAB in the half-size step:
+The pristine model (mu_p, S_p) is THIS PROJECT's: fitted by `scripts/fit_niqe.py` on 103 real camera images from
+the project's real-data folder (`--data`, default `../shared/data`; the MATLAB model, fitted on 125 other
+photographs, is not used). Absolute scores therefore differ from MATLAB/pyiqa NIQE values; the ordering
+properties (blur and noise raise the score, natural images score lower than noise) hold and are tested.
+Differences from MATLAB in the half-size step:
 Pillow's antialiased bicubic (a = -0.5, as MATLAB's imresize) on float32 replaces MATLAB's imresize.
 """
 

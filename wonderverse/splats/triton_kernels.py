@@ -1,6 +1,6 @@
 """Small Triton kernels for the CUDA training step, where each replaces ~10-20 small PyTorch
 operations: on the GPU machine each such operation cost ~30 µs of host time (docs/benchmarks.md,
-session 8), and the step is host-bound.
+2026-11-23), and the step is host-bound.
 
 * `camera_normals(quats, scales, means, viewmat)`: the gsplat backend's per-Gaussian camera-space
   normals, the same function as `render_torch.gaussian_normals`: each Gaussian's shortest axis, column

@@ -1,4 +1,4 @@
-"""What the user's words name, placed into a procedural world where the new segment looks (issue 23 item 4).
+"""What the user's words name, placed into a procedural world where the new segment looks.
 
 Words: `parse_content("a frozen lake on the left")` finds the things the procedural world can place
 (`VOCABULARY`: lake, trees, tower, house, rocks, snowman, fountain, statue, table, bench, lamp, bush, car, and
