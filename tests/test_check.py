@@ -341,7 +341,8 @@ def test_fox_capture_real_jump_is_flagged(data_dir: Path) -> None:
     assert gt_angle == pytest.approx(np.radians(44.0), abs=np.radians(1.5))  # the data's own jump
     assert not check.accepted
     assert j in check.flagged_frames
-    assert check.rot_steps[j] == pytest.approx(gt_angle, abs=0.05)
+    # measured on 2026-12-04 (commit 088e394): 0.012 rad off the data's jump, a step ratio of 10.7; margins 2x
+    assert check.rot_steps[j] == pytest.approx(gt_angle, abs=0.025)
     assert check.step_ratio[j] > 5.0
     assert f"rotation step {check.rot_steps[j]:.2f} rad > 0.5 between frames {j} and {j + 1}" in check.reasons
     # Everywhere else the rotation is smooth: the jump is the only rotation flag.
