@@ -98,9 +98,10 @@ def test_global_poses_follow_the_true_camera_path(scene: Path, clips) -> None:
     frames, _ = stitched(store)
     assert len(frames) == 2 * T  # clips keep every frame (no reference frame to drop)
     poses = store.array("sfm/poses")
+    # measured on 2026-12-04 (commit 088e394): 20 of 20 frames posed, ATE 0.41 % of the path; margin 1 frame, 2x
     ok = np.isfinite(poses).all(axis=(1, 2))
-    assert ok.mean() > 0.8
-    assert ate(poses, truth)["rmse_frac"] < 0.05
+    assert ok.sum() >= 2 * T - 1, ok
+    assert ate(poses, truth)["rmse_frac"] < 0.01
     assert (scene / "mesh.ply").exists() and (scene / "flythrough.mp4").exists()
 
 
