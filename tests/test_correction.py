@@ -64,8 +64,9 @@ def test_global_poses_match_ground_truth(corrected):
     acc = {s: store.attrs(f"segments/{s}/accepted")["attempt"] for s in segs}
     gt = np.stack([store.array(f"segments/{segs[a]}/attempts/{acc[segs[a]]}/gt/poses")[b] for a, b in idx])
     assert len(poses) == 14 + 2 * 13 and np.isfinite(poses).all()
-    assert ate(poses, gt)["rmse_frac"] < 0.02
-    assert len(store.array("sfm/points3d")) > 100
+    # measured on 2026-12-04 (commit 088e394): ATE 0.23 % of the path, 1422 points; margins 2x
+    assert ate(poses, gt)["rmse_frac"] < 0.005
+    assert len(store.array("sfm/points3d")) > 700
 
 
 def test_global_poses_agree_with_each_segments_own_sfm(corrected):
@@ -133,7 +134,7 @@ def test_priors_are_aligned_to_sfm_scale(corrected):
         aligned = store.array(f"priors/{seg}/aligned")
         assert aligned.mean() > 0.8
         err = depth_errors(prior[aligned], gt[aligned], mask=np.isfinite(prior[aligned]))
-        assert err["absrel"] < 0.2, (seg, err)
+        assert err["absrel"] < 0.15, (seg, err)  # measured 0.071-0.077 on 2026-12-04 (commit 088e394); margin 2x
         n = store.array(f"priors/{seg}/normals").astype(np.float32)
         norm = np.linalg.norm(n, axis=-1)
         assert np.all((np.abs(norm - 1) < 1e-2) | (norm == 0))
