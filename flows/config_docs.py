@@ -106,6 +106,8 @@ def _walk(
         for sub in subs:
             sub_defaults = value if _is_data_of(value, sub) else default_data(sub)
             sub_presets = {p: _child(data, name) for p, data in presets.items()}
+            if len(subs) > 1:  # a preset's values belong to the case its data is
+                sub_presets = {p: d if _tags_match(d, sub) else _ABSENT for p, d in sub_presets.items()}
             sub_note = _member_note(model, name, sub) if len(subs) > 1 else ""
             _walk(sub, sub_path, sub_defaults, sub_presets, out, sub_note)
 
@@ -116,13 +118,22 @@ def _child(data: Any, name: str) -> Any:
 
 def _is_data_of(value: Any, model: type[BaseModel]) -> bool:
     """Whether `value` (plain data) is `model`'s: a mapping of exactly its fields, tags matching."""
-    if not isinstance(value, dict) or set(value) != set(model.model_fields):
-        return False
-    for name, field in model.model_fields.items():  # a tagged union's members may share field names
-        tag = typing.get_args(field.annotation)
-        if typing.get_origin(field.annotation) is Literal and len(tag) == 1 and value[name] != tag[0]:
-            return False
-    return True
+    return isinstance(value, dict) and set(value) == set(model.model_fields) and _tags_match(value, model)
+
+
+def _tag(model: type[BaseModel]) -> tuple[str, Any] | None:
+    """(field, value) of the field that tells a tagged union's members apart (`kind: mcmc`), if `model` has one."""
+    for name, field in model.model_fields.items():
+        args = typing.get_args(field.annotation)
+        if typing.get_origin(field.annotation) is Literal and len(args) == 1:
+            return name, args[0]
+    return None
+
+
+def _tags_match(value: Any, model: type[BaseModel]) -> bool:
+    """Whether mapping `value` can be `model`'s: its tag, when it carries one, is the model's."""
+    tag = _tag(model)
+    return isinstance(value, dict) and (tag is None or value.get(tag[0], tag[1]) == tag[1])
 
 
 def _member_note(parent: type[BaseModel], name: str, member: type[BaseModel]) -> str:
@@ -131,6 +142,9 @@ def _member_note(parent: type[BaseModel], name: str, member: type[BaseModel]) ->
         backend = next((b for b, m in VIDEO_OPTIONS.items() if m is member), None)
         if backend is not None:
             return f"when `scene.video.backend` is `{backend}`"
+    tag = _tag(member)
+    if tag is not None:
+        return f"when `{tag[0]}` is `{_plain(tag[1])}`"
     return f"when the block is a {member.__name__}"
 
 
