@@ -338,7 +338,7 @@ def extend(
 @app.command()
 def inspect(
     scene_dir: Annotated[Path, typer.Argument(help="scene folder")],
-    as_json: Annotated[bool, typer.Option("--json", help="machine-readable output (schema in README)")] = False,
+    as_json: Annotated[bool, typer.Option("--json", help="machine-readable output (schema in docs/usage.md)")] = False,
 ) -> None:
     """Steps with status and cache key, segments (or clips) with attempts and checks, priors, arrays and sizes."""
     from rich.table import Table

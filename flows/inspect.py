@@ -254,7 +254,7 @@ def _expected_keys(store: SceneStore) -> dict[str, str]:
 
 
 def summarize(store: SceneStore) -> dict[str, Any]:
-    """The scene's steps, segments and sizes. Schema documented in README.md (`inspect --json`)."""
+    """The scene's steps, segments and sizes. Schema documented in docs/usage.md (`inspect --json`)."""
     expected = _expected_keys(store)
     steps = []
     for s in STEPS:
