@@ -39,7 +39,7 @@ from wonderverse.mesh import MeshParams
 from wonderverse.schema import SFM, SPLATS
 
 PROMPT = "a small house decorated for Christmas"
-# Recommended mesh parameters per preset (what the benchmark compares; the config wiring is the lead's)
+# The presets' mesh parameters (what the benchmark compares; configs/presets/*.yaml set the same voxels)
 PRESET_MESH = {
     "preview": MeshParams(voxel_frac=1 / 128),
     "standard": MeshParams(voxel_frac=1 / 256),
