@@ -85,7 +85,7 @@ def test_noisy_camera_rolls_average_out() -> None:
     w2c = _cameras(n, rng.uniform(-90, 90, n), rng.normal(-10, 5, n), rng.normal(0, 1.5, n))
     for seed in range(3):
         _, err = _estimate(w2c, _ground(3000, seed), _frame(seed))
-        assert err < 0.8, err  # 1.5° of roll per camera, 60 cameras
+        assert err < 0.65, err  # 1.5° of roll per camera, 60 cameras: measured 0.32° (2026-12-04); margin 2x
 
 
 def test_one_heading_takes_the_ground_plane_under_the_cameras_pitch() -> None:
@@ -99,7 +99,7 @@ def test_one_heading_takes_the_ground_plane_under_the_cameras_pitch() -> None:
     assert cams.evidence["camera"]["mode"] == "image up, one heading"
     assert angle_deg(cams.up, sim.R @ UP) == pytest.approx(20.0, abs=1e-6)
     g, err = _estimate(w2c, np.concatenate([ground, wall]), sim)
-    assert err < 0.5, err
+    assert err < 0.02, err  # measured 0.005° on 2026-12-04 (commit 088e394); margin 4x
     assert g.evidence["source"].startswith("ground plane")
     assert 0.6 < g.evidence["plane"]["support_frac"] < 0.8  # the ground, not the wall
     # the frame: +z up, origin on the ground below the cameras' centroid
