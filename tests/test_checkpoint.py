@@ -17,7 +17,7 @@ from hypothesis import strategies as st
 from tasks.splats import CHECKPOINT, _load_checkpoint, _save_checkpoint
 from wonderverse.splats.checkpoint import CheckpointError, pack, unpack
 from wonderverse.splats.model import init_from_points, normalization_from_cameras, voxel_downsample
-from wonderverse.splats.params import DensifyParams, TrainParams
+from wonderverse.splats.params import DefaultStrategyParams, TrainParams
 from wonderverse.splats.renderer import make_renderer
 from wonderverse.splats.trainer import Views, normalize_views, train
 from wonderverse.store import SceneStore, cache_key, write_array
@@ -30,8 +30,7 @@ TRAIN = TrainParams(
     sh_degree=1,
     sh_degree_interval_iters=8,
     holdout_every=3,
-    strategy="default",
-    densify=DensifyParams(start_iter=3, every_iters=4, reset_opacity_every_iters=10, grow_grad2d_ndc=1e-5),
+    strategy=DefaultStrategyParams(refine_start_iter=3, refine_every=4, reset_every=10, grow_grad2d=1e-5),
     checkpoint_every_iters=8,
     sky_map_rows=4,  # the sky as a (4, 8, 3) map: the state's largest non-Gaussian tensor travels too
 )

@@ -180,7 +180,7 @@ def test_overriding_one_leaf_of_any_nested_model_keeps_every_other_value(backend
                 break
         assert changed, f"no leaf of {'.'.join(path)} could be overridden: extend _candidates"
     assert blocks == ["steps", "steps.generate_segments"] and len(checked) == len(models) - len(blocks)
-    assert {"steps.poses.sfm", "steps.check.sfm", "steps.priors.models", "steps.splats.train.densify"} <= set(checked)
+    assert {"steps.poses.sfm", "steps.check.sfm", "steps.priors.models", "steps.splats.train.strategy"} <= set(checked)
     assert "scene.video.options" in checked
     if backend == "procedural":
         assert {"scene.video.options.layout", "scene.video.options.patterns"} <= set(checked)

@@ -630,7 +630,7 @@ def small_views():
 @pytest.mark.parametrize("case", ["tiny_scales", "huge_scales", "zero_quats", "saturated_opacity", "all_pruned"])
 @pytest.mark.parametrize("shutter", [0.0, 0.5])  # renders smeared like motion-blurred video, or not
 def test_trainer_survives_extreme_models(small_views, case: str, shutter: float) -> None:
-    from wonderverse.splats.params import DensifyParams, TrainParams
+    from wonderverse.splats.params import DefaultStrategyParams, TrainParams
     from wonderverse.splats.renderer import make_renderer
     from wonderverse.splats.trainer import train
 
@@ -648,10 +648,8 @@ def test_trainer_survives_extreme_models(small_views, case: str, shutter: float)
             model.logit_opacities.fill_(40.0)  # sigmoid == 1 in float32
         else:  # every Gaussian below the prune threshold: the first refinement removes them all
             model.logit_opacities.fill_(-12.0)
-    dens = DensifyParams(start_iter=2, every_iters=2, stop_iter=6, reset_opacity_every_iters=0)
-    params = TrainParams(
-        iterations=8, sh_degree=0, holdout_every=0, strategy="default", densify=dens, motion_blur_shutter=shutter
-    )
+    dens = DefaultStrategyParams(refine_start_iter=2, refine_every=2, refine_stop_iter=6, reset_every=0)
+    params = TrainParams(iterations=8, sh_degree=0, holdout_every=0, strategy=dens, motion_blur_shutter=shutter)
     model, curves, metrics = train(model, views, params, make_renderer("torch"))
     assert np.isfinite(curves["total"]).all() and len(curves["total"]) == 8, case
     assert metrics["skipped_steps"] == 0

@@ -103,7 +103,7 @@ def test_training_with_gsplat_fits_and_densifies() -> None:
     import numpy as np
 
     from wonderverse.splats.model import init_from_points
-    from wonderverse.splats.params import DensifyParams, TrainParams
+    from wonderverse.splats.params import DefaultStrategyParams, TrainParams
     from wonderverse.splats.trainer import Views, train
 
     # Frames of a known Gaussian scene, drawn by the float64 torch renderer from six cameras.
@@ -125,8 +125,8 @@ def test_training_with_gsplat_fits_and_densifies() -> None:
     rng = np.random.default_rng(0)
     pts = gt["means"].numpy() + rng.normal(scale=0.05, size=(500, 3))
     model = init_from_points(pts, np.full((500, 3), 0.5), sh_degree=1, init_opacity=0.5)
-    dens = DensifyParams(start_iter=50, every_iters=50, reset_opacity_every_iters=0, grow_grad2d_ndc=5e-5)
-    params = TrainParams(iterations=300, sh_degree=1, holdout_every=3, strategy="default", densify=dens, lr_sh0=0.05)
+    dens = DefaultStrategyParams(refine_start_iter=50, refine_every=50, reset_every=0, grow_grad2d=5e-5)
+    params = TrainParams(iterations=300, sh_degree=1, holdout_every=3, strategy=dens, lr_sh0=0.05)
     model, curves, metrics = train(model, views, params, make_renderer("gsplat"))
     print({k: metrics[k] for k in ("test_psnr", "train_psnr", "n_gaussians", "seconds")})
     assert model.means.is_cuda and metrics["skipped_steps"] == 0

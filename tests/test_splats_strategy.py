@@ -1,4 +1,5 @@
-"""Densification: clone / split / prune / opacity reset, budgets, MCMC relocation, optimiser bookkeeping."""
+"""Densification: clone / split / prune / opacity reset, budgets, MCMC relocation, optimiser bookkeeping; the
+settings in gsplat's names, from a YAML file to the strategy."""
 
 from __future__ import annotations
 
@@ -8,7 +9,9 @@ import numpy as np
 import pytest
 import torch
 
-from wonderverse.splats.strategy import DefaultStrategy, MCMCStrategy, relocation_opacity_scale
+from wonderverse.config import build_config
+from wonderverse.splats.params import DefaultStrategyParams, MCMCStrategyParams, NoStrategy
+from wonderverse.splats.strategy import DefaultStrategy, MCMCStrategy, make_strategy, relocation_opacity_scale
 
 NAMES = ("means", "quats", "log_scales", "logit_opacities", "sh0", "shN")
 
@@ -67,7 +70,7 @@ def test_clone_split_prune_and_moments() -> None:
     grad = torch.zeros(n, 2)
     grad[[0, 1, 5, 6], 0] = 3e-4 / 100.0
     grad[2, 1] = 1e-4 / 50.0  # below the threshold
-    strategy = DefaultStrategy(refine_start_iter=0, refine_every=10, reset_every=1000)
+    strategy = DefaultStrategy(DefaultStrategyParams(refine_start_iter=0, refine_every=10, reset_every=1000))
     state = strategy.initialize_state()
     means_before = params["means"].data.clone()
     stats = strategy.step_post_backward(params, opts, state, step=10, info=_info(n, grad))
@@ -89,7 +92,7 @@ def test_gradients_accumulate_as_a_mean_over_visible_steps() -> None:
     n = 4
     params = _params(n)
     opts = _optimizers(params)
-    strategy = DefaultStrategy(refine_start_iter=0, refine_every=3, reset_every=1000)
+    strategy = DefaultStrategy(DefaultStrategyParams(refine_start_iter=0, refine_every=3, reset_every=1000))
     state = strategy.initialize_state()
     grad = torch.zeros(n, 2)
     grad[0, 0] = 5e-4 / 100  # once 5e-4, then invisible twice: mean over visible steps = 5e-4 -> clone
@@ -106,7 +109,7 @@ def test_opacity_reset_happens_unlike_gsplat_1_5_3() -> None:
     params = _params(6)
     params["logit_opacities"].data[:] = torch.tensor([5.0, 0.0, -2.0, -4.0, -4.5, -6.0])
     opts = _optimizers(params)
-    strategy = DefaultStrategy(refine_start_iter=10_000, reset_every=300)
+    strategy = DefaultStrategy(DefaultStrategyParams(refine_start_iter=10_000, reset_every=300))
     state = strategy.initialize_state()
     stats = strategy.step_post_backward(params, opts, state, 299, _info(6, torch.zeros(6, 2)))
     assert stats["reset"] == 0 and params["logit_opacities"].data[0] == 5.0
@@ -126,7 +129,7 @@ def test_budget_caps_growth_keeping_the_strongest() -> None:
     opts = _optimizers(params)
     grad = torch.zeros(n, 2)
     grad[:, 0] = torch.linspace(3e-4, 9e-4, n) / 100
-    strategy = DefaultStrategy(refine_start_iter=0, refine_every=1, reset_every=1000, max_gaussians=13)
+    strategy = DefaultStrategy(DefaultStrategyParams(refine_start_iter=0, refine_every=1, reset_every=1000, cap_max=13))
     state = strategy.initialize_state()
     means_before = params["means"].data.clone()
     stats = strategy.step_post_backward(params, opts, state, 1, _info(n, grad))
@@ -154,14 +157,14 @@ def test_mcmc_relocates_dead_adds_to_cap_and_keeps_moments_consistent() -> None:
     params = _params(n)
     params["logit_opacities"].data[:10] = -10.0  # dead
     opts = _optimizers(params)
-    strategy = MCMCStrategy(cap_max=44, refine_start_iter=0, refine_every=5)
+    strategy = MCMCStrategy(MCMCStrategyParams(cap_max=44, refine_start_iter=0, refine_every=5))
     state = strategy.initialize_state()
     means_before = params["means"].data.clone()
     stats = strategy.step_post_backward(params, opts, state, 5, {}, lr=0.0)
     assert stats == {"relocated": 10, "added": 2}  # int(1.05 * 40) = 42 <= cap 44
     assert params["means"].shape[0] == 42
     op = torch.sigmoid(params["logit_opacities"].data)
-    assert torch.all(op > strategy.min_opacity)
+    assert torch.all(op > strategy.params.min_opacity)
     # Relocated Gaussians sit exactly on live ones.
     live = means_before[10:]
     d = torch.cdist(params["means"].data[:10], live, compute_mode="donot_use_mm_for_euclid_dist").min(dim=1).values
@@ -180,7 +183,7 @@ def test_mcmc_noise_moves_transparent_gaussians_only() -> None:
     params["logit_opacities"].data[10:] = 3.0
     opts = _optimizers(params)
     before = params["means"].data.clone()
-    MCMCStrategy(refine_start_iter=10**6).step_post_backward(params, opts, {}, 3, {}, lr=1.6e-4)
+    MCMCStrategy(MCMCStrategyParams(refine_start_iter=10**6)).step_post_backward(params, opts, {}, 3, {}, lr=1.6e-4)
     moved = (params["means"].data - before).norm(dim=1)
     assert torch.all(moved[:10] > 1e-4) and torch.all(moved[10:] < 1e-6)
 
@@ -188,5 +191,90 @@ def test_mcmc_noise_moves_transparent_gaussians_only() -> None:
 def test_regularization_terms() -> None:
     params = _params(5)
     assert DefaultStrategy().regularization(params) is None
-    reg = MCMCStrategy(opacity_reg=0.1, scale_reg=0.2).regularization(params)
+    reg = MCMCStrategy(MCMCStrategyParams(opacity_reg=0.1, scale_reg=0.2)).regularization(params)
     assert float(reg.detach()) == pytest.approx(0.1 * 0.5 + 0.2 * 0.005, rel=1e-6)
+
+
+def test_refinement_pauses_after_an_opacity_reset() -> None:
+    """gsplat's pause_refine_after_reset: no growth until that many steps after each reset."""
+
+    def info(n: int) -> dict:
+        grad = torch.zeros(n, 2)
+        grad[0, 0] = 3e-4 / 100  # NDC 3e-4 > 2e-4, small: cloned when refinement runs
+        return _info(n, grad)
+
+    counts = {}
+    for pause in (0, 30):
+        params = _params(4)
+        opts = _optimizers(params)
+        p = DefaultStrategyParams(refine_start_iter=0, refine_every=10, reset_every=100, pause_refine_after_reset=pause)
+        strategy = DefaultStrategy(p)
+        state = strategy.initialize_state()
+        at_120 = strategy.step_post_backward(params, opts, state, 120, info(4))["cloned"]
+        at_130 = strategy.step_post_backward(params, opts, state, 130, info(params["means"].shape[0]))["cloned"]
+        counts[pause] = (at_120, at_130)
+    assert counts[0] == (1, 1)  # grown at 120, 20 steps after the reset at 100, and again at 130
+    assert counts[30] == (0, 1)  # paused at 120 (20 < 30), grown at 130
+
+
+@pytest.mark.parametrize("revised", [False, True])
+def test_split_factor_and_revised_opacity_shape_the_children(revised: bool) -> None:
+    params = _params(2)
+    params["log_scales"].data[:] = math.log(0.05)  # larger than grow_scale3d 0.01: split
+    params["logit_opacities"].data[:] = math.log(0.64 / 0.36)  # opacity 0.64
+    opts = _optimizers(params)
+    grad = torch.zeros(2, 2)
+    grad[0, 0] = 3e-4 / 100
+    p = DefaultStrategyParams(refine_start_iter=0, refine_every=1, split_factor=2.0, revised_opacity=revised)
+    stats = DefaultStrategy(p).step_post_backward(
+        params, opts, DefaultStrategy(p).initialize_state(), 1, _info(2, grad)
+    )
+    assert stats["split"] == 1 and params["means"].shape[0] == 3  # row 1 kept, row 0 replaced by two children
+    np.testing.assert_allclose(params["log_scales"].data[1:].numpy(), math.log(0.05 / 2.0), rtol=1e-6)
+    child_opacity = torch.sigmoid(params["logit_opacities"].data[1:])
+    np.testing.assert_allclose(child_opacity.numpy(), 0.4 if revised else 0.64, rtol=1e-5)  # 1 - sqrt(0.36) = 0.4
+    assert torch.sigmoid(params["logit_opacities"].data[0]).item() == pytest.approx(0.64, rel=1e-6)
+    _check_optimizers(params, opts)
+
+
+@pytest.mark.parametrize("stop", [0, 100])
+def test_screen_size_criteria_apply_until_refine_scale2d_stop_iter(stop: int) -> None:
+    """Small in the scene but 20 px of a 200 px image (0.1 > grow_scale2d 0.05): cloned and, while the 2D
+    criteria apply, split too (gsplat); 40 px (0.2 > prune_scale2d 0.15) after a reset: pruned."""
+    n = 3
+    params = _params(n)
+    opts = _optimizers(params)
+    grad = torch.zeros(n, 2)
+    grad[0, 0] = 3e-4 / 100
+    info = _info(n, grad)
+    info["radii"] = torch.tensor([[20, 12], [40, 40], [3, 3]], dtype=torch.int32)
+    p = DefaultStrategyParams(refine_start_iter=0, refine_every=10, reset_every=5, refine_scale2d_stop_iter=stop)
+    strategy = DefaultStrategy(p)
+    state = strategy.initialize_state()
+    assert ("radii" in state) == (stop > 0)
+    stats = strategy.step_post_backward(params, opts, state, 10, info)
+    if stop:
+        assert (stats["cloned"], stats["split"], stats["pruned"]) == (1, 1, 1)
+        assert params["means"].shape[0] == n + 1 + 1 - 1
+        assert state["radii"].shape == (params["means"].shape[0],) and torch.all(state["radii"] == 0)
+    else:
+        assert (stats["cloned"], stats["split"], stats["pruned"]) == (1, 0, 0)
+        assert params["means"].shape[0] == n + 1
+    _check_optimizers(params, opts)
+
+
+def test_settings_in_a_yaml_file_reach_the_strategy(tmp_path) -> None:
+    """A gsplat field set in a scene file arrives unrenamed; a new `kind` starts from that kind's defaults."""
+    f = tmp_path / "scene.yaml"
+    f.write_text(
+        "steps:\n  splats:\n    train:\n      strategy: {pause_refine_after_reset: 200, revised_opacity: true}\n"
+    )
+    strategy = make_strategy(build_config("a forest", preset="high", config_file=f).steps.splats.train.strategy)
+    assert isinstance(strategy, DefaultStrategy)
+    assert strategy.params.pause_refine_after_reset == 200 and strategy.params.revised_opacity
+    assert strategy.params.refine_stop_iter == 15_000  # the preset's, kept
+    f.write_text("steps:\n  splats:\n    train:\n      strategy: {kind: mcmc, cap_max: 5000}\n")
+    strategy = make_strategy(build_config("a forest", preset="preview", config_file=f).steps.splats.train.strategy)
+    assert isinstance(strategy, MCMCStrategy)
+    assert strategy.params == MCMCStrategyParams(cap_max=5000)  # preview's default-strategy schedule left behind
+    assert make_strategy(NoStrategy()) is None

@@ -9,7 +9,13 @@ import pytest
 import torch
 
 from wonderverse.splats.model import init_from_points, normalization_from_cameras, voxel_downsample
-from wonderverse.splats.params import DensifyParams, LossParams, MCMCParams, TrainParams
+from wonderverse.splats.params import (
+    DefaultStrategyParams,
+    LossParams,
+    MCMCStrategyParams,
+    NoStrategy,
+    TrainParams,
+)
 from wonderverse.splats.renderer import make_renderer
 from wonderverse.splats.trainer import (
     Views,
@@ -96,19 +102,26 @@ def test_view_order_gives_the_focus_views_their_share() -> None:
 
 
 def test_continuation_compresses_the_schedule() -> None:
-    p = TrainParams(iterations=7000, densify=DensifyParams(start_iter=500, every_iters=100, stop_iter=15000))
+    p = TrainParams(iterations=7000, strategy=DefaultStrategyParams(refine_start_iter=500, refine_every=100))
     c = continuation_params(p, 0.2)
     assert c.iterations == 1400 and c.sh_degree_interval_iters == 1
-    assert (c.densify.start_iter, c.densify.every_iters, c.densify.stop_iter) == (100, 20, 3000)
-    assert c.densify.reset_opacity_every_iters == 0 and p.densify.reset_opacity_every_iters == 3000
-    assert (c.mcmc.start_iter, c.mcmc.every_iters) == (100, 20) and c.loss == p.loss
-    tiny = continuation_params(TrainParams(iterations=3, densify=DensifyParams(every_iters=1)), 0.01)
-    assert tiny.iterations == 1 and tiny.densify.every_iters == 1  # never zero
+    s = c.strategy
+    assert (s.refine_start_iter, s.refine_every, s.refine_stop_iter) == (100, 20, 3000)
+    assert s.reset_every == 0 and p.strategy.reset_every == 3000
+    assert s.refine_scale2d_stop_iter == 0 and c.loss == p.loss  # off stays off (0 is not a step)
+    assert s.model_copy(update={"refine_start_iter": 500, "refine_every": 100, "refine_stop_iter": 15000}) == (
+        p.strategy.model_copy(update={"reset_every": 0})
+    )  # nothing else of the strategy changes
+    mcmc = continuation_params(TrainParams(iterations=7000, strategy=MCMCStrategyParams(cap_max=9)), 0.2).strategy
+    assert (mcmc.refine_start_iter, mcmc.refine_every, mcmc.refine_stop_iter, mcmc.cap_max) == (100, 20, 5000, 9)
+    assert continuation_params(TrainParams(strategy=NoStrategy()), 0.2).strategy == NoStrategy()
+    tiny = continuation_params(TrainParams(iterations=3, strategy=DefaultStrategyParams(refine_every=1)), 0.01)
+    assert tiny.iterations == 1 and tiny.strategy.refine_every == 1  # never zero
 
 
 def test_training_fits_the_frames_and_treats_sky_as_background(scene: dict) -> None:
     # Colours start grey: a higher SH learning rate than 3DGS's lets 150 iterations fit them.
-    params = TrainParams(**FAST, strategy="none", lr_sh0=0.05, lr_log_scales=0.01)
+    params = TrainParams(**FAST, strategy=NoStrategy(), lr_sh0=0.05, lr_log_scales=0.01)
     renderer = make_renderer("torch")
     model = _model(scene)
     assert len(model.means) > 300
@@ -135,8 +148,8 @@ def test_training_fits_the_frames_and_treats_sky_as_background(scene: dict) -> N
 
 def test_densification_and_mcmc_change_the_model_size(scene: dict) -> None:
     renderer = make_renderer("torch")
-    dens = DensifyParams(start_iter=5, every_iters=10, reset_opacity_every_iters=30, grow_grad2d_ndc=1e-5)
-    params = TrainParams(**{**FAST, "iterations": 40}, strategy="default", densify=dens)
+    dens = DefaultStrategyParams(refine_start_iter=5, refine_every=10, reset_every=30, grow_grad2d=1e-5)
+    params = TrainParams(**{**FAST, "iterations": 40}, strategy=dens)
     model = _model(scene)
     n0 = model.num_gaussians
     model, curves, metrics = train(model, scene["views"], params, renderer)
@@ -147,8 +160,8 @@ def test_densification_and_mcmc_change_the_model_size(scene: dict) -> None:
     assert curves["n_gaussians"][-1] > n0 and metrics["scene_scale"] > 10
     assert np.isfinite(curves["total"]).all()
 
-    mcmc = MCMCParams(start_iter=5, every_iters=10)
-    params = TrainParams(**{**FAST, "iterations": 40}, strategy="mcmc", mcmc=mcmc, max_gaussians=n0 + 40)
+    mcmc = MCMCStrategyParams(refine_start_iter=5, refine_every=10, cap_max=n0 + 40)
+    params = TrainParams(**{**FAST, "iterations": 40}, strategy=mcmc)
     model, curves, metrics = train(_model(scene), scene["views"], params, renderer)
     assert metrics["n_gaussians"] == n0 + 40
     assert np.isfinite(curves["total"]).all()
@@ -159,7 +172,7 @@ def test_non_finite_steps_are_skipped(scene: dict, caplog: pytest.LogCaptureFixt
     frames = views.frames.astype(np.float32) / 255
     frames[1, 10, 10] = np.nan  # view 1 gives a NaN loss every time it is drawn
     bad = views.replace(frames=frames)
-    params = TrainParams(**{**FAST, "iterations": 14}, strategy="none")
+    params = TrainParams(**{**FAST, "iterations": 14}, strategy=NoStrategy())
     with caplog.at_level(logging.WARNING, logger="wonderverse.splats.trainer"):
         model, curves, metrics = train(_model(scene), bad, params, make_renderer("torch"))
     assert metrics["skipped_steps"] == 2  # two epochs of 6 training views, then two more steps
@@ -168,13 +181,15 @@ def test_non_finite_steps_are_skipped(scene: dict, caplog: pytest.LogCaptureFixt
     assert all(torch.isfinite(p).all() for p in model.param_dict().values())
 
 
-@pytest.mark.parametrize("sky_map_rows", [0, 8])
-def test_checkpoint_and_resume_reproduce_the_run(scene: dict, sky_map_rows: int) -> None:
-    dens = DensifyParams(start_iter=3, every_iters=4, reset_opacity_every_iters=10, grow_grad2d_ndc=1e-5)
+@pytest.mark.parametrize(("sky_map_rows", "scale2d_stop"), [(0, 0), (8, 20)])
+def test_checkpoint_and_resume_reproduce_the_run(scene: dict, sky_map_rows: int, scale2d_stop: int) -> None:
+    """scale2d_stop > 0: the strategy state holds the largest 2D radii too, and they resume alike."""
+    dens = DefaultStrategyParams(
+        refine_start_iter=3, refine_every=4, reset_every=10, grow_grad2d=1e-5, refine_scale2d_stop_iter=scale2d_stop
+    )
     params = TrainParams(
         **{**FAST, "iterations": 24},
-        strategy="default",
-        densify=dens,
+        strategy=dens,
         checkpoint_every_iters=8,
         loss=LossParams(lambda_depth=0.5),
         sky_map_rows=sky_map_rows,
@@ -201,7 +216,7 @@ def test_a_sky_map_renders_the_sky_closer_than_one_colour(scene: dict) -> None:
     truth = views.frames.astype(np.float32) / 255
     renderer, error, psnr = make_renderer("torch"), {}, {}
     for rows in (0, 8):
-        params = TrainParams(**FAST, strategy="none", lr_sh0=0.05, sky_map_rows=rows, lr_background=0.03)
+        params = TrainParams(**FAST, strategy=NoStrategy(), lr_sh0=0.05, sky_map_rows=rows, lr_background=0.03)
         model, _, metrics = train(_model(scene), views, params, renderer)
         sky = metrics.pop("sky_map", None)
         assert (sky is None) == (rows == 0)
@@ -223,7 +238,7 @@ def test_a_sky_map_renders_the_sky_closer_than_one_colour(scene: dict) -> None:
 def test_empty_model_trains_the_background_only(scene: dict) -> None:
     from wonderverse.splats.model import GaussianModel
 
-    params = TrainParams(**{**FAST, "iterations": 10}, strategy="default", background_rgb=(0.0, 0.0, 0.0))
+    params = TrainParams(**{**FAST, "iterations": 10}, strategy=DefaultStrategyParams(), background_rgb=(0.0, 0.0, 0.0))
     model, curves, metrics = train(GaussianModel.empty(1), scene["views"], params, make_renderer("torch"))
     assert model.num_gaussians == 0 and metrics["skipped_steps"] == 0
     assert np.isfinite(curves["total"]).all() and curves["rgb"][-1] < curves["rgb"][0]
@@ -353,7 +368,7 @@ def test_enhanced_prior_terms_train_at_the_extremes(scene: dict, scale: float, l
     model = init_from_points(scene["points"] * scale, np.full((len(scene["points"]), 3), 0.5), 1, init_opacity=0.5)
     with torch.no_grad():
         model.log_scales += log_scale_shift
-    params = TrainParams(**(FAST | {"iterations": 12}), strategy="none", loss=ENHANCED)
+    params = TrainParams(**(FAST | {"iterations": 12}), strategy=NoStrategy(), loss=ENHANCED)
     model, curves, metrics = train(model, scaled, params, make_renderer("torch"))
     assert metrics["skipped_steps"] == 0
     assert {"depth", "normal", "depth_normal", "flatten"} <= set(curves)

@@ -430,7 +430,9 @@ def _as_data(value: Any) -> Any:
 def deep_merge(base: dict[str, Any], over: dict[str, Any], where: str = "") -> dict[str, Any]:
     """`over` merged into a copy of `base`: mappings merge key by key, anything else replaces. A value that is not
     a mapping where `base` holds one (a block of settings) is a ConfigError naming the block; an empty block
-    (None) changes nothing. `where`: the dotted path of `base`, for messages."""
+    (None) changes nothing. A tagged block (one of several models, told apart by its `kind`: the splat training's
+    `strategy`) whose `kind` changes is replaced, not merged: the other kind's settings would not fit it.
+    `where`: the dotted path of `base`, for messages."""
     out = dict(base)
     for k, v in over.items():
         path = f"{where}.{k}" if where else str(k)
@@ -443,7 +445,8 @@ def deep_merge(base: dict[str, Any], over: dict[str, Any], where: str = "") -> d
                 raise ConfigError(
                     f"invalid config: {_shown_path(path)}: must be a mapping of settings (got {shown(v)})", field=path
                 )
-            out[k] = deep_merge(out[k], v, path)
+            same_kind = "kind" not in v or v["kind"] == out[k].get("kind")
+            out[k] = deep_merge(out[k] if same_kind else {}, v, path)
         else:
             out[k] = v
     return out

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Annotated, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -67,34 +67,97 @@ class LossParams(BaseModel):
     )
 
 
-class DensifyParams(BaseModel):
-    """3DGS adaptive density control (`strategy.DefaultStrategy`); steps are optimisation iterations."""
+class DefaultStrategyParams(BaseModel):
+    """3DGS adaptive density control (`strategy.DefaultStrategy`) in gsplat 1.5.3 `DefaultStrategy`'s own field
+    names and defaults, with three additions of ours (`reset_opacity`, `split_factor`, `cap_max`). Steps are
+    optimisation iterations; 3D scales are relative to the scene scale, 2D ones to the image's larger side. gsplat's
+    `absgrad` (our renderers give no absolute gradients), `verbose` and `key_for_gradient` (2DGS) are left out."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    prune_opacity: float = Field(0.005, gt=0, lt=1)
-    grow_grad2d_ndc: float = Field(0.0002, gt=0, description="mean view-space gradient (NDC) to grow")
-    grow_scale3d_rel: float = Field(0.01, gt=0, description="largest axis / scene scale below which to clone")
-    prune_scale3d_rel: float = Field(0.1, gt=0, description="largest axis / scene scale above which to prune")
-    start_iter: int = Field(500, ge=0)
-    stop_iter: int = Field(15_000, ge=0)
-    every_iters: int = Field(100, ge=1)
-    reset_opacity_every_iters: int = Field(3000, ge=0, description="0 disables the opacity reset")
-    reset_opacity: float = Field(0.01, gt=0, lt=1)
+    kind: Literal["default"] = Field("default", description="3DGS adaptive density control (gsplat's DefaultStrategy)")
+    prune_opa: float = Field(0.005, gt=0, lt=1, description="opacity below which a Gaussian is pruned")
+    grow_grad2d: float = Field(
+        0.0002, gt=0, description="mean view-space gradient of a Gaussian's 2D mean (NDC units) above which it grows"
+    )
+    grow_scale3d: float = Field(
+        0.01, gt=0, description="largest axis / scene scale up to which a growing Gaussian is cloned, above: split"
+    )
+    grow_scale2d: float = Field(
+        0.05,
+        gt=0,
+        description="largest 2D radius / image side above which a growing Gaussian is split too "
+        "(until refine_scale2d_stop_iter)",
+    )
+    prune_scale3d: float = Field(
+        0.1, gt=0, description="largest axis / scene scale above which a Gaussian is pruned (after the first reset)"
+    )
+    prune_scale2d: float = Field(
+        0.15,
+        gt=0,
+        description="largest 2D radius / image side above which a Gaussian is pruned (after the first reset, until "
+        "refine_scale2d_stop_iter)",
+    )
+    refine_scale2d_stop_iter: int = Field(
+        0, ge=0, description="step until which the 2D radius criteria (grow_scale2d, prune_scale2d) apply; 0: never"
+    )
+    refine_start_iter: int = Field(500, ge=0, description="step after which Gaussians are grown and pruned")
+    refine_stop_iter: int = Field(15_000, ge=0, description="step from which Gaussians are no longer grown or pruned")
+    reset_every: int = Field(
+        3000, ge=0, description="opacities are clamped to reset_opacity every this many steps; 0: never"
+    )
+    refine_every: int = Field(100, ge=1, description="steps between two growing and pruning passes")
+    pause_refine_after_reset: int = Field(
+        0, ge=0, description="steps after each opacity reset without growing or pruning (the opacities recover)"
+    )
+    revised_opacity: bool = Field(
+        False, description="a split Gaussian's two children get opacity 1 - sqrt(1 - o) (arXiv:2404.06109), not o"
+    )
+    reset_opacity: float = Field(
+        0.01, gt=0, lt=1, description="opacity the reset clamps to (ours; gsplat uses 2 * prune_opa, the same 0.01)"
+    )
+    split_factor: float = Field(
+        1.6, gt=1, description="a split Gaussian's children have its scales / this (ours; gsplat fixes 1.6)"
+    )
+    cap_max: int | None = Field(
+        300_000,
+        ge=1,
+        description="Gaussian budget (ours; gsplat's DefaultStrategy has none): growth stops there, the candidates "
+        "with the highest gradients first; None: unlimited",
+    )
 
 
-class MCMCParams(BaseModel):
-    """3DGS-as-MCMC (`strategy.MCMCStrategy`): the budget is `TrainParams.max_gaussians`."""
+class MCMCStrategyParams(BaseModel):
+    """3DGS-as-MCMC (`strategy.MCMCStrategy`) in gsplat 1.5.3 `MCMCStrategy`'s field names, with its hard-coded
+    growth rate and the regularisers of gsplat's example trainer (`opacity_reg`, `scale_reg`) as settings."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    noise_lr: float = Field(5e5, ge=0)
-    start_iter: int = Field(500, ge=0)
-    stop_iter: int = Field(25_000, ge=0)
-    every_iters: int = Field(100, ge=1)
-    min_opacity: float = Field(0.005, gt=0, lt=1)
-    opacity_reg: float = Field(0.01, ge=0)
-    scale_reg: float = Field(0.01, ge=0)
+    kind: Literal["mcmc"] = Field("mcmc", description="3DGS as Markov chain Monte Carlo (gsplat's MCMCStrategy)")
+    cap_max: int = Field(
+        300_000, ge=1, description="Gaussian budget, filled by growth_rate per refinement (gsplat's default: 1000000)"
+    )
+    noise_lr: float = Field(5e5, ge=0, description="position noise = means' learning rate * this * Σ ε")
+    refine_start_iter: int = Field(500, ge=0, description="step after which dead Gaussians are relocated and added")
+    refine_stop_iter: int = Field(25_000, ge=0, description="step from which nothing is relocated, added or noised")
+    refine_every: int = Field(100, ge=1, description="steps between two relocation and growth passes")
+    min_opacity: float = Field(0.005, gt=0, lt=1, description="opacity at or below which a Gaussian is dead")
+    growth_rate: float = Field(
+        1.05, gt=1, description="each refinement grows the count to min(cap_max, this * N) (gsplat fixes 1.05)"
+    )
+    opacity_reg: float = Field(0.01, ge=0, description="weight of the mean opacity in the loss")
+    scale_reg: float = Field(0.01, ge=0, description="weight of the mean scale in the loss")
+
+
+class NoStrategy(BaseModel):
+    """No densification: the initial Gaussians are optimised as they are."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    kind: Literal["none"] = Field("none", description="no densification: the initial Gaussians only")
+
+
+StrategyParams = Annotated[DefaultStrategyParams | MCMCStrategyParams | NoStrategy, Field(discriminator="kind")]
 
 
 class TrainParams(BaseModel):
@@ -102,29 +165,30 @@ class TrainParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    iterations: int = Field(7000, ge=0)
+    iterations: int = Field(7000, ge=0, description="optimisation steps, one training view each")
     lr_means: float = Field(1.6e-4, ge=0, description="times scene_scale; decays exponentially")
     lr_means_final_ratio: float = Field(0.01, gt=0, le=1, description="lr_means at the end / at the start")
-    lr_quats: float = Field(1e-3, ge=0)
-    lr_log_scales: float = Field(5e-3, ge=0)
-    lr_logit_opacities: float = Field(5e-2, ge=0)
-    lr_sh0: float = Field(2.5e-3, ge=0)
-    lr_shN: float = Field(2.5e-3 / 20, ge=0)
-    lr_background: float = Field(1e-2, ge=0)
+    lr_quats: float = Field(1e-3, ge=0, description="learning rate of the rotations (quaternions)")
+    lr_log_scales: float = Field(5e-3, ge=0, description="learning rate of the log scales")
+    lr_logit_opacities: float = Field(5e-2, ge=0, description="learning rate of the logit opacities")
+    lr_sh0: float = Field(2.5e-3, ge=0, description="learning rate of the SH band 0 (base colour)")
+    lr_shN: float = Field(2.5e-3 / 20, ge=0, description="learning rate of the higher SH bands (3DGS: lr_sh0 / 20)")
+    lr_background: float = Field(1e-2, ge=0, description="learning rate of the sky colour or sky map")
     sh_degree: int = Field(3, ge=0, le=3, description="largest SH degree used (the model may store more)")
     sh_degree_interval_iters: int = Field(1000, ge=1, description="active degree += 1 this often")
-    loss: LossParams = LossParams()
-    strategy: Literal["default", "mcmc", "none"] = "default"
-    densify: DensifyParams = DensifyParams()
-    mcmc: MCMCParams = MCMCParams()
-    max_gaussians: int | None = Field(300_000, ge=1, description="Gaussian budget (cap of either strategy)")
+    loss: LossParams = Field(LossParams(), description="weights and options of the loss terms")
+    strategy: StrategyParams = Field(
+        DefaultStrategyParams(),
+        description="the densification strategy, chosen by `kind` (default, mcmc or none); its fields are "
+        "gsplat's own, and its `cap_max` is the Gaussian budget",
+    )
     scene_scale: float | None = Field(
         None, gt=0, description="scene extent the lengths above are relative to; None = `auto_scene_scale`"
     )
     background_rgb: tuple[float, float, float] | None = Field(
         None, description="initial background (sky) colour; None = median colour of the sky pixels, else black"
     )
-    learn_background: bool = True
+    learn_background: bool = Field(True, description="optimise the sky colour (else it keeps its initial value)")
     sky_map_rows: int = Field(
         0,
         ge=0,
@@ -144,10 +208,12 @@ class TrainParams(BaseModel):
     sky_from_invalid_prior: bool = Field(True, description="treat pixels with an invalid depth prior as sky")
     sky_alpha_weight: float = Field(0.1, ge=0, description="weight of mean alpha over sky pixels")
     holdout_every: int = Field(8, ge=0, description="every Nth view is held out for evaluation; 0 = none")
-    checkpoint_every_iters: int = Field(1000, ge=1)
-    near: float = Field(0.01, gt=0)
-    far: float = Field(1e10, gt=0)
-    seed: int = Field(0, ge=0)
+    checkpoint_every_iters: int = Field(1000, ge=1, description="steps between two resumable checkpoints")
+    near: float = Field(0.01, gt=0, description="near clipping depth (normalised-scene units)")
+    far: float = Field(1e10, gt=0, description="far clipping depth (normalised-scene units)")
+    seed: int = Field(
+        0, ge=0, description="seed of the view order and the strategy's random draws (split offsets, relocation, noise)"
+    )
     compile_loss: bool = Field(
         True,
         description="on CUDA, fuse the loss and its gradients (`trainer.loss_and_grads`) into a few kernels "

@@ -1,6 +1,8 @@
 """Densification strategies (own code, gsplat's `Strategy` shape): small dataclasses with the hooks
 `initialize_state()`, `step_pre_backward(params, optimizers, state, step, info)` and
-`step_post_backward(params, optimizers, state, step, info, ...)`.
+`step_post_backward(params, optimizers, state, step, info, ...)`, each holding its settings as they are
+configured (`splats.params.DefaultStrategyParams`, `MCMCStrategyParams`: gsplat's own field names, nothing
+renamed on the way in); `make_strategy(settings)` picks the one their `kind` names.
 
 `params` maps names to nn.Parameters in `GaussianModel` naming (means, quats, log_scales, logit_opacities,
 sh0, shN); `optimizers` maps the same names to optimisers with one param group holding that tensor. The
@@ -13,7 +15,7 @@ re-installs `params` into its model (`GaussianModel.replace_params`). `info` is 
   view-space gradient is high, prune transparent and oversized ones, and reset opacities periodically.
   (gsplat 1.5.3's DefaultStrategy tests `step % reset_every == 0 & step > 0`, which Python parses as
   `step % reset_every == (0 & step) > 0`, always False: it never resets. Ours does.) An optional
-  Gaussian budget caps growth, keeping the highest-gradient candidates.
+  Gaussian budget (`cap_max`) caps growth, keeping the highest-gradient candidates.
 * `MCMCStrategy`: 3DGS-as-MCMC: a fixed budget filled gradually (+5% per refinement up to `cap_max`),
   dead Gaussians relocated onto live ones sampled by opacity (opacity and scale corrected so the stack
   renders like the original), and noise on the positions of transparent Gaussians every step.
@@ -23,7 +25,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -31,6 +33,7 @@ from torch import Tensor, nn
 
 from wonderverse.splats import triton_kernels
 from wonderverse.splats.model import quat_to_rotmat
+from wonderverse.splats.params import DefaultStrategyParams, MCMCStrategyParams, NoStrategy, StrategyParams
 
 Params = dict[str, nn.Parameter]
 Optimizers = dict[str, torch.optim.Optimizer]
@@ -113,7 +116,8 @@ def _accumulate_grad2d(
 
 
 def accumulate_view_space_grads(info: dict[str, Any], state: dict[str, Any]) -> None:
-    """Add this step's view-space gradient norms of the visible Gaussians to `state` grad2d / count."""
+    """Add this step's view-space gradient norms of the visible Gaussians to `state` grad2d / count (and,
+    where `state` tracks radii, keep each visible Gaussian's largest 2D radius / image side)."""
     g = info["means2d"].grad
     if g is None:
         raise RuntimeError("means2d has no gradient: call step_pre_backward before loss.backward()")
@@ -129,35 +133,27 @@ def accumulate_view_space_grads(info: dict[str, Any], state: dict[str, Any]) -> 
         info["width"] / 2.0 * n_cam,
         info["height"] / 2.0 * n_cam,
     )
+    if state.get("radii") is not None:
+        radii = info["radii"].reshape(-1, 2)
+        seen = (radii > 0).all(-1)
+        side = radii.amax(-1).to(state["radii"].dtype) / float(max(info["width"], info["height"]))
+        state["radii"] = torch.where(seen, torch.maximum(state["radii"], side), state["radii"])
 
 
-@dataclass
+@dataclass(frozen=True)
 class DefaultStrategy:
-    """3DGS adaptive density control. Scales are compared with `scene_scale` (1 in the normalised frame).
+    """3DGS adaptive density control with the settings `params` (gsplat's `DefaultStrategy` field names; see
+    `DefaultStrategyParams`). Scales are compared with `scene_scale` (1 in the normalised frame)."""
 
-    prune_opa: opacity below which Gaussians are removed; grow_grad2d: mean NDC gradient above which they
-    grow; grow_scale3d: largest axis (relative to the scene scale) below which they are cloned, above
-    which split; prune_scale3d: largest axis above which they are removed (after the first reset);
-    reset_opacity: opacities are clamped to this every `reset_every` steps (0 disables); max_gaussians:
-    the budget (None = unlimited); split_factor: a split child's scale = parent / this.
-    """
-
-    prune_opa: float = 0.005
-    grow_grad2d: float = 0.0002
-    grow_scale3d: float = 0.01
-    prune_scale3d: float = 0.1
-    refine_start_iter: int = 500
-    refine_stop_iter: int = 15_000
-    refine_every: int = 100
-    reset_every: int = 3000
-    pause_refine_after_reset: int = 0
-    reset_opacity: float = 0.01
-    max_gaussians: int | None = None
-    split_factor: float = 1.6
+    params: DefaultStrategyParams = field(default_factory=DefaultStrategyParams)
 
     def initialize_state(self, scene_scale: float = 1.0, n_fixed: int = 0) -> dict[str, Any]:
-        """n_fixed: the first n Gaussians (an extended scene's existing ones) are never grown, pruned or reset."""
-        return {"grad2d": None, "count": None, "scene_scale": scene_scale, "n_fixed": n_fixed}
+        """n_fixed: the first n Gaussians (an extended scene's existing ones) are never grown, pruned or reset.
+        With the 2D radius criteria on, `radii` keeps each Gaussian's largest 2D radius / image side."""
+        state = {"grad2d": None, "count": None, "scene_scale": scene_scale, "n_fixed": n_fixed}
+        if self.params.refine_scale2d_stop_iter > 0:
+            state["radii"] = None
+        return state
 
     def regularization(self, params: Params) -> Tensor | None:
         """Extra loss terms this strategy needs (none)."""
@@ -179,58 +175,67 @@ class DefaultStrategy:
     ) -> dict[str, int]:
         """Accumulate gradients; refine every `refine_every` steps; reset opacities. Returns counts of
         Gaussians cloned, split, pruned and whether opacities were reset."""
+        p = self.params
         stats = {"cloned": 0, "split": 0, "pruned": 0, "reset": 0}
-        if step >= self.refine_stop_iter:
+        if step >= p.refine_stop_iter:
             return stats
         n = params["means"].shape[0]
         if state["grad2d"] is None or len(state["grad2d"]) != n:
-            state["grad2d"] = torch.zeros(n, device=params["means"].device)
-            state["count"] = torch.zeros(n, device=params["means"].device)
+            _zero_statistics(state, n, params["means"].device)
         accumulate_view_space_grads(info, state)
 
         if (
-            step > self.refine_start_iter
-            and step % self.refine_every == 0
-            and (self.reset_every <= 0 or step % self.reset_every >= self.pause_refine_after_reset)
+            step > p.refine_start_iter
+            and step % p.refine_every == 0
+            and (p.reset_every <= 0 or step % p.reset_every >= p.pause_refine_after_reset)
         ):
-            stats.update(self._grow(params, optimizers, state))
+            stats.update(self._grow(params, optimizers, state, step))
             stats["pruned"] = self._prune(params, optimizers, state, step)
-            state["grad2d"] = torch.zeros(params["means"].shape[0], device=params["means"].device)
-            state["count"] = torch.zeros_like(state["grad2d"])
-        if self.reset_every > 0 and self.reset_opacity > 0 and step > 0 and step % self.reset_every == 0:
-            cap = math.log(self.reset_opacity / (1.0 - self.reset_opacity))
+            _zero_statistics(state, params["means"].shape[0], params["means"].device)
+        if p.reset_every > 0 and step > 0 and step % p.reset_every == 0:
+            cap = math.log(p.reset_opacity / (1.0 - p.reset_opacity))
             idx = torch.arange(state.get("n_fixed", 0), params["means"].shape[0], device=params["means"].device)
             set_values(params, optimizers, idx, {"logit_opacities": params["logit_opacities"].data[idx].clamp_max(cap)})
             stats["reset"] = 1
         return stats
 
     @torch.no_grad()
-    def _grow(self, params: Params, optimizers: Optimizers, state: dict[str, Any]) -> dict[str, int]:
+    def _grow(self, params: Params, optimizers: Optimizers, state: dict[str, Any], step: int) -> dict[str, int]:
+        p = self.params
         grads = state["grad2d"] / state["count"].clamp_min(1)
-        high = grads > self.grow_grad2d
+        high = grads > p.grow_grad2d
         high[: state.get("n_fixed", 0)] = False  # an extension densifies only the new region
-        small = torch.exp(params["log_scales"]).amax(-1) <= self.grow_scale3d * state["scene_scale"]
+        small = torch.exp(params["log_scales"]).amax(-1) <= p.grow_scale3d * state["scene_scale"]
+        large = ~small
+        if step < p.refine_scale2d_stop_iter:
+            large |= state["radii"] > p.grow_scale2d
         clone = high & small
-        split = high & ~small
-        if self.max_gaussians is not None:
-            room = max(self.max_gaussians - params["means"].shape[0], 0)
+        split = high & large  # large on screen and small in the scene: cloned and split, as in gsplat
+        if p.cap_max is not None:
+            room = max(p.cap_max - params["means"].shape[0], 0)
             cand = torch.nonzero(clone | split)[:, 0]
-            if len(cand) > room:  # keep the strongest candidates that fit in the budget
-                keep = cand[torch.argsort(grads[cand], descending=True)[:room]]
+            added = clone[cand].int() + split[cand].int()  # Gaussians each candidate adds
+            if int(added.sum()) > room:  # keep the strongest candidates that fit in the budget
+                order = torch.argsort(grads[cand], descending=True)
+                keep = cand[order][torch.cumsum(added[order], 0) <= room]
                 chosen = torch.zeros_like(clone)
                 chosen[keep] = True
                 clone &= chosen
                 split &= chosen
         n_clone, n_split = int(clone.sum()), int(split.sum())
         if n_clone:
-            append_copies(params, optimizers, torch.nonzero(clone)[:, 0], {})
+            src = torch.nonzero(clone)[:, 0]
+            append_copies(params, optimizers, src, {})
             split = torch.cat([split, torch.zeros(n_clone, dtype=torch.bool, device=split.device)])
+            if state.get("radii") is not None:
+                state["radii"] = torch.cat([state["radii"], state["radii"][src]])
         if n_split:
-            self._split(params, optimizers, split)
+            self._split(params, optimizers, state, split)
         return {"cloned": n_clone, "split": n_split}
 
-    def _split(self, params: Params, optimizers: Optimizers, split: Tensor) -> None:
-        """Replace each selected Gaussian by two, drawn from it, with scales / split_factor."""
+    def _split(self, params: Params, optimizers: Optimizers, state: dict[str, Any], split: Tensor) -> None:
+        """Replace each selected Gaussian by two, drawn from it, with scales / split_factor (and with
+        `revised_opacity`, opacity 1 - sqrt(1 - o) each, so the pair covers about what the parent did)."""
         src = torch.nonzero(split)[:, 0]
         src2 = torch.cat([src, src])
         scales = torch.exp(params["log_scales"].data[src2])
@@ -238,23 +243,39 @@ class DefaultStrategy:
         offsets = (R @ (scales * torch.randn_like(scales))[..., None])[..., 0]
         new = {
             "means": params["means"].data[src2] + offsets,
-            "log_scales": torch.log(scales / self.split_factor),
+            "log_scales": torch.log(scales / self.params.split_factor),
         }
+        if self.params.revised_opacity:
+            opacity = torch.sigmoid(params["logit_opacities"].data[src2])
+            new["logit_opacities"] = torch.logit(1.0 - torch.sqrt(1.0 - opacity))
         append_copies(params, optimizers, src2, new)
         keep = torch.ones(params["means"].shape[0], dtype=torch.bool, device=split.device)
         keep[src] = False
         keep_only(params, optimizers, keep)
+        if state.get("radii") is not None:  # the children have not been seen yet
+            state["radii"] = torch.cat([state["radii"], torch.zeros_like(state["radii"][src2])])[keep]
 
     @torch.no_grad()
     def _prune(self, params: Params, optimizers: Optimizers, state: dict[str, Any], step: int) -> int:
-        prune = torch.sigmoid(params["logit_opacities"].data) < self.prune_opa
-        if step > self.reset_every > 0:
-            prune |= torch.exp(params["log_scales"].data).amax(-1) > self.prune_scale3d * state["scene_scale"]
+        p = self.params
+        prune = torch.sigmoid(params["logit_opacities"].data) < p.prune_opa
+        if step > p.reset_every > 0:
+            prune |= torch.exp(params["log_scales"].data).amax(-1) > p.prune_scale3d * state["scene_scale"]
+            if step < p.refine_scale2d_stop_iter:
+                prune |= state["radii"] > p.prune_scale2d
         prune[: state.get("n_fixed", 0)] = False  # so the fixed Gaussians keep the first indices
         n = int(prune.sum())
         if n:
             keep_only(params, optimizers, ~prune)
         return n
+
+
+def _zero_statistics(state: dict[str, Any], n: int, device: torch.device) -> None:
+    """Fresh per-Gaussian statistics (gradient sums, counts and, when tracked, largest 2D radii) for n Gaussians."""
+    state["grad2d"] = torch.zeros(n, device=device)
+    state["count"] = torch.zeros(n, device=device)
+    if "radii" in state:
+        state["radii"] = torch.zeros(n, device=device)
 
 
 def relocation_opacity_scale(
@@ -278,23 +299,15 @@ def relocation_opacity_scale(
     return new_op, new_scales
 
 
-@dataclass
+@dataclass(frozen=True)
 class MCMCStrategy:
-    """3DGS-as-MCMC with a Gaussian budget `cap_max`. Every `refine_every` steps in
-    (refine_start_iter, refine_stop_iter): relocate Gaussians with opacity <= min_opacity onto live ones
-    sampled by opacity, then add min(cap_max, growth_rate * N) - N new ones the same way. Every step
-    (until refine_stop_iter): position noise lr_means * noise_lr * Σ ε, weighted towards transparent
-    Gaussians. Its `regularization` adds opacity_reg * mean(opacity) + scale_reg * mean(scale)."""
+    """3DGS-as-MCMC with the settings `params` (gsplat's `MCMCStrategy` field names; see `MCMCStrategyParams`).
+    Every `refine_every` steps in (refine_start_iter, refine_stop_iter): relocate Gaussians with opacity <=
+    min_opacity onto live ones sampled by opacity, then add min(cap_max, growth_rate * N) - N new ones the same
+    way. Every step (until refine_stop_iter): position noise lr_means * noise_lr * Σ ε, weighted towards
+    transparent Gaussians. Its `regularization` adds opacity_reg * mean(opacity) + scale_reg * mean(scale)."""
 
-    cap_max: int = 200_000
-    noise_lr: float = 5e5
-    refine_start_iter: int = 500
-    refine_stop_iter: int = 25_000
-    refine_every: int = 100
-    min_opacity: float = 0.005
-    growth_rate: float = 1.05
-    opacity_reg: float = 0.01
-    scale_reg: float = 0.01
+    params: MCMCStrategyParams = field(default_factory=MCMCStrategyParams)
 
     def initialize_state(self, scene_scale: float = 1.0, n_fixed: int = 0) -> dict[str, Any]:
         """n_fixed is not honoured: relocation may move any Gaussian (the budget is what MCMC keeps)."""
@@ -304,7 +317,7 @@ class MCMCStrategy:
         if params["means"].shape[0] == 0:
             return params["means"].new_zeros(())
         opacity = torch.sigmoid(params["logit_opacities"]).mean()
-        return self.opacity_reg * opacity + self.scale_reg * torch.exp(params["log_scales"]).mean()
+        return self.params.opacity_reg * opacity + self.params.scale_reg * torch.exp(params["log_scales"]).mean()
 
     def step_pre_backward(
         self, params: Params, optimizers: Optimizers, state: dict[str, Any], step: int, info: dict[str, Any]
@@ -323,9 +336,9 @@ class MCMCStrategy:
     ) -> dict[str, int]:
         """Relocate / add (on refinement steps) and inject noise (`lr` = the means' learning rate)."""
         stats = {"relocated": 0, "added": 0}
-        if step >= self.refine_stop_iter or params["means"].shape[0] == 0:
+        if step >= self.params.refine_stop_iter or params["means"].shape[0] == 0:
             return stats
-        if step > self.refine_start_iter and step % self.refine_every == 0:
+        if step > self.params.refine_start_iter and step % self.params.refine_every == 0:
             stats["relocated"] = self._relocate(params, optimizers)
             stats["added"] = self._add(params, optimizers)
         if lr is not None and lr > 0:
@@ -342,11 +355,11 @@ class MCMCStrategy:
         op = torch.sigmoid(params["logit_opacities"].data[uniq])
         sc = torch.exp(params["log_scales"].data[uniq])
         new_op, new_sc = relocation_opacity_scale(op, sc, counts + 1)
-        new_op = new_op.clamp(self.min_opacity, 1.0 - 1e-6)
+        new_op = new_op.clamp(self.params.min_opacity, 1.0 - 1e-6)
         return uniq, {"logit_opacities": torch.logit(new_op), "log_scales": torch.log(new_sc.clamp_min(1e-12))}
 
     def _relocate(self, params: Params, optimizers: Optimizers) -> int:
-        dead = torch.sigmoid(params["logit_opacities"].data) <= self.min_opacity
+        dead = torch.sigmoid(params["logit_opacities"].data) <= self.params.min_opacity
         n_dead = int(dead.sum())
         if n_dead == 0 or n_dead == len(dead):
             return 0
@@ -359,7 +372,7 @@ class MCMCStrategy:
 
     def _add(self, params: Params, optimizers: Optimizers) -> int:
         n = params["means"].shape[0]
-        n_new = min(self.cap_max, int(self.growth_rate * n)) - n
+        n_new = min(self.params.cap_max, int(self.params.growth_rate * n)) - n
         if n_new <= 0:
             return 0
         alive = torch.ones(n, dtype=torch.bool, device=params["means"].device)
@@ -376,5 +389,16 @@ class MCMCStrategy:
         cov = R @ torch.diag_embed(scales * scales) @ R.transpose(1, 2)
         # Only nearly transparent Gaussians move noticeably: sigmoid(100 (1 - o - 0.995)).
         weight = torch.sigmoid(100.0 * ((1.0 - op) - 0.995))
-        eps = torch.randn_like(params["means"].data) * (weight * lr * self.noise_lr)[:, None]
+        eps = torch.randn_like(params["means"].data) * (weight * lr * self.params.noise_lr)[:, None]
         params["means"].data.add_((cov @ eps[..., None])[..., 0])
+
+
+def make_strategy(params: StrategyParams) -> DefaultStrategy | MCMCStrategy | None:
+    """The strategy its settings name (`kind`); None for `NoStrategy`."""
+    if isinstance(params, DefaultStrategyParams):
+        return DefaultStrategy(params)
+    if isinstance(params, MCMCStrategyParams):
+        return MCMCStrategy(params)
+    if isinstance(params, NoStrategy):
+        return None
+    raise TypeError(f"not a strategy's settings: {type(params).__name__}")

@@ -45,10 +45,10 @@ from wonderverse.splats.losses import flatten_loss, masked_mean, texture_weight,
 from wonderverse.splats.model import GaussianModel
 from wonderverse.splats.motion_blur import image_velocity, smear
 from wonderverse.splats.parallax import parallax_gate, triangulation_error
-from wonderverse.splats.params import LossParams, TrainParams
+from wonderverse.splats.params import DefaultStrategyParams, LossParams, NoStrategy, TrainParams
 from wonderverse.splats.renderer import Renderer
 from wonderverse.splats.sky import composite, initial_sky, is_map, mean_colour
-from wonderverse.splats.strategy import DefaultStrategy, MCMCStrategy
+from wonderverse.splats.strategy import make_strategy
 
 if TYPE_CHECKING:
     from wonderverse.camera import Sim3
@@ -110,36 +110,6 @@ def split_views(n_views: int, holdout_every: int) -> tuple[list[int], list[int]]
     return [i for i in range(n_views) if i not in test], test
 
 
-def _make_strategy(params: TrainParams) -> DefaultStrategy | MCMCStrategy | None:
-    if params.strategy == "default":
-        d = params.densify
-        return DefaultStrategy(
-            prune_opa=d.prune_opacity,
-            grow_grad2d=d.grow_grad2d_ndc,
-            grow_scale3d=d.grow_scale3d_rel,
-            prune_scale3d=d.prune_scale3d_rel,
-            refine_start_iter=d.start_iter,
-            refine_stop_iter=d.stop_iter,
-            refine_every=d.every_iters,
-            reset_every=d.reset_opacity_every_iters,
-            reset_opacity=d.reset_opacity,
-            max_gaussians=params.max_gaussians,
-        )
-    if params.strategy == "mcmc":
-        m = params.mcmc
-        return MCMCStrategy(
-            cap_max=params.max_gaussians or 1_000_000,
-            noise_lr=m.noise_lr,
-            refine_start_iter=m.start_iter,
-            refine_stop_iter=m.stop_iter,
-            refine_every=m.every_iters,
-            min_opacity=m.min_opacity,
-            opacity_reg=m.opacity_reg,
-            scale_reg=m.scale_reg,
-        )
-    return None
-
-
 def auto_scene_scale(w2c: np.ndarray, means: np.ndarray) -> float:
     """The length that learning rates and densification sizes are relative to: the larger of 3DGS's
     camera extent (1.1 x `camera.camera_radius`, the largest camera distance from the cameras' centroid)
@@ -168,27 +138,17 @@ def continuation_params(params: TrainParams, frac: float) -> TrainParams:
     def squeeze(n: int) -> int:
         return max(1, round(n * frac))
 
-    d, m = params.densify, params.mcmc
+    strategy = params.strategy
+    if not isinstance(strategy, NoStrategy):
+        steps = ("refine_start_iter", "refine_every", "refine_stop_iter")
+        schedule: dict[str, int] = {name: squeeze(getattr(strategy, name)) for name in steps}
+        if isinstance(strategy, DefaultStrategyParams):
+            schedule["reset_every"] = 0
+            if strategy.refine_scale2d_stop_iter > 0:  # 0 is "off", not a step
+                schedule["refine_scale2d_stop_iter"] = squeeze(strategy.refine_scale2d_stop_iter)
+        strategy = strategy.model_copy(update=schedule)
     return params.model_copy(
-        update={
-            "iterations": squeeze(params.iterations),
-            "sh_degree_interval_iters": 1,
-            "densify": d.model_copy(
-                update={
-                    "start_iter": squeeze(d.start_iter),
-                    "every_iters": squeeze(d.every_iters),
-                    "stop_iter": squeeze(d.stop_iter),
-                    "reset_opacity_every_iters": 0,
-                }
-            ),
-            "mcmc": m.model_copy(
-                update={
-                    "start_iter": squeeze(m.start_iter),
-                    "every_iters": squeeze(m.every_iters),
-                    "stop_iter": squeeze(m.stop_iter),
-                }
-            ),
-        }
+        update={"iterations": squeeze(params.iterations), "sh_degree_interval_iters": 1, "strategy": strategy}
     )
 
 
@@ -549,7 +509,7 @@ def train(
     optimizers = dict.fromkeys(pdict, optimizer)  # the strategies' view: each tensor's optimiser
     bg_lr = params.lr_background if params.learn_background else 0.0
     bg_opt = _make_adam({"background": background}, {"background": bg_lr}, eps=1e-8)
-    strategy = _make_strategy(params)
+    strategy = make_strategy(params.strategy)
     strategy_state = strategy.initialize_state(scene_scale, fixed_gaussians) if strategy is not None else {}
     curves: dict[str, list[float]] = {}
     start = 0
