@@ -84,9 +84,11 @@ def test_first_guide_frame_is_the_parent_last_frame_again(world: dict) -> None:
     assert g.frames.dtype == np.uint8 and g.mask.dtype == bool and g.depth.dtype == np.float32
     assert g.source == "parent frames"
     e = frame_errors(g, world["truth"], 0)
+    # measured on 2026-12-04 (commit 088e394): coverage 1.0, 36.7 dB, AbsRel 0.0010; margins 3 dB (2x the squared
+    # error) and 2x
     assert e["coverage"] > 0.97
-    assert e["psnr_db"] > 30.0
-    assert e["depth_absrel"] < 0.005
+    assert e["psnr_db"] > 33.5
+    assert e["depth_absrel"] < 0.002
 
 
 def test_turning_left_reveals_the_left_side_as_unknown(world: dict) -> None:
@@ -108,9 +110,10 @@ def test_turning_left_reveals_the_left_side_as_unknown(world: dict) -> None:
 
 def test_known_pixels_match_the_truth_in_colour_and_depth(world: dict) -> None:
     e = guide_errors(guide_of(world), world["truth"].frames, world["truth"].gt.depth)
-    assert e["psnr_db"] > 22.0, e
-    assert e["depth_absrel"] < 0.02, e
-    assert e["depth_off_share"] < 0.05, e
+    # measured on 2026-12-04 (commit 088e394): 27.6 dB, AbsRel 0.0065, 1.3 % off; margins 3 dB and 2x
+    assert e["psnr_db"] > 24.5, e
+    assert e["depth_absrel"] < 0.013, e
+    assert e["depth_off_share"] < 0.025, e
 
 
 def test_no_farther_surface_shows_through_a_nearer_one(world: dict) -> None:
