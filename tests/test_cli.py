@@ -17,6 +17,8 @@ from flows.pipeline import execute
 from wonderverse import STORE_FORMAT
 from wonderverse.store import SceneStore
 
+pytestmark = pytest.mark.e2e  # the CLI in a subprocess, over scenes it generates
+
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> Path:

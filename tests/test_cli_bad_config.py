@@ -11,6 +11,8 @@ from conftest import TINY_VIDEO, run_cli, tiny_config, tree_digest
 
 from flows.pipeline import execute
 
+pytestmark = pytest.mark.e2e  # the CLI in a subprocess, over a generated scene
+
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory) -> Path:

@@ -16,6 +16,9 @@ from wonderverse.metrics import ate, depth_errors
 from wonderverse.store import SceneStore
 from wonderverse.video.procedural import ProceduralOptions, draw_fault
 
+pytestmark = pytest.mark.e2e  # whole scenes through the pipeline
+
+
 VIDEO = {"width": 240, "height": 160, "frames_per_segment": 14}
 
 

@@ -16,6 +16,9 @@ import pytest
 from conftest import ROOT, launch_browser
 from test_serve import flow_runs, prefect_env, prefect_server, write_tiny_spec
 
+pytestmark = pytest.mark.e2e  # a Prefect server and a browser
+
+
 SCENE = "dashboard_scene"  # the spec's name: the scene's subflow run is named after it
 
 

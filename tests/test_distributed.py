@@ -18,6 +18,9 @@ from conftest import ROOT, tiny_config
 from flows.pipeline import execute
 from wonderverse.store import SceneStore
 
+pytestmark = pytest.mark.e2e  # a Dask cluster and the pipeline
+
+
 BIN = Path(sys.executable).parent
 
 

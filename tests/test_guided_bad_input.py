@@ -15,6 +15,9 @@ from test_guided_flow import GUIDED_VIDEO, PROMPT, one_error_line, spec_file
 
 from wonderverse.store import SceneStore
 
+pytestmark = pytest.mark.e2e  # the CLI in a subprocess
+
+
 SEGMENTS = ("s000", "s001", "s002")
 
 

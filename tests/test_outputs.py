@@ -28,6 +28,9 @@ from wonderverse.mesh import MeshParams
 from wonderverse.store import SceneStore
 from wonderverse.video import make_video_model
 
+pytestmark = pytest.mark.e2e  # a whole scene through the pipeline
+
+
 VIDEO = {"width": 160, "height": 112, "frames_per_segment": 10}
 FRAMES = 12
 UP = np.array([0.0, 0.0, 1.0])

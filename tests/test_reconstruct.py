@@ -20,6 +20,9 @@ from wonderverse.store import SceneStore
 from wonderverse.video import initial_pose
 from wonderverse.video.procedural import ProceduralVideo
 
+pytestmark = pytest.mark.e2e  # a scene reconstructed through the pipeline, and the CLI
+
+
 W, H, T = 160, 112, 10
 
 

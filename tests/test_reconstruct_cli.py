@@ -17,6 +17,9 @@ from plyfile import PlyData
 
 from flows.pipeline import stored_config
 
+pytestmark = pytest.mark.e2e  # the CLI in a subprocess
+
+
 RE10K_CLIP = "cameractrl_re10k/reference_videos/0bf152ef84195293.mp4"
 
 
@@ -82,7 +85,6 @@ def test_a_failed_step_is_one_error_line_under_either_engine(tmp_path):
         assert "Traceback" not in r.stderr and r.stderr.rstrip().endswith(errors[0])
 
 
-@pytest.mark.e2e
 def test_a_real_estate_clip_reconstructs_to_outputs_with_no_weights(data_dir: Path, tmp_path: Path):
     out = tmp_path / "scene"
     # a phone-like walkthrough, its motion blur modelled (a 180° shutter)
@@ -101,7 +103,6 @@ def test_a_real_estate_clip_reconstructs_to_outputs_with_no_weights(data_dir: Pa
     assert info["segments"][0]["attempts"][0]["check"]["accepted"] is True  # a real walkthrough passes its check
 
 
-@pytest.mark.e2e
 def test_the_fox_captures_real_jump_is_flagged_and_kept(data_dir: Path, tmp_path: Path):
     """The fox images skip frames 0055-0071 (a 44° jump): the check flags it and, a clip not being regenerable,
     keeps the clip with the reasons (keep_best)."""

@@ -22,6 +22,8 @@ from tasks.segments import segment_ids
 from wonderverse.config import build_config
 from wonderverse.store import SceneStore
 
+pytestmark = pytest.mark.e2e  # the CLI in a subprocess, signalled
+
 
 def tiny_spec(tmp_path: Path, prompt: str = "a small house decorated for Christmas", **scene) -> Path:
     """A --config file of the tiny video with SHORT_STEPS (a whole run in ~20 s on 2 cores)."""
@@ -65,7 +67,6 @@ def wait_for_line(proc: subprocess.Popen, needle: str, timeout: float = 600) -> 
     pytest.fail(f"no {needle!r} within {timeout} s")
 
 
-@pytest.mark.e2e
 @pytest.mark.parametrize(
     ("engine", "signum", "during", "code"),
     [
@@ -162,7 +163,6 @@ def test_a_rerun_keeps_the_extensions_and_a_changed_prompt_is_refused_unless_ask
     assert (scene / "preview.mp4").read_bytes() != preview  # derived files follow the scene they show
 
 
-@pytest.mark.e2e
 def test_kill_9_of_the_command_takes_its_run_and_prefects_server_down(tmp_path):
     scene = tmp_path / "scene"
     args = ("generate", "--config", str(tiny_spec(tmp_path)), "--out", str(scene), "--engine", "prefect")

@@ -13,6 +13,9 @@ from conftest import tiny_config
 from flows.pipeline import execute
 from wonderverse.store import SceneStore
 
+pytestmark = pytest.mark.e2e  # the pipeline up to the splats step
+
+
 VIDEO = {"width": 200, "height": 136, "frames_per_segment": 12}
 
 

@@ -16,6 +16,8 @@ from wonderverse.config import RunConfig
 from wonderverse.errors import WonderError
 from wonderverse.store import SceneStore
 
+pytestmark = pytest.mark.e2e  # the pipeline
+
 
 def failing_at(name: str):
     """Run each step as the local engine does, except that step `name` raises (a crash, Ctrl-C, a full disk)."""
