@@ -535,7 +535,14 @@ def test_losses_stay_finite_on_extreme_renders() -> None:
     prior_n = torch.zeros(h, w, 3)
     prior_n[..., 2] = -1
     loss, terms = total_loss(
-        rgb, torch.zeros(h, w, 3), depth, alpha, normals, LossParams(), prior_depth=prior_d, prior_normals=prior_n
+        rgb=rgb,
+        gt_rgb=torch.zeros(h, w, 3),
+        depth=depth,
+        alpha=alpha,
+        normals=normals,
+        params=LossParams(),
+        prior_depth=prior_d,
+        prior_normals=prior_n,
     )
     loss.backward()
     assert math.isfinite(terms["total"]) and all(math.isfinite(v) for v in map(float, terms.values()) if v == v)

@@ -187,8 +187,10 @@ def test_total_is_the_weighted_sum_and_each_weight_acts_alone() -> None:
     prior_d = torch.rand(H, W, generator=g, dtype=torch.float64) + 1
     prior_n = torch.nn.functional.normalize(torch.randn(H, W, 3, generator=g, dtype=torch.float64), dim=-1)
 
+    images = {"rgb": a, "gt_rgb": b, "depth": depth, "alpha": alpha, "normals": normals}
+
     def run(**kw) -> tuple[torch.Tensor, dict]:
-        return total_loss(a, b, depth, alpha, normals, LossParams(**kw), prior_depth=prior_d, prior_normals=prior_n)
+        return total_loss(**images, params=LossParams(**kw), prior_depth=prior_d, prior_normals=prior_n)
 
     total, t = _floats(run())
     p = LossParams()
@@ -200,7 +202,7 @@ def test_total_is_the_weighted_sum_and_each_weight_acts_alone() -> None:
         assert t2["total"] - t["total"] == pytest.approx((3.0 - getattr(p, key)) * t[term], rel=1e-9)
     _, t0 = _floats(run(lambda_depth=0.0, lambda_normal=0.0))
     assert t0["total"] == pytest.approx(t["rgb"]) and "depth" not in t0 and "normal" not in t0
-    _, t3 = _floats(total_loss(a, b, depth, alpha, normals, p))
+    _, t3 = _floats(total_loss(**images, params=p))
     assert t3["total"] == pytest.approx(t["rgb"])
 
 
@@ -265,19 +267,16 @@ def test_normal_target_depth_moves_the_surface_and_weights_scale_the_terms() -> 
     rendered_n[..., 2] = -1.0
     rgb = torch.zeros(h, w, 3)
     params = LossParams(lambda_depth=0.0, lambda_normal=1.0, lambda_normal_tv=0.0, normal_target="depth")
-    loss, terms = total_loss(rgb, rgb, depth, alpha, rendered_n, params, None, prior_n, K=K)
+    images = {"rgb": rgb, "gt_rgb": rgb, "alpha": alpha, "normals": rendered_n, "prior_normals": prior_n, "K": K}
+    loss, terms = total_loss(**images, depth=depth, params=params)
     loss.backward()
     assert terms["normal_l1"] > 0.3 and depth.grad.abs().sum() > 0  # the rendered depth gets the gradient
     rendered_only = params.model_copy(update={"normal_target": "rendered"})
-    loss_r, _ = total_loss(rgb, rgb, depth.detach(), alpha, rendered_n, rendered_only, None, prior_n, K=K)
+    loss_r, _ = total_loss(**images, depth=depth.detach(), params=rendered_only)
     half = torch.full((h, w), 0.5)
-    loss_h, _ = total_loss(
-        rgb, rgb, depth.detach(), alpha, rendered_n, rendered_only, None, prior_n, K=K, prior_weight=half
-    )
+    loss_h, _ = total_loss(**images, depth=depth.detach(), params=rendered_only, prior_weight=half)
     assert loss_h.item() == pytest.approx(0.5 * loss_r.item(), rel=1e-5)
-    loss_s, _ = total_loss(
-        rgb, rgb, depth.detach(), alpha, rendered_n, rendered_only, None, prior_n, K=K, prior_scale=0.1
-    )
+    loss_s, _ = total_loss(**images, depth=depth.detach(), params=rendered_only, prior_scale=0.1)
     assert loss_s.item() == pytest.approx(0.1 * loss_r.item(), rel=1e-5)
 
 
@@ -296,7 +295,16 @@ def test_new_terms_are_finite_at_the_extremes(scale: float) -> None:
         prior_n = torch.zeros(h, w, 3)
         prior_n[..., 2] = -1.0
         loss, _ = total_loss(
-            rgb, rgb, depth, alpha, normals, params, prior_d, prior_n, K=K, prior_weight=texture_weight(rgb, 0.02)
+            rgb=rgb,
+            gt_rgb=rgb,
+            depth=depth,
+            alpha=alpha,
+            normals=normals,
+            params=params,
+            prior_depth=prior_d,
+            prior_normals=prior_n,
+            K=K,
+            prior_weight=texture_weight(rgb, 0.02),
         )
         loss.backward()
         assert torch.isfinite(loss) and torch.isfinite(depth.grad).all() and torch.isfinite(normals.grad).all()

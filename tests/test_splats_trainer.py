@@ -328,14 +328,26 @@ def test_loss_and_grads_by_torch_func_match_autograd_of_the_loss_and_sky_term(un
     prior_normals[:, :3] = 0.0  # no prior there
     sky = ~torch.isfinite(prior_depth)
     params = LossParams(lambda_depth=0.3, lambda_normal=0.2, depth_units=units)
-    rest = (params, prior_depth, prior_normals, ~sky, sky, 0.1)
+    rest = {"prior_depth": prior_depth, "prior_normals": prior_normals, "valid": ~sky, "sky": sky}
 
     leaves = [t.clone().requires_grad_() for t in (rgb, depth, alpha, normals)]
-    ref, ref_terms = total_loss(leaves[0], gt, *leaves[1:], params, prior_depth, prior_normals, ~sky, ~sky)
+    rgb_, depth_, alpha_, normals_ = leaves
+    ref, ref_terms = total_loss(
+        rgb=rgb_,
+        gt_rgb=gt,
+        depth=depth_,
+        alpha=alpha_,
+        normals=normals_,
+        params=params,
+        prior_depth=prior_depth,
+        prior_normals=prior_normals,
+        depth_valid=~sky,
+        normal_valid=~sky,
+    )
     ref_terms["sky_alpha"] = masked_mean(leaves[2][..., 0], sky)
     ref = ref + 0.1 * ref_terms["sky_alpha"]
     ref.backward()
-    loss, terms, grads = loss_and_grads(rgb, gt, depth, alpha, normals, *rest)
+    loss, terms, grads = loss_and_grads(rgb, gt, depth, alpha, normals, params, **rest, sky_alpha_weight=0.1)
     torch.testing.assert_close(loss, ref.detach())
     assert terms.keys() == ref_terms.keys() and "sky_alpha" in terms
     for k in terms:

@@ -14,7 +14,7 @@ scene's units: `depth_fit: unaligned`, the default); otherwise the per-image lea
 to the render, argmin Σ_valid (a D + b - D̂)², computed without gradient: the loss is then measured in the
 render's own depth units, so the scene scale is set by the cameras and never pulled towards the prior's
 arbitrary scale, but only the prior's shape is enforced — fitted at every step it lets surfaces that
-parallax does not place drift (`depth_fit: every`; measured in docs/benchmarks.md, session 12). (The paper
+parallax does not place drift (`depth_fit: every`; measured 2026-12-02, commit 52ed9dc: docs/benchmarks.md). (The paper
 writes the fit the other way round, (a D̂ + b) ≈ D; aligning the prior keeps the target fixed while the
 gradient flows into D̂ alone.) Valid pixels: prior finite and positive (depth) or of
 non-zero length (normals), the optional validity mask, and rendered alpha > `alpha_threshold`.
@@ -220,6 +220,7 @@ def normal_loss(
 
 
 def total_loss(
+    *,
     rgb: Tensor,
     gt_rgb: Tensor,
     depth: Tensor,
@@ -235,13 +236,15 @@ def total_loss(
     prior_scale: Tensor | float = 1.0,
     prior_aligned: Tensor | bool = True,
 ) -> tuple[Tensor, dict[str, Tensor]]:
-    """L = L_rgb + s (λ_d L_depth + λ_n L_normal) + λ_dn L_dn for one view. Images (H,W,C) float in [0,1]; see the
-    module docstring for every term. A missing prior drops its term. K (3,3) is needed for the rendered depth's
-    normals (`normal_target` other than "rendered", `lambda_depth_normal`); prior_weight (H,W) weighs the prior
-    terms per pixel (`texture_weight`); s = prior_scale, the schedule's factor; prior_aligned: the depth prior is
-    in the render's units (`depth_loss`). Returns (total, {term: float})
-    with keys rgb_l1, ssim, rgb, depth, normal, total and the fit/validity diagnostics, all detached 0-d tensors:
-    nothing here waits for the device, so a training step runs without host syncs."""
+    """L = L_rgb + s (λ_d L_depth + λ_n L_normal) + λ_dn L_dn for one view, every argument by name (the rendered
+    rgb, depth, alpha, normals and the frame gt_rgb are all (H,W,C) tensors: by position they are easily swapped).
+    Images (H,W,C) float in [0,1]; see the module docstring for every term. A missing prior drops its term;
+    depth_valid and normal_valid (H,W) bool restrict the depth and the normal term (the trainer passes one mask for
+    both). K (3,3) is needed for the rendered depth's normals (`normal_target` other than "rendered",
+    `lambda_depth_normal`); prior_weight (H,W) weighs the prior terms per pixel (`texture_weight`); s = prior_scale,
+    the schedule's factor; prior_aligned: the depth prior is in the render's units (`depth_loss`). Returns (total,
+    {term: float}) with keys rgb_l1, ssim, rgb, depth, normal, total and the fit/validity diagnostics, all detached
+    0-d tensors: nothing here waits for the device, so a training step runs without host syncs."""
     l1 = (rgb - gt_rgb).abs().mean()
     s = ssim(rgb, gt_rgb, params.ssim_window_px, params.ssim_sigma_px)
     l_rgb = (1.0 - params.lambda_ssim) * l1 + params.lambda_ssim * (1.0 - s)

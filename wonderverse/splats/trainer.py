@@ -280,6 +280,7 @@ def loss_and_grads(
     alpha: torch.Tensor,
     normals: torch.Tensor,
     params: LossParams,
+    *,
     prior_depth: torch.Tensor | None,
     prior_normals: torch.Tensor | None,
     valid: torch.Tensor,
@@ -299,20 +300,20 @@ def loss_and_grads(
 
     def loss_of(rgb: torch.Tensor, depth: torch.Tensor, alpha: torch.Tensor, normals: torch.Tensor):
         loss, terms = total_loss(
-            rgb,
-            gt_rgb,
-            depth,
-            alpha,
-            normals,
-            params,
-            prior_depth,
-            prior_normals,
-            valid,
-            valid,
-            K,
-            prior_weight,
-            prior_scale,
-            prior_aligned,
+            rgb=rgb,
+            gt_rgb=gt_rgb,
+            depth=depth,
+            alpha=alpha,
+            normals=normals,
+            params=params,
+            prior_depth=prior_depth,
+            prior_normals=prior_normals,
+            depth_valid=valid,
+            normal_valid=valid,
+            K=K,
+            prior_weight=prior_weight,
+            prior_scale=prior_scale,
+            prior_aligned=prior_aligned,
         )
         if sky_alpha_weight > 0:
             terms["sky_alpha"] = masked_mean(alpha[..., 0], sky)
