@@ -4,7 +4,7 @@
    frames; else 48 at the preview preset's 320x208, 17 frames), each a planned move from the procedural world's
    start pose (`camera.move_path`): a turn left, right, up or down of 20-45 deg, half of them with forward travel
    of 0.5-2 m, half without; a left/right turn also travels sideways `plan.strafe_m_per_deg` per degree as the
-   pipeline's paths do (`generate_segments.plan_paths`), so only up/down turns without travel are pure rotations.
+   pipeline's paths do (`planning.paths.conditioning_paths`), so only up/down turns without travel are pure rotations.
    Half are rendered with the `ai_like` defects (real generated video is like that), half without. Each is
    rendered twice: clean (`fault_probability` 0) and with `force_fault: "ignore"` (the camera takes a smooth,
    plausible, wrong path: the turn reversed or left out, the travel turned by 90-180 deg; `gt.faults["mode"]`).
@@ -24,9 +24,9 @@
    plan-following test as `tasks.check` adds it), over all segments.
 2. Named content (`wonderverse.video.content`): extend requests (`CONTENT_REQUESTS`, --quick: the first 4 at
    160x104, 9 frames; else all 10 at 320x208, 17 frames). The rule planner's extension for the words after the
-   initial segment (`planning.rules.plan_extension`), its path as `generate_segments.plan_paths` makes it,
+   initial segment (`planning.rules.plan_extension`), its path as `planning.paths.conditioning_paths` makes it,
    rendered after the initial segment by the same procedural model with the segment prompt carrying the words
-   (`generate_segments.segment_prompt`). A hit when every named kind's ground-truth labels cover more than
+   (`video.prompts.segment_prompt`). A hit when every named kind's ground-truth labels cover more than
    `CONTENT_MIN_SHARE` of the pixels of the segment's last `CONTENT_LAST_FRAMES` frames. Column `column`: the
    labelled pixels' mean column as a share of the width (< 0.5: left of centre).
 3. Guided extensions (procedural `accept_guide`): a 5-segment scene (initial + 2 rounds of left and right;
@@ -157,7 +157,7 @@ def cases(n: int) -> list[Case]:
 
 
 def planned_path(case: Case, start_w2c: np.ndarray, frames: int, strafe_m_per_deg: float) -> np.ndarray:
-    """(T,4,4) W2C path of the case's move from `start_w2c` as `generate_segments.plan_paths` builds it:
+    """(T,4,4) W2C path of the case's move from `start_w2c` as `planning.paths.conditioning_paths` builds it:
     `camera.move_path` (yaw + = left, pitch + = up) with the planner's sideways travel per degree of yaw."""
     from wonderverse.camera import move_path
 
@@ -463,17 +463,17 @@ CONTENT_LAST_FRAMES = 3  # ... of the segment's last frames
 
 def content_request(scene_prompt: str, words: str, width: int, height: int, frames: int) -> dict[str, Any]:
     """One extend request: the rule planner's extension for `words` after the initial segment
-    (`planning.rules.plan_extension`), its path as `generate_segments.plan_paths` makes it, rendered (after the
+    (`planning.rules.plan_extension`), its path as `planning.paths.conditioning_paths` makes it, rendered (after the
     initial segment, by the same model) with the segment prompt carrying the words. Returns a table row: the
     named kinds, their label share over the last frames, the mean column of their pixels (share of the width:
     < 0.5 left of centre) and whether all are visible."""
-    from tasks.generate_segments import params as segment_params
-    from tasks.generate_segments import plan_paths, segment_prompt
     from wonderverse.config import build_config
+    from wonderverse.planning.paths import conditioning_paths
     from wonderverse.planning.rules import initial_segment, plan_extension
     from wonderverse.planning.segments import Plan
     from wonderverse.video import initial_pose, make_video_model
     from wonderverse.video.content import label_share, parse_content
+    from wonderverse.video.prompts import segment_prompt
 
     video = {"width": width, "height": height, "frames_per_segment": frames, "options": {"fault_probability": 0.0}}
     cfg = build_config(scene_prompt, preset="preview", overrides={"scene": {"video": video}})
@@ -482,11 +482,11 @@ def content_request(scene_prompt: str, words: str, width: int, height: int, fram
     ext = plan_extension(scene_prompt, words, plan, cfg.steps.plan, fov_deg=fov)
     plan = plan.extended(ext)
     model = make_video_model(cfg.scene.video_source)
-    info = plan_paths(segment_params(cfg), plan, initial_pose(model))
-    init = model.generate(segment_prompt(scene_prompt, "init", ""), info["s000"]["path"], 1, None)
-    e = info[ext.id]
-    ref = init.frames[e["ref_idx"]]
-    v = model.generate(segment_prompt(scene_prompt, ext.role, ext.intent), e["path"], 2, ref)
+    paths = conditioning_paths(plan, initial_pose(model), frames, cfg.steps.plan.strafe_m_per_deg)
+    init = model.generate(segment_prompt(scene_prompt, "init", ""), paths["s000"].path, 1, None)
+    e = paths[ext.id]
+    ref = init.frames[e.ref_idx]
+    v = model.generate(segment_prompt(scene_prompt, ext.role, ext.intent), e.path, 2, ref)
     kinds = sorted({item.kind for item in parse_content(words).items})
     last = slice(-CONTENT_LAST_FRAMES, None)
     labels, names = v.gt.labels, v.gt.label_names
@@ -573,7 +573,7 @@ def guide_records(scene_dir: Any) -> list[dict[str, Any]]:
 def seam_psnr(scene_dir: Any) -> dict[str, float]:
     """Per extension segment: PSNR (dB) of its first SEAM_FRAMES frames after the reference frame against the
     final splats rendered at those frames' global SfM poses (video size, the splats' learnt background)."""
-    from tasks.outputs import posed_frames
+    from tasks.output_scene import posed_frames
     from tasks.splats import stored_sky
     from wonderverse.metrics import psnr
     from wonderverse.schema import SEGMENT, SFM, SPLATS

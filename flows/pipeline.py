@@ -18,18 +18,16 @@ from tasks import STEPS, Step, StepResult, progress, step_keys, steps_until
 from tasks.base import StepContext
 from wonderverse.config import RunConfig
 from wonderverse.errors import WonderError, shown
-from wonderverse.schema import SEGMENT
+from wonderverse.schema import ROOT, SEGMENT
 from wonderverse.store import STORE_NAME, SceneStore, scene_lock
 
 Call = Callable[[Step, str, Any, StepContext], str]
 OnCached = Callable[[Step, str], None]
 
-# Root attributes holding a RunConfig as JSON. CONFIG: the configuration of the last run that completed (every step
-# it ran finished); a failed or stopped run never replaces it. SEGMENTS_CONFIG: the configuration the scene's
-# segments were last generated under, written when the segments step starts, so it holds even after a run that
-# failed later (what `refuse_replacing_segments` compares with, and whose extensions a re-run continues).
-CONFIG = "config"
-SEGMENTS_CONFIG = "segments_config"
+# The root's RunConfigs (`schema.attrs.RootAttrs`): `config`, the configuration of the last run that completed
+# (every step it ran finished; a failed or stopped run never replaces it), and `segments_config`, the configuration
+# the scene's segments were last generated under, written when the segments step starts, so it holds even after a
+# run that failed later (what `refuse_replacing_segments` compares with, and whose extensions a re-run continues).
 SEGMENTS_STEP = "generate_segments"
 
 
@@ -88,7 +86,7 @@ def _execute(
             result = StepResult(step.name, "cached", 0.0, key)
         else:
             if step.name == SEGMENTS_STEP:
-                store.root.attrs[SEGMENTS_CONFIG] = cfg.model_dump(mode="json")
+                store.update_attrs(ROOT.path, segments_config=cfg.model_dump(mode="json"))
             reporter.started(step.name, step.description)
             t0 = time.perf_counter()
             try:
@@ -98,10 +96,10 @@ def _execute(
                 reporter.finished(result)
                 raise StepFailed(step.name, e, [*results, result]) from e
             result = StepResult(step.name, "ran", time.perf_counter() - t0, key, detail)
-            store.group(step.group).attrs["seconds"] = result.seconds  # for inspect and the report
+            store.update_attrs(step.group, seconds=result.seconds)  # for inspect and the report
         reporter.finished(result)
         results.append(result)
-    store.root.attrs[CONFIG] = cfg.model_dump(mode="json")  # the run completed: its config is the scene's now
+    store.update_attrs(ROOT.path, config=cfg.model_dump(mode="json"))  # the run completed: the scene's config now
     return results
 
 
@@ -186,18 +184,19 @@ def run_pipeline(
 def stored_config(scene_dir: Path | str) -> RunConfig | None:
     """The configuration of the scene's last completed run; None for a new scene, one whose runs all failed, or
     one this version cannot read."""
-    return _config_attr(scene_dir, CONFIG)
+    return _config_attr(scene_dir, "config")
 
 
 def segments_config(scene_dir: Path | str) -> RunConfig | None:
     """The configuration the scene's segments were last generated under (a run that failed after generating them
     included); else the stored config (scenes made before this was recorded); None when neither is readable."""
-    return _config_attr(scene_dir, SEGMENTS_CONFIG) or stored_config(scene_dir)
+    return _config_attr(scene_dir, "segments_config") or stored_config(scene_dir)
 
 
-def _config_attr(scene_dir: Path | str, name: str) -> RunConfig | None:
+def _config_attr(scene_dir: Path | str, name: Literal["config", "segments_config"]) -> RunConfig | None:
     try:
-        data = SceneStore.open(scene_dir).root.attrs.get(name)
+        root = SceneStore.open(scene_dir).meta(ROOT.path, complete=False)
+        data = getattr(root, name)
         return RunConfig.model_validate(data) if data is not None else None
     except (WonderError, ValueError):
         return None

@@ -23,7 +23,7 @@ from pydantic import BaseModel
 
 from wonderverse.config import ExecutionParams, RunConfig
 from wonderverse.errors import WonderError
-from wonderverse.store import SceneStore, cache_key
+from wonderverse.store import SceneStore, cache_key, writing
 
 P = TypeVar("P", bound=BaseModel)
 
@@ -98,7 +98,8 @@ class Step(Generic[P]):
     def run_in(self, scene_dir: str, params: P, ctx: StepContext) -> str:
         """Open the store at `scene_dir` and run (what the Prefect task calls)."""
         store = SceneStore.open(scene_dir, mode="r+")
-        return self.run(store, params, ctx)
+        with writing(self.name):
+            return self.run(store, params, ctx)
 
 
 def step_keys(steps: list[Step], cfg: RunConfig) -> dict[str, str]:

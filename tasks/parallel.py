@@ -17,8 +17,18 @@ from contextlib import ExitStack, contextmanager, suppress
 from typing import Any, TypeVar
 
 from wonderverse.progress import ProgressFn, no_progress
+from wonderverse.store import writing
 
 T = TypeVar("T")
+
+
+def as_step(step: str | None, fn: Callable[..., T], *args: Any) -> T:
+    """`fn(*args)` as work of step `step` (what it may write: `store.writing`); on a Dask worker too, where the
+    process knows nothing of the step that submitted it."""
+    if step is None:
+        return fn(*args)
+    with writing(step):
+        return fn(*args)
 
 
 def _in_prefect_task() -> bool:
@@ -140,8 +150,8 @@ class SegmentPool:
     Starting a LocalCluster costs seconds (spawning the worker processes, each importing the project on its
     first task): a flow that maps segments wave after wave pays that once instead of per wave."""
 
-    def __init__(self, workers: int, address: str | None) -> None:
-        self.workers, self.address = workers, address
+    def __init__(self, workers: int, address: str | None, step: str | None = None) -> None:
+        self.workers, self.address, self.step = workers, address, step
         self._stack = ExitStack()
         self._lock = threading.Lock()
         self._started: Future[Any] | None = None
@@ -189,7 +199,7 @@ class SegmentPool:
         first asked for, unless `gather` sends it to the cluster first. A scheduler given by address takes it."""
         if self.in_process or (only_if_started and self.address is None and self._started is None):
             return _Deferred(fn, args)
-        return self.client().submit(fn, *args, pure=False)
+        return self.client().submit(as_step, self.step, fn, *args, pure=False)
 
     def gather(
         self, step: str, items: Sequence[Any], futures: dict[Any, Any], progress: ProgressFn | None = None
@@ -201,7 +211,9 @@ class SegmentPool:
             for item in items:
                 f = futures[item]
                 if isinstance(f, _Deferred) and not f.started:
-                    futures[item] = self.client(progress, len(items)).submit(f.fn, *f.args, pure=False)
+                    futures[item] = self.client(progress, len(items)).submit(
+                        as_step, self.step, f.fn, *f.args, pure=False
+                    )
         on_cluster = any(not isinstance(futures[item], _Deferred) for item in items)
         return fan_out(step, items, lambda item: futures[item].result(), len(items) if on_cluster else 1, progress)
 
@@ -229,8 +241,9 @@ class SegmentPool:
         if self.in_process or (self.address is None and len(items) == 1 and not self.ready):
             return fan_out(step, items, lambda item: fn(item, *args), progress=progress)
         client = self.client(progress, len(items))
+        run = (as_step, self.step or step, fn)
         return fan_out(
-            step, items, lambda item: client.submit(fn, item, *args, pure=False).result(), len(items), progress
+            step, items, lambda item: client.submit(*run, item, *args, pure=False).result(), len(items), progress
         )
 
     def close(self) -> None:
@@ -243,9 +256,10 @@ class SegmentPool:
 
 
 @contextmanager
-def segment_pool(workers: int, address: str | None = None) -> Iterator[SegmentPool]:
-    """A `SegmentPool` for the block: one cluster for every `map` and `submit` in it, shut down at its end."""
-    pool = SegmentPool(workers, address)
+def segment_pool(workers: int, address: str | None = None, step: str | None = None) -> Iterator[SegmentPool]:
+    """A `SegmentPool` for the block: one cluster for every `map` and `submit` in it, shut down at its end; `step`:
+    the step whose work it runs (what that work may write)."""
+    pool = SegmentPool(workers, address, step)
     try:
         yield pool
     finally:
@@ -268,5 +282,5 @@ def map_segments(
     items) processes); `segment_pool` keeps one for several."""
     if not items:
         return []
-    with segment_pool(min(workers, len(items)), address) as pool:
+    with segment_pool(min(workers, len(items)), address, step) as pool:
         return pool.map(fn, items, *args, step=step, progress=progress)

@@ -2,10 +2,11 @@
 
 from __future__ import annotations
 
-from typing import Any, Literal
+from typing import Literal
 
 from tasks.base import Step, StepContext
 from wonderverse.config import ExtensionSpec, Model, PlannerSpec, PlanParams, RunConfig
+from wonderverse.planning.segments import Plan
 from wonderverse.schema import PLAN
 from wonderverse.store import SceneStore
 
@@ -57,14 +58,12 @@ def run(store: SceneStore, p: Params, ctx: StepContext) -> str:
     return f"{len(plan.segments)} segments by {plan.planner}{note}"
 
 
-def load_plan(store: SceneStore) -> Any:
+def load_plan(store: SceneStore) -> Plan:
     """The stored Plan (raises KeyError when the plan step has not completed)."""
-    from wonderverse.planning import Plan
-
-    attrs = store.attrs(PLAN.path)
-    if attrs.get("complete") is not True:
+    meta = store.meta(PLAN.path)
+    if meta is None:
         raise KeyError("plan")
-    return Plan.model_validate(attrs["plan"])
+    return meta.plan
 
 
 # 2: the step contract (hashes the video backend and clips it branches on)

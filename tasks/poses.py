@@ -20,10 +20,10 @@ import numpy as np
 
 from tasks.base import Step, StepContext
 from tasks.progress import advance
-from tasks.segments import accepted_attempt, attempt_path, intrinsics, stitched
+from tasks.segments import accepted_attempt, attempt_path, intrinsics, segment_meta, stitched, stitched_order
 from wonderverse.config import PosesParams, RunConfig
 from wonderverse.errors import WonderError
-from wonderverse.schema import SEGMENT, SEGMENTS, SFM, SFM_MODEL
+from wonderverse.schema import SEGMENT, SFM, SFM_MODEL
 from wonderverse.store import SceneStore, cache_key, write_array
 
 if TYPE_CHECKING:
@@ -51,10 +51,10 @@ def image_names(store: SceneStore, keys: list[tuple[str, int]]) -> list[str]:
     with the segments' playback order and roles from the store."""
     from wonderverse.global_poses import image_names as names
 
-    order = store.attrs(SEGMENTS.path).get("order") or sorted({seg for seg, _ in keys})
-    roles = {seg: store.attrs(SEGMENT.at(seg=seg)) for seg in order}
-    left = {seg for seg, a in roles.items() if a.get("role") == "left"}
-    return names(keys, order, left, {seg for seg, a in roles.items() if a.get("reversed")})
+    order = stitched_order(store)
+    roles = {seg: segment_meta(store, seg) for seg in order}
+    left = {seg for seg, a in roles.items() if a.role == "left"}
+    return names(keys, order, left, {seg for seg, a in roles.items() if a.reversed})
 
 
 def _sources(store: SceneStore, segs: list[str]) -> dict[str, dict[str, Any]]:
@@ -67,21 +67,21 @@ def _previous(store: SceneStore) -> PreviousSolve | None:
     from wonderverse.camera import Sim3
     from wonderverse.global_poses import PreviousSolve
 
-    prev = store.attrs(SFM.path)
-    if prev.get("complete") is not True or prev.get("source") != "sfm":
+    prev = store.meta(SFM.path)
+    if prev is None or prev.source != "sfm":
         return None
-    segs, index = prev["segments"], store.array(SFM.frame_index)
+    segs, index = prev.segments, store.array(SFM.frame_index)
     keys = [(segs[a], int(i)) for a, i in index]
     registered = {key for key, r in zip(keys, store.array(SFM.registered), strict=True) if r}
     stored = store.exists(SFM.colmap_model)
     return PreviousSolve(
         poses=dict(zip(keys, store.array(SFM.poses), strict=True)),
         registered=registered,
-        names=prev.get("sfm_names") or [],
-        sources=prev.get("segment_sources") or {},
-        workspace_key=prev.get("workspace_key"),
-        model_to_world=Sim3.from_dict(prev["model_to_world"]) if "model_to_world" in prev else None,
-        kept_frame=prev.get("kept_frame"),
+        names=prev.sfm_names,
+        sources=prev.segment_sources,
+        workspace_key=prev.workspace_key,
+        model_to_world=None if prev.model_to_world is None else Sim3.from_dict(prev.model_to_world),
+        kept_frame=prev.kept_frame,
         load_workspace=(lambda: _load_workspace(store)) if stored else None,
     )
 
@@ -92,7 +92,8 @@ def _own_poses(store: SceneStore, segs: list[str]) -> dict[str, np.ndarray]:
     out = {}
     for seg in segs:
         ap = attempt_path(store, seg)
-        if store.exists(ap.sfm.poses) and store.attrs(ap.check).get("accepted") is True:
+        check = store.meta(ap.check)
+        if store.exists(ap.sfm.poses) and check is not None and check.accepted:
             out[seg] = store.array(ap.sfm.poses)
     return out
 
@@ -104,8 +105,8 @@ def _check_mapper(store: SceneStore, segs: list[str]) -> tuple[str, bool] | None
     `0c11` with its FOV given: incremental first here ended 9.4 % of the path off, global first 0.37 %)."""
     if len(segs) != 1:
         return None
-    a = store.attrs(attempt_path(store, segs[0]).sfm)
-    return (str(a["mapper"]), not a.get("problems")) if a.get("mapper") else None
+    a = store.meta(attempt_path(store, segs[0]).sfm)
+    return (a.mapper, not a.problems) if a is not None and a.mapper else None
 
 
 def _load_workspace(store: SceneStore) -> SfmWorkspace:
@@ -173,7 +174,8 @@ def run(store: SceneStore, p: PosesParams, ctx: StepContext) -> str:
         if workspace is not None:
             _write_workspace(g, workspace)
     posed = int(np.isfinite(poses[:, 0, 0]).sum())
-    how = f", {attrs['solve']} solve" if "solve" in attrs else ""
+    solve = store.meta(SFM.path).solve
+    how = f", {solve} solve" if solve else ""
     return f"{posed}/{n} frames posed ({p.source}{how}), {len(points)} points"
 
 

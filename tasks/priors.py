@@ -14,10 +14,12 @@ import numpy as np
 from tasks.base import Step, StepContext
 from tasks.parallel import map_segments
 from tasks.progress import callback
+from tasks.raw_depth import ground_truth, raw_depth
 from tasks.segments import accepted_attempt, attempt_path, segment_ids
 from wonderverse.config import PriorsStepParams, RunConfig
 from wonderverse.errors import WonderError
-from wonderverse.schema import PRIORS, PRIORS_RAW, PRIORS_RAW_SEGMENT, PRIORS_SEGMENT, SEGMENT, SFM, GroupPath
+from wonderverse.schema import PRIORS, PRIORS_RAW, PRIORS_RAW_SEGMENT, PRIORS_SEGMENT, SEGMENT, SFM
+from wonderverse.schema.attrs import PriorsSegmentAttrs
 from wonderverse.store import SceneStore, cache_key, write_array
 
 VERSION = 1
@@ -29,22 +31,11 @@ def params(cfg: RunConfig) -> PriorsStepParams:
     return cfg.steps.priors
 
 
-def _ground_truth(store: SceneStore, ap: GroupPath) -> Any:
-    from wonderverse.video import GroundTruth
-
-    if not store.exists(ap.gt):
-        return None
-    return GroundTruth(
-        poses=store.array(ap.gt.poses),
-        depth=store.array(ap.gt.depth),
-        normals=store.array(ap.gt.normals),
-    )
-
-
 def segment_poses(store: SceneStore, seg: str, n_frames: int) -> np.ndarray:
     """Global W2C poses (from `sfm/`) of a segment's frames in generation order; NaN where unknown."""
     out = np.full((n_frames, 4, 4), np.nan)
-    segs = store.attrs(SFM.path).get("segments", [])
+    meta = store.meta(SFM.path, complete=False)
+    segs = meta.segments if meta is not None else []
     if seg in segs:
         fi = store.array(SFM.frame_index)
         rows = np.flatnonzero(fi[:, 0] == segs.index(seg))
@@ -52,27 +43,7 @@ def segment_poses(store: SceneStore, seg: str, n_frames: int) -> np.ndarray:
     return out
 
 
-def _raw_depth(store: SceneStore, seg: str, ap: GroupPath, p: Any, frames: np.ndarray, gt: Any) -> Any:
-    """The depth network's output for a segment, computed once per attempt and model settings and kept in
-    `priors_raw/<seg>`: poses change whenever the scene is extended, this does not (it is the costly part)."""
-    from wonderverse.priors import make_depth_model
-    from wonderverse.priors.base import DepthPrediction
-
-    seg_key = store.cache_key_of(SEGMENT.at(seg=seg)) or ""
-    key = cache_key("priors_raw", VERSION, {"attempt": ap, "models": p}, [seg_key])
-    group = PRIORS_RAW_SEGMENT.at(seg=seg)
-    if store.is_complete(group, key):
-        conf = store.array(group.confidence).astype(np.float32) if store.exists(group.confidence) else None
-        return DepthPrediction(store.array(group.depth), store.attrs(group)["kind"], conf)
-    pred = make_depth_model(p, gt).predict(frames)
-    with store.staged(group, key, kind=pred.kind) as g:
-        write_array(g, group.depth, pred.depth)
-        if pred.confidence is not None:
-            write_array(g, group.confidence, pred.confidence)
-    return pred
-
-
-def priors_segment(seg: str, scene_dir: str, settings: PriorsStepParams, step_key: str) -> dict[str, Any]:
+def priors_segment(seg: str, scene_dir: str, settings: PriorsStepParams, step_key: str) -> PriorsSegmentAttrs:
     from wonderverse.priors import align_frames, make_normal_model
 
     store = SceneStore.open(scene_dir, mode="r+")
@@ -80,18 +51,18 @@ def priors_segment(seg: str, scene_dir: str, settings: PriorsStepParams, step_ke
     key = cache_key("priors_segment", VERSION, {"seg": seg, "attempt": ap}, [step_key])
     group = PRIORS_SEGMENT.at(seg=seg)
     if store.is_complete(group, key):
-        return store.attrs(group)
+        return store.meta(group)
     p = settings.models
     frames = store.array(ap.frames)
     K = store.array(SFM.K) if store.exists(SFM.path) else store.array(SEGMENT.at(seg=seg).K)
-    gt = _ground_truth(store, ap)
+    gt = ground_truth(store, ap)
     if "oracle" in (p.depth_backend, p.normal_backend) and gt is None:
         raise WonderError(f"segment {seg}: the oracle prior needs procedural ground truth; use depth_anything")
     summary: dict[str, Any] = {"segment": seg, "kind": "none", "aligned_frames": 0, "frames": len(frames)}
     arrays: dict[str, np.ndarray] = {}
     depth = None
     if p.depth_backend != "none":
-        pred = _raw_depth(store, seg, ap, p, frames, gt)
+        pred = raw_depth(store, seg, ap, p, frames, gt)
         points = store.array(SFM.points3d) if store.exists(SFM.points3d) else np.zeros((0, 3))
         poses = segment_poses(store, seg, len(frames))
         aligned = align_frames(pred.depth, pred.kind, poses, points, K, p.align, settings.sky_beyond_ref)
@@ -106,7 +77,7 @@ def priors_segment(seg: str, scene_dir: str, settings: PriorsStepParams, step_ke
     with store.staged(group, key, **summary) as g:
         for name, data in arrays.items():
             write_array(g, getattr(group, name), data)
-    return summary
+    return store.meta(group)
 
 
 def run(store: SceneStore, p: PriorsStepParams, ctx: StepContext) -> str:
@@ -133,11 +104,11 @@ def run(store: SceneStore, p: PriorsStepParams, ctx: StepContext) -> str:
             pass
         return NO_PRIORS
     store.mark_complete(PRIORS.path, ctx.key, backends=backends)
-    aligned = sum(s["aligned_frames"] for s in out)
-    total = sum(s["frames"] for s in out)
+    aligned = sum(s.aligned_frames for s in out)
+    total = sum(s.frames for s in out)
     # the share the sky rule took is worth seeing: far terrain no SfM point reaches can be taken too
-    sky = sum(s.get("sky_share", 0.0) * s["frames"] for s in out) / max(total, 1)
-    kind = out[0]["kind"] if out else "-"
+    sky = sum((s.sky_share or 0.0) * s.frames for s in out) / max(total, 1)
+    kind = out[0].kind if out else "-"
     return f"{len(segs)} segments, {aligned}/{total} frames aligned to SfM ({kind}), {100 * sky:.1f} % of pixels sky"
 
 

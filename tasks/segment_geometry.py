@@ -2,10 +2,11 @@
 (`segments/<seg>/geometry`), and the guide an extension is generated from.
 
 When the video model takes guides, `generate_segments` runs each segment's check and then `place` in one
-task per segment (`check_and_place`, on Dask when there are workers), before the segments that continue from
-it are generated. `place` reads the check's SfM of the accepted attempt, the depth model's raw output for its
-frames (the priors step's `priors_raw/<seg>`, computed here when absent, under the priors step's own key so
-that it is computed once), and maps both into the plan's world (`wonderverse.segment_geometry`).
+task per segment (`tasks.guided.check_and_place`, on Dask when there are workers), before the segments that
+continue from it are generated. `place` reads the check's SfM of the accepted attempt, the depth model's raw output
+for its frames (`tasks.raw_depth`: the priors step's `priors_raw/<seg>`, computed here when absent, under the
+priors step's own key so that it is computed once), and maps both into the plan's world
+(`wonderverse.segment_geometry`).
 `parent_guide` renders an extension's guide from its parent's stored geometry.
 
 Keys: a geometry is keyed by its segment's `accepted` key (the segment's key and the check's settings), the
@@ -21,11 +22,13 @@ from typing import Any
 
 import numpy as np
 
+from tasks.raw_depth import ground_truth, raw_depth
 from wonderverse.config import PriorsStepParams
 from wonderverse.errors import WonderError
 from wonderverse.guide import GuideParams
 from wonderverse.priors.params import PriorsParams
 from wonderverse.schema import ATTEMPT, SEGMENT
+from wonderverse.schema.attrs import GeometryAttrs
 from wonderverse.segment_geometry import GeometryParams
 from wonderverse.store import SceneStore, cache_key, write_array
 from wonderverse.video.base import Guide
@@ -57,87 +60,72 @@ def geometry_key(
     return cache_key("segment_geometry", VERSION, what, [accepted_key])
 
 
-def _summary(seg: str, attrs: dict[str, Any]) -> dict[str, Any]:
-    names = ("placed", "reason", "attempt", "registered_frames", "aligned_frames", "fit_rms_rel")
-    return {"segment": seg} | {k: attrs.get(k) for k in names}
-
-
-def place(seg: str, scene_dir: str, settings: PriorsStepParams, params: GeometryParams) -> dict[str, Any]:
+def place(seg: str, scene_dir: str, settings: PriorsStepParams, params: GeometryParams) -> GeometryAttrs:
     """Place segment `seg`'s accepted attempt in the plan's world and store it (`segments/<seg>/geometry`),
-    unless it is stored under the same key. Returns {segment, placed, reason, attempt, registered_frames,
-    aligned_frames, fit_rms_rel}. A segment the check dropped has no geometry (placed False, nothing stored);
-    one whose SfM cannot be placed is stored with placed False and the reason. WonderError when the segment
-    has not been checked, or the depth settings name no depth model."""
-    from tasks.priors import _ground_truth, _raw_depth
-    from wonderverse.segment_geometry import place_segment
-
+    unless it is stored under the same key; returns its record. A segment the check dropped has no geometry
+    (placed False, nothing stored); one whose SfM cannot be placed is stored with placed False and the reason.
+    WonderError when the segment has not been checked, or the depth settings name no depth model."""
     store = SceneStore.open(scene_dir, mode="r+")
     at = SEGMENT.at(seg=seg)
-    accepted = store.attrs(at.accepted)
-    if accepted.get("complete") is not True:
+    accepted, accepted_key = store.meta(at.accepted), store.cache_key_of(at.accepted)
+    if accepted is None or accepted_key is None:
         raise WonderError(f"segment {seg} has not been checked; its geometry needs the check's SfM of its frames")
-    if accepted.get("attempt") is None:
-        why = "; ".join(accepted.get("reasons") or []) or "every attempt failed"
-        return {"segment": seg, "placed": False, "reason": f"the check dropped it ({why})", "attempt": None}
+    if accepted.attempt is None:
+        why = "; ".join(accepted.reasons) or "every attempt failed"
+        return GeometryAttrs(placed=False, reason=f"the check dropped it ({why})")
     if settings.models.depth_backend == "none":
         raise WonderError(
             "guided extensions place each segment's frames by their depth: set steps.priors.models.depth_backend"
         )
-    k = int(accepted["attempt"])
-    ap = ATTEMPT.at(seg=seg, attempt=k)
-    frames = store.array(ap.frames)
-    key = geometry_key(accepted["cache_key"], k, frames, settings, params)
-    if store.is_complete(at.geometry, key):
-        return _summary(seg, store.attrs(at.geometry))
-    sfm_poses, registered = store.array(ap.sfm.poses), store.array(ap.sfm.registered)
-    pred = _raw_depth(store, seg, ap, settings.models, frames, _ground_truth(store, ap))
+    k = accepted.attempt
+    frames = store.array(ATTEMPT.at(seg=seg, attempt=k).frames)
+    key = geometry_key(accepted_key, k, frames, settings, params)
+    if not store.is_complete(at.geometry, key):
+        _place(store, seg, k, frames, key, settings, params)
+    return store.meta(at.geometry)
+
+
+def _place(
+    store: SceneStore,
+    seg: str,
+    k: int,
+    frames: np.ndarray,
+    key: str,
+    settings: PriorsStepParams,
+    params: GeometryParams,
+) -> None:
+    """Attempt `k` of `seg` (its check's SfM and its raw depth) mapped into the plan's world and committed."""
+    from wonderverse.segment_geometry import place_segment
+
+    at, ap = SEGMENT.at(seg=seg), ATTEMPT.at(seg=seg, attempt=k)
+    pred = raw_depth(store, seg, ap, settings.models, frames, ground_truth(store, ap))
+    sfm = [store.array(a) for a in (ap.sfm.poses, ap.sfm.registered, ap.sfm.points, ap.sfm.K)]
     try:
         geo = place_segment(
-            pred.depth,
-            pred.kind,
-            sfm_poses,
-            registered,
-            store.array(ap.sfm.points),
-            store.array(ap.sfm.K),
-            store.array(at.path),
-            settings.models.align,
-            settings.sky_beyond_ref,
-            params,
+            pred.depth, pred.kind, *sfm, store.array(at.path), settings.models.align, settings.sky_beyond_ref, params
         )
     except ValueError as e:  # SfM that cannot be placed: recorded, so the extensions say why
         with store.staged(at.geometry, key, placed=False, reason=str(e), attempt=k):
             pass
-        return _summary(seg, store.attrs(at.geometry))
-    attrs = {
-        "placed": True,
-        "reason": "",
-        "attempt": k,
-        "to_plan": geo.to_plan.to_dict(),
-        "fit_rms": geo.fit_rms,
-        "fit_rms_rel": geo.fit_rms_rel if np.isfinite(geo.fit_rms_rel) else None,
-        "registered_frames": int(geo.registered.sum()),
-        "aligned_frames": int(geo.aligned.sum()),
-        "reasons": geo.reasons[:20],
-    }
+        return
     g_path = at.geometry
-    with store.staged(g_path, key, **attrs) as g:
+    with store.staged(
+        g_path,
+        key,
+        placed=True,
+        attempt=k,
+        to_plan=geo.to_plan.to_dict(),
+        fit_rms=geo.fit_rms,
+        fit_rms_rel=geo.fit_rms_rel,
+        registered_frames=int(geo.registered.sum()),
+        aligned_frames=int(geo.aligned.sum()),
+        reasons=geo.reasons[:20],
+    ) as g:
         write_array(g, g_path.depth, geo.depth)
         write_array(g, g_path.poses, geo.poses)
         write_array(g, g_path.K, geo.K)
         write_array(g, g_path.registered, geo.registered)
         write_array(g, g_path.aligned, geo.aligned)
-    return _summary(seg, attrs)
-
-
-def check_and_place(
-    seg: str, scene_dir: str, check_params: Any, settings: PriorsStepParams, params: GeometryParams
-) -> dict[str, Any]:
-    """One segment's check (`tasks.check.check_segment`, regenerating until an attempt passes) and then its
-    geometry (`place`): the check's summary with the geometry's under "geometry"."""
-    from tasks.check import check_segment
-
-    summary = check_segment(seg, scene_dir, check_params)
-    return summary | {"geometry": place(seg, scene_dir, settings, params)}
 
 
 def parent_geometry_key(store: SceneStore, seg: str, parent: str) -> str:
@@ -145,20 +133,20 @@ def parent_geometry_key(store: SceneStore, seg: str, parent: str) -> str:
     parent has none: dropped by the check, or not checked and placed yet. (A parent whose SfM could not be placed
     has a geometry saying so: its extensions are generated without a guide, see `parent_guide`.)"""
     at = SEGMENT.at(seg=parent)
-    accepted = store.attrs(at.accepted)
-    if accepted.get("complete") is True and accepted.get("attempt") is None:
-        why = "; ".join(accepted.get("reasons") or []) or "every attempt failed"
+    accepted = store.meta(at.accepted)
+    if accepted is not None and accepted.attempt is None:
+        why = "; ".join(accepted.reasons) or "every attempt failed"
         raise WonderError(
             f"segment {seg}: its parent segment {parent} was dropped by the check ({why}), so there is no geometry "
             f"to guide it; keep {parent} with steps.check.on_failure keep_best, or allow more check.max_attempts"
         )
-    geometry = store.attrs(at.geometry)
-    if geometry.get("complete") is not True:
+    key = store.cache_key_of(at.geometry)
+    if key is None:
         raise WonderError(
             f"segment {seg}: its parent segment {parent} has no geometry yet (it is made once {parent} is checked, "
             "by generate_segments); run generate_segments"
         )
-    return str(geometry["cache_key"])
+    return key
 
 
 def parent_guide(
@@ -181,12 +169,12 @@ def parent_guide(
 
     key = parent_geometry_key(store, seg, parent)
     g_path = SEGMENT.at(seg=parent).geometry
-    attrs = store.attrs(g_path)
-    if not attrs.get("placed"):
-        reason = f"its parent segment {parent} could not be placed in the plan's world: {attrs.get('reason')}"
+    geometry = store.meta(g_path)
+    if not geometry.placed or geometry.attempt is None:
+        reason = f"its parent segment {parent} could not be placed in the plan's world: {geometry.reason}"
         log.warning("segment %s is generated without a guide: %s", seg, reason)
         return None, {"source": None, "coverage": 0.0, "geometry_key": key, "reason": reason}
-    k = int(attrs["attempt"])
+    k = geometry.attempt
     try:
         guide = guide_from_geometry(
             store.array(ATTEMPT.at(seg=parent, attempt=k).frames),

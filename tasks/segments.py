@@ -7,6 +7,7 @@ from collections.abc import Callable
 import numpy as np
 
 from wonderverse.schema import ATTEMPT, ATTEMPTS, SEGMENT, SEGMENTS, SFM, GroupPath
+from wonderverse.schema.attrs import SegmentAttrs
 from wonderverse.store import SceneStore
 
 
@@ -18,13 +19,22 @@ def attempt_ids(store: SceneStore, seg: str) -> list[int]:
     return sorted(int(a) for a in store.children(ATTEMPTS.at(seg=seg)) if a.isdigit())
 
 
+def segment_meta(store: SceneStore, seg: str) -> SegmentAttrs:
+    """A segment's attributes (role, move, reference, ...); the defaults for a segment not written yet."""
+    return store.meta(SEGMENT.at(seg=seg), complete=False) or SegmentAttrs()
+
+
+def stitched_order(store: SceneStore) -> list[str]:
+    """Segment ids in playback order (the plan's, once generate_segments has recorded it; else generation order)."""
+    meta = store.meta(SEGMENTS.path, complete=False)
+    return (meta.order if meta is not None else []) or segment_ids(store)
+
+
 def accepted_attempt(store: SceneStore, seg: str) -> int | None:
     """The attempt later steps follow: the check step's `accepted` pointer (None: segment dropped);
     before any check, attempt 0."""
-    a = store.attrs(SEGMENT.at(seg=seg).accepted)
-    if a.get("complete") is not True:
-        return 0
-    return None if a.get("attempt") is None else int(a["attempt"])
+    a = store.meta(SEGMENT.at(seg=seg).accepted)
+    return 0 if a is None else a.attempt
 
 
 def attempt_path(store: SceneStore, seg: str, attempt: int | None = None) -> GroupPath:
@@ -43,13 +53,7 @@ def frames(store: SceneStore, seg: str, attempt: int | None = None) -> np.ndarra
 def intrinsics(store: SceneStore, seg: str) -> tuple[np.ndarray, bool]:
     """A segment's K (3,3) and whether it is known (the renderer's, or a clip's given field of view) rather
     than guessed; stores written before the flag existed count as guessed."""
-    return store.array(SEGMENT.at(seg=seg).K), store.attrs(SEGMENT.at(seg=seg)).get("k_is_guess", True) is False
-
-
-def stitched_frame_index(reversed_: bool, n_frames: int, which: str) -> int:
-    """Generation-order index of the `which` ('first'|'last') frame a segment shows in the stitched video."""
-    first, last = (n_frames - 1, 0) if reversed_ else (0, n_frames - 1)
-    return first if which == "first" else last
+    return store.array(SEGMENT.at(seg=seg).K), not segment_meta(store, seg).k_is_guess
 
 
 def stitched(store: SceneStore) -> tuple[np.ndarray, list[tuple[str, int]]]:
@@ -58,17 +62,16 @@ def stitched(store: SceneStore) -> tuple[np.ndarray, list[tuple[str, int]]]:
     Left extensions play reversed; every generated extension's frame 0 repeats its reference frame and
     is dropped so the video never stalls at a seam (user clips keep all their frames). Segments the check
     dropped are left out."""
-    order = store.attrs(SEGMENTS.path).get("order") or segment_ids(store)
     out, index = [], []
-    for seg in order:
+    for seg in stitched_order(store):
         if accepted_attempt(store, seg) is None:
             continue
-        attrs = store.attrs(SEGMENT.at(seg=seg))
+        attrs = segment_meta(store, seg)
         f = frames(store, seg)
         idx = np.arange(len(f))
-        if attrs.get("repeats_reference", attrs.get("role", "init") != "init"):
+        if attrs.repeats:
             idx = idx[1:]
-        if attrs.get("reversed"):
+        if attrs.reversed:
             idx = idx[::-1]
         out.append(f[idx])
         index += [(seg, int(i)) for i in idx]
@@ -81,7 +84,7 @@ def posed_stitched(
     """The stitched frames with a global pose (`sfm/`), in stitched order: {name: per-frame rows stacked} for each
     `arrays[name](seg)` (the path of a (T, ...) array of the segment), W2C poses (N,4,4) and frame names
     (`s000_0007`: segment, generation-order index). Each segment's arrays are read once."""
-    segs = store.attrs(SFM.path)["segments"]
+    segs = store.meta(SFM.path).segments
     index, poses = store.array(SFM.frame_index), store.array(SFM.poses)
     keep = np.isfinite(poses).all(axis=(1, 2))
     read: dict[str, dict[str, np.ndarray]] = {}

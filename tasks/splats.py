@@ -40,7 +40,7 @@ def load_views(store: SceneStore) -> tuple[Views, list[str]]:
     from tasks.segments import attempt_path, posed_stitched
     from wonderverse.splats.trainer import Views
 
-    first = store.attrs(SFM.path)["segments"][0]
+    first = store.meta(SFM.path).segments[0]
     priors = {
         name for name in ("depth", "aligned", "normals") if store.exists(getattr(PRIORS_SEGMENT.at(seg=first), name))
     }
@@ -72,14 +72,14 @@ def _previous(store: SceneStore, p: SplatsStepParams, names: list[str]) -> Previ
     from wonderverse.splats.model import GaussianModel, normalization_from_dict
     from wonderverse.splats.seeding import PreviousSplats
 
-    prev = store.attrs(SPLATS.path)
-    if prev.get("complete") is not True or prev.get("train_digest") != _train_digest(p):
+    prev = store.meta(SPLATS.path)
+    if prev is None or prev.train_digest != _train_digest(p):
         return None
-    old = set(prev.get("frames", []))
+    old = set(prev.frames)
     if not (old and old < set(names)):
         return None
     arrays = {k: store.array(getattr(SPLATS, k)) for k in GaussianModel.PARAM_NAMES}
-    return PreviousSplats(arrays, normalization_from_dict(prev["normalization"]), prev["frames"])
+    return PreviousSplats(arrays, normalization_from_dict(prev.normalization), prev.frames)
 
 
 def stored_sky(store: SceneStore) -> np.ndarray | None:
@@ -87,7 +87,7 @@ def stored_sky(store: SceneStore) -> np.ndarray | None:
     the learnt colour (3,); None for splats stored without either."""
     if "sky_map" in store.group(SPLATS.path):
         return store.array(SPLATS.sky_map)
-    colour = store.attrs(SPLATS.path).get("metrics", {}).get("background_rgb")
+    colour = store.meta(SPLATS.path, complete=False).metrics.background_rgb
     return None if colour is None else np.asarray(colour, np.float32)
 
 
@@ -107,25 +107,25 @@ def _load_checkpoint(store: SceneStore, key: str, device: Any, n_views: int, sh_
     one or one whose layout is not the trainer's state is ignored with one warning: training starts over."""
     from wonderverse.splats.checkpoint import blob_size, check_train_state, unpack
 
-    a = store.attrs(CHECKPOINT)
-    if a.get("complete") is not True or a.get("run_key") != key:
-        return None
     try:
-        if a.get("cache_key") != cache_key("checkpoint", CHECKPOINT_VERSION, {"step": a.get("step")}, [key]):
+        a = store.meta(CHECKPOINT)
+        if a is None or a.run_key != key:
+            return None
+        if store.cache_key_of(CHECKPOINT) != cache_key("checkpoint", CHECKPOINT_VERSION, {"step": a.step}, [key]):
             raise ValueError("written by another version")
-        size = blob_size(a.get("layout"))
+        size = blob_size(a.layout)
         arr = store.group(CHECKPOINT)["state"]
         if arr.dtype != np.uint8 or arr.shape != (size,):  # checked before reading: a crafted shape is not read
             raise ValueError(f"its state array is {arr.dtype} {arr.shape}, the layout needs uint8 ({size},)")
-        state = unpack(store.array(CHECKPOINT.state).tobytes(), a["layout"], device)
+        state = unpack(store.array(CHECKPOINT.state).tobytes(), a.layout, device)
         check_train_state(state, n_views, sh_rest)
-        if state["step"] != a["step"]:
-            raise ValueError(f"its state is at step {state['step']}, its attributes say {a['step']}")
+        if state["step"] != a.step:
+            raise ValueError(f"its state is at step {state['step']}, its attributes say {a.step}")
     except Exception as e:  # a checkpoint is only a cache: whatever is wrong with it, train from the start
         reason = " ".join(f"{type(e).__name__}: {e}".split())
         log.warning("ignoring the splat training checkpoint (%s); training starts from the beginning", reason[:300])
         return None
-    log.warning("resuming splat training from the checkpoint at step %d", a["step"])
+    log.warning("resuming splat training from the checkpoint at step %d", a.step)
     return state
 
 
@@ -173,7 +173,6 @@ def run(store: SceneStore, p: SplatsStepParams, ctx: StepContext) -> str:
         ctx.key,
         normalization=normalization_to_dict(norm),
         metrics=metrics,
-        files=[],  # splats.ply is the outputs step's (in the outputs' frame)
         frames=names,
         train_digest=_train_digest(p),
         extended_from=None if previous is None else {"frames": len(previous.frames), "kept_gaussians": fixed},

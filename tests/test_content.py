@@ -10,7 +10,6 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from tasks.generate_segments import segment_prompt
 from wonderverse.camera import camera_centers, move_path
 from wonderverse.video.content import (
     VOCABULARY,
@@ -20,6 +19,7 @@ from wonderverse.video.content import (
     segment_words,
 )
 from wonderverse.video.procedural import ProceduralVideo
+from wonderverse.video.prompts import segment_prompt
 
 OUTDOOR = "a quiet village with houses and trees"
 INDOOR = "a cozy living room with a sofa"
@@ -195,17 +195,15 @@ def test_placement_depends_only_on_seed_words_and_end_pose() -> None:
 def test_a_fresh_video_model_replays_the_words_of_earlier_segments(lake_run: dict) -> None:
     """A later step or `extend` builds a new video model: `replay_content` gives it the stored segments' words, so
     the next segment still sees the lake (and an unguided backend without a world is left alone)."""
-    from tasks.generate_segments import replay_content
-    from wonderverse.config import VideoSource, VideoSpec
+    from wonderverse.video.prompts import replay_content
 
     fresh = video()
-    source = VideoSource(video=VideoSpec(), prompt=OUTDOOR, seed=0)
     replay_content(
         fresh,
-        source,
+        OUTDOOR,
         [("left", "a frozen lake on the left", lake_run["path"]), ("right", "", turn(lake_run["start"], -20.0))],
     )
     second = fresh.generate(segment_prompt(OUTDOOR, "left", ""), lake_run["second_path"], 2, None)
     assert second.gt.label_names == {0: "lake (frozen)"}
     assert np.array_equal(second.gt.labels, lake_run["second"].gt.labels)
-    replay_content(object(), source, [("left", "a frozen lake on the left", lake_run["path"])])  # no world: no-op
+    replay_content(object(), OUTDOOR, [("left", "a frozen lake on the left", lake_run["path"])])  # no world: no-op

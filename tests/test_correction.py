@@ -11,10 +11,10 @@ import pytest
 from conftest import tiny_config
 
 from flows.pipeline import StepFailed, execute
-from tasks.generate_segments import attempt_seed
 from wonderverse.metrics import ate, depth_errors
 from wonderverse.store import SceneStore
 from wonderverse.video.procedural import ProceduralOptions, draw_fault
+from wonderverse.video.prompts import attempt_seed
 
 pytestmark = pytest.mark.e2e  # whole scenes through the pipeline
 

@@ -20,10 +20,10 @@ from flows.pipeline import execute, run_pipeline
 from tasks import STEPS, step_keys
 from tasks import generate_segments as gs
 from tasks.plan import load_plan
-from tasks.segments import stitched_frame_index
 from wonderverse.camera import camera_centers
 from wonderverse.config import RunConfig, build_config, deep_merge
 from wonderverse.errors import ConfigError, WonderError
+from wonderverse.planning.paths import stitched_frame_index
 from wonderverse.store import SceneStore, cache_key
 from wonderverse.video import make_video_model
 from wonderverse.video.base import Guide

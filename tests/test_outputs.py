@@ -19,7 +19,8 @@ from plyfile import PlyData
 from test_media import assert_web_video
 
 from flows.pipeline import execute
-from tasks.outputs import output_frame, posed_frames
+from tasks.output_scene import posed_frames
+from tasks.outputs import output_frame
 from wonderverse.camera import Sim3, camera_centers
 from wonderverse.config import RunConfig
 from wonderverse.exports import read_camera_path, read_colmap_poses, read_nerfstudio_poses

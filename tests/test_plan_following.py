@@ -27,7 +27,7 @@ from wonderverse.two_view import TwoViewPath
 
 T = 25
 START = look_at(np.array([1.0, 2.0, 1.5]), np.array([5.0, 3.0, 1.0]))  # looking slightly down
-STRAFE_M_PER_DEG = 0.04  # as the planner adds to a turn (tasks/generate_segments.py)
+STRAFE_M_PER_DEG = 0.04  # as the planner adds to a turn (wonderverse/planning/paths.py)
 FAST = settings(max_examples=150, deadline=None)
 
 

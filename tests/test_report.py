@@ -30,7 +30,6 @@ from flows.inspect import summarize
 from flows.pipeline import execute
 from flows.report import report_state, write_report
 from tasks import STEPS
-from tasks.generate_segments import attempt_seed
 from tasks.segments import attempt_ids, segment_ids
 from wonderverse.config import build_config
 from wonderverse.errors import WonderError
@@ -50,6 +49,7 @@ from wonderverse.report import (
 )
 from wonderverse.store import SceneStore
 from wonderverse.video.procedural import ProceduralOptions, draw_fault
+from wonderverse.video.prompts import attempt_seed
 
 VIEWPORT = {"width": 1280, "height": 900}
 VIDEOS = ("novel.mp4", "flythrough.mp4")

@@ -37,7 +37,8 @@ from zarr.errors import ContainsGroupError
 
 from wonderverse import STORE_FORMAT, __version__
 from wonderverse.errors import StoreError
-from wonderverse.schema import ArrayPath
+from wonderverse.schema import ArrayPath, group_of
+from wonderverse.schema.attrs import Attrs
 
 STORE_NAME = "scene.zarr"
 LOCK_NAME = ".wonderverse.lock"  # beside the store; see `scene_lock`
@@ -46,6 +47,38 @@ _TRASH = "_trash"
 DIGESTS = "chunk_digests"  # group attribute: {"algorithm", "arrays": {array: {file: [bytes, crc]}}, "groups": {...}}
 DAMAGED = "damaged"  # group attribute: what was found wrong when it was marked incomplete
 _ALGORITHM = "crc32c"  # 3.7 GB/s here (google-crc32c, a dependency of zarr) against blake2b's 0.46 GB/s
+_BOOKKEEPING = frozenset({"cache_key", "complete", DIGESTS, DAMAGED})  # the store's own attributes of a group
+_writer: str | None = None  # the step whose run this process is in (`writing`): what may commit groups
+
+
+@contextmanager
+def writing(step: str) -> Iterator[None]:
+    """Commits made in the block are the step `step`'s: a group whose declared writers (`schema.Group.writer`,
+    `shared`) do not include it is refused (StoreError), which keeps the one-writer rule of the schema."""
+    global _writer
+    before, _writer = _writer, step
+    try:
+        yield
+    finally:
+        _writer = before
+
+
+def attrs_json(group_path: str, attrs: dict[str, Any]) -> dict[str, Any]:
+    """`attrs` validated by the model of the group `group_path` belongs to (`schema.attrs`), as JSON; ValueError
+    naming the group when they do not fit it. Undeclared groups (a test's) take them as they are."""
+    group = group_of(group_path)
+    if group is None:
+        return attrs
+    try:
+        return group.attrs.model_validate(attrs).model_dump(mode="json")
+    except Exception as e:
+        raise ValueError(f"attributes of {group_path or 'the scene'} do not fit its schema: {e}") from None
+
+
+def _check_writer(group_path: str) -> None:
+    group = group_of(group_path)
+    if _writer is not None and group is not None and not group.may_write(_writer):
+        raise StoreError(f"step {_writer} may not write {group_path}: the schema names {group.writer} its writer")
 
 
 class DamagedData(StoreError):
@@ -208,7 +241,7 @@ class SceneStore:
             root.attrs.update({"format": STORE_FORMAT, "wonderverse_version": __version__})
             store = cls(scene_dir, root)
         if spec is not None:
-            store.root.attrs["spec"] = spec
+            store.update_attrs("", spec=spec)
         return store
 
     @classmethod
@@ -253,6 +286,31 @@ class SceneStore:
         a = self._raw_attrs(group_path)
         a.pop(DIGESTS, None)
         return a
+
+    def meta(self, group_path: str, complete: bool = True) -> Any:
+        """The group's attributes as its schema model (`schema.attrs`), the store's bookkeeping left out; None when
+        the group is absent, or (`complete`) not complete. DamagedData naming the group when they do not fit the
+        model. (`complete` false: a part committed with its parent, an attempt inside its segment.)"""
+        raw = self._raw_attrs(group_path)
+        group = group_of(group_path)
+        if not self.exists(group_path) or (complete and raw.get("complete") is not True):
+            return None
+        if group is None:
+            raise KeyError(f"{group_path} is no group of the schema")
+        model: type[Attrs] = group.attrs
+        known = {k: v for k, v in raw.items() if k in model.model_fields}
+        try:
+            return model.model_validate(known)
+        except Exception as e:
+            what = " ".join(str(e).split())[:300]
+            raise DamagedData(group_path or "the scene", f"its attributes do not fit the schema ({what})") from None
+
+    def update_attrs(self, group_path: str, **attrs: Any) -> None:
+        """Set some attributes of an existing group (the flow's `seconds`, the root's config), validated with the
+        ones it has."""
+        g = self.group(group_path)
+        current = {k: v for k, v in dict(g.attrs).items() if k not in _BOOKKEEPING}
+        g.attrs.update({k: v for k, v in attrs_json(group_path, current | attrs).items() if k in attrs})
 
     def _raw_attrs(self, group_path: str) -> dict[str, Any]:
         try:
@@ -350,9 +408,11 @@ class SceneStore:
     def mark_complete(self, group_path: str, key: str, **attrs: Any) -> None:
         """Write extra attributes, the digests of what the group holds (its arrays; its complete sub-groups by
         key), then `cache_key`, then `complete=true` (last)."""
+        _check_writer(group_path)
         self._commit(group_path, key, _record(self._dir(group_path)), attrs)
 
     def _commit(self, group_path: str, key: str, record: dict[str, Any], attrs: dict[str, Any]) -> None:
+        attrs = attrs_json(group_path, attrs)
         g = self.group(group_path)
         g.attrs.update({**attrs, DIGESTS: record, "cache_key": key, "complete": False})
         if DAMAGED in g.attrs:
@@ -375,6 +435,8 @@ class SceneStore:
         A rewrite under the key the group already has (a repair of damaged data: the same key makes the same
         content) keeps the units other steps committed inside the old version (a segment's checked attempts),
         hard-linked into the new one before it replaces the old."""
+        _check_writer(group_path)
+        attrs_json(group_path, attrs)  # refused before anything is written
         staging_path = f"{_STAGING}/{uuid.uuid4().hex}"
         g = zarr.open_group(self.root.store, path=staging_path, mode="w", zarr_format=3)
         try:

@@ -8,18 +8,26 @@ chunking. Code reaches the store through these declarations only, so no group pa
     ATTEMPT.at(seg="s001", attempt=2).frames    -> "segments/s001/attempts/2/frames"
     store.array(SFM.poses); store.attrs(SEGMENT.at(seg=seg)); write(group, ATTEMPT.frames, frames)
 
-`GroupPath` and `ArrayPath` are `str`s, so every `SceneStore` method takes them as they are. Adding a group:
-declare it here (docstring: what writes it, what it holds), then use it.
+`GroupPath` and `ArrayPath` are `str`s, so every `SceneStore` method takes them as they are. A group's attributes
+are a pydantic model (`wonderverse.schema.attrs`): validated when written, typed when read
+(`store.meta(SFM.path).k_source`). Every group names the one step that writes it (`writer`), and the steps that may
+write it on that step's behalf (`shared`: a guided flow's generate_segments checks segments and computes their raw
+depth under the check's and the priors' own keys); the store refuses any other writer while a step runs.
+
+Adding a group: declare it here (doc: what it holds; its writer; its attributes' model), then use it.
 """
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from string import Formatter
 from typing import Any, Literal
 
 import numpy as np
+
+from wonderverse.schema import attrs as A
 
 Chunking = Literal["frame", "whole", "blob"]
 BLOB_CHUNK = 1 << 24  # bytes per chunk of an opaque byte array (a COLMAP database, model files)
@@ -103,13 +111,20 @@ class GroupPath(str):
 
 @dataclass(frozen=True)
 class Group:
-    """A group of the store: path template, arrays, attributes (name -> meaning), what it is for."""
+    """A group of the store: path template, what it is for, the step that writes it (and those that share it), its
+    arrays and the model of its attributes."""
 
     template: str
     doc: str
+    writer: str
     arrays: Mapping[str, Array] = field(default_factory=dict)
-    attrs: Mapping[str, str] = field(default_factory=dict)
+    attrs: type[A.Attrs] = A.NoAttrs
+    shared: tuple[str, ...] = ()  # steps that write it too, on the writer's behalf (under the writer's keys)
     any_arrays: Array | None = None  # arrays named at run time all follow this declaration
+
+    def may_write(self, step: str) -> bool:
+        """Whether `step` may commit this group."""
+        return step == self.writer or step in self.shared
 
     @property
     def ids(self) -> tuple[str, ...]:
@@ -148,77 +163,53 @@ def _frames(doc: str) -> Array:
 POSES = Array("float64", ("T", 4, 4), "whole", "world-to-camera 4x4, OpenCV axes; NaN where unknown")
 K = Array("float64", (3, 3), "whole", "pinhole intrinsics in pixels, pixel centres at +0.5")
 
-ROOT_ATTRS = {  # the root group's attributes (the store itself writes format and version; flows.pipeline the rest)
-    "format": "store format number; a store of a newer format is refused",
-    "wonderverse_version": "the version that created the store",
-    "spec": "the SceneSpec (JSON) of the latest run",
-    "config": "the RunConfig (JSON) of the last run that completed; a failed run never replaces it",
-    "segments_config": "the RunConfig the segments were last generated under (what a re-run must not discard)",
-}
+GT = "generate_segments"  # the guided flow's generate_segments: checks segments and computes their raw depth
 
-PLAN = Group(
-    "plan",
-    "step plan: one camera move per segment",
-    attrs={
-        "plan": "the Plan (segments with roles, moves, references)",
-        "moves": "paper-format moves",
-        "intents": "the user's words per segment",
-    },
-)
+ROOT = Group("", "the scene: written by the store (format, version) and the flow (spec, config)", "", attrs=A.RootAttrs)
+PLAN = Group("plan", "step plan: one camera move per segment", "plan", attrs=A.PlanAttrs)
 SEGMENTS = Group(
     "segments",
     "step generate_segments: the parent of every segment; complete when every planned segment is",
-    attrs={"order": "segment ids in stitched order"},
+    "generate_segments",
+    attrs=A.SegmentsAttrs,
 )
 SEGMENT = Group(
     "segments/{seg}",
-    "one segment (s000, s001, ... in generation order): its planned path, K and attempts",
+    "one segment (s000, s001, ... in generation order): its planned path, K and attempts (attempt 0 is committed "
+    "with it)",
+    "generate_segments",
     arrays={
         "path": Array("float64", ("T", 4, 4), "whole", "conditioning path, W2C (NaN for user clips)"),
         "K": K,
     },
-    attrs={
-        "role": "init|left|right|up|down|forward|back",
-        "reversed": "plays reversed in the stitched video",
-        "move": "paper-format move",
-        "intent": "the user's words",
-        "reference_segment": "parent segment",
-        "reference_frame": "parent frame it continues",
-        "repeats_reference": "frame 0 is the parent's frame",
-        "k_is_guess": "K guessed rather than known",
-        "guide_geometry_key": "guided extensions: the key of the parent's geometry its guide was rendered from",
-        "guide_params": "guided extensions: the GuideParams its guide was rendered with (regenerations reuse them)",
-    },
+    attrs=A.SegmentAttrs,
 )
-ATTEMPTS = Group("segments/{seg}/attempts", "the generation attempts of a segment (0, 1, ...)")
+ATTEMPTS = Group("segments/{seg}/attempts", "the generation attempts of a segment (0, 1, ...)", "generate_segments")
 ATTEMPT = Group(
     "segments/{seg}/attempts/{attempt}",
-    "one generation attempt: its frames",
+    "one generation attempt: its frames (attempts after the first: the check's regenerations)",
+    "check",
     arrays={"frames": _frames("the rendered or read frames, RGB")},
-    attrs={
-        "seed": "generation seed",
-        "source": "video backend",
-        "guide": "guided extensions: {source, coverage, geometry_key} of the guide it was generated from; absent else",
-    },
+    attrs=A.AttemptAttrs,
+    shared=(GT,),
 )
 ATTEMPT_GT = Group(
     "segments/{seg}/attempts/{attempt}/gt",
-    "ground truth of a procedural attempt (never read by the pipeline's decisions)",
+    "ground truth of a procedural attempt (never read by the pipeline's decisions); committed with its attempt",
+    "check",
     arrays={
         "poses": POSES,
         "depth": Array("float32", ("T", "H", "W"), "frame", "camera z; +inf for sky"),
         "normals": Array("float16", ("T", "H", "W", 3), "frame", "camera-space unit normals"),
         "labels": Array("int16", ("T", "H", "W"), "frame", "content the user's words placed, by label id; -1 none"),
     },
-    attrs={
-        "faults": "injected faults (type, frames)",
-        "label_names": "label id -> what the words named, e.g. {'0': 'lake (frozen)'} (when content was placed)",
-        "guide": "guided procedural attempts: the guide's coverage and error against the truth (guide.guide_errors)",
-    },
+    attrs=A.GroundTruthAttrs,
+    shared=(GT,),
 )
 ATTEMPT_SFM = Group(
     "segments/{seg}/attempts/{attempt}/sfm",
     "step check: the attempt's own SfM",
+    "check",
     arrays={
         "poses": POSES,
         "registered": Array("bool", ("T",), "whole"),
@@ -226,37 +217,29 @@ ATTEMPT_SFM = Group(
         "points": Array("float64", ("N", 3), "whole", "sparse points"),
         "colors": Array("uint8", ("N", 3), "whole"),
     },
-    attrs={
-        "mapper": "mapper that succeeded",
-        "reproj_error_px": "",
-        "n_points": "",
-        "timings": "seconds per stage",
-        "problems": "what went wrong, in words",
-        "stopped": "why SfM stopped before mapping (too little parallax), in words; empty when it mapped",
-        "parallax": "the look for parallax before mapping (wonderverse.parallax.ParallaxReport.to_attrs); "
-        "None when K was known",
-        "k_source": "where K came from: given (known: the renderer's or a given FOV), estimated (refined or "
-        "self-calibrated by SfM from a guess), guessed (the guess kept as it was)",
-        "K": "the K used, 3x3 pixels (estimated, else the segment's)",
-        "fov_deg": "horizontal field of view of that K, degrees",
-        "pixel_aspect": "fy/fx of that K",
-    },
+    attrs=A.AttemptSfmAttrs,
+    shared=(GT,),
 )
 ATTEMPT_CHECK = Group(
     "segments/{seg}/attempts/{attempt}/check",
     "step check: the abnormal-sequence decision on the attempt",
-    attrs={"accepted": "passed", "reasons": "why not, in words", "sfm_seconds": ""},
+    "check",
+    attrs=A.AttemptCheckAttrs,
+    shared=(GT,),
 )
 ACCEPTED = Group(
     "segments/{seg}/accepted",
     "step check: the attempt later steps follow (None: dropped)",
-    attrs={"attempt": "accepted attempt index", "dropped": "", "reasons": "", "attempts": "", "extra_trials": ""},
+    "check",
+    attrs=A.AcceptedAttrs,
+    shared=(GT,),
 )
 SEGMENT_GEOMETRY = Group(
     "segments/{seg}/geometry",
     "guided flows (generate_segments): the accepted attempt's frames placed in the plan's world, what its "
     "extensions' guides are rendered from (wonderverse.segment_geometry); keyed by the accepted attempt and "
     "the depth settings",
+    "generate_segments",
     arrays={
         "depth": Array("float32", ("T", "H", "W"), "frame", "camera z in plan units; +inf sky; NaN unregistered"),
         "poses": Array("float64", ("T", 4, 4), "whole", "W2C in the plan's world; NaN where not registered"),
@@ -264,26 +247,13 @@ SEGMENT_GEOMETRY = Group(
         "registered": Array("bool", ("T",), "whole"),
         "aligned": Array("bool", ("T",), "whole", "the frame's depth alignment to the SfM points held"),
     },
-    attrs={
-        "placed": "whether the geometry could be placed (False: `reason` says why; no arrays)",
-        "reason": "why it could not be placed, in words",
-        "attempt": "the accepted attempt it belongs to",
-        "to_plan": "the Sim3 (to_dict) taking the attempt's SfM world onto the plan's",
-        "fit_rms": "RMS of the camera centres' residuals after that Sim3, plan units",
-        "fit_rms_rel": "the same, share of the planned path's length",
-        "registered_frames": "",
-        "aligned_frames": "",
-        "reasons": "frames whose depth alignment failed, in words",
-    },
+    attrs=A.GeometryAttrs,
 )
-CHECK = Group(
-    "check",
-    "step check: the summary over segments",
-    attrs={"segments": "per-segment summaries", "mean_extra_trials": "", "dropped": "", "kept_failing": ""},
-)
+CHECK = Group("check", "step check: the summary over segments", "check", attrs=A.CheckAttrs)
 SFM = Group(
     "sfm",
     "step poses: one camera path for every stitched frame, in one world frame",
+    "poses",
     arrays={
         "poses": POSES,
         "registered": Array("bool", ("T",), "whole"),
@@ -293,29 +263,24 @@ SFM = Group(
         "colors": Array("uint8", ("N", 3), "whole"),
         "colmap_database": Array("uint8", ("N",), "blob", "COLMAP's database.db, bytes"),
     },
-    attrs={
-        "source": "sfm|conditioning",
-        "segments": "segment ids in stitched order",
-        "solve": "full | incremental (an extension registered into the kept model)",
-        "k_source": "where K came from: given, estimated or guessed (as segments/{seg}/attempts/{k}/sfm)",
-        "K": "the K used, 3x3 pixels",
-        "fov_deg": "horizontal field of view of that K, degrees",
-        "pixel_aspect": "fy/fx of that K",
-    },
+    attrs=A.SfmAttrs,
 )
 SFM_MODEL = Group(
     "sfm/colmap_model",
     "step poses: the COLMAP model files (cameras.bin, images.bin, points3D.bin) as bytes",
+    "poses",
     any_arrays=Array("uint8", ("N",), "blob"),
 )
 PRIORS = Group(
     "priors",
     "step priors: complete when every segment's priors are (none at all when both backends are none)",
-    attrs={"backends": "[depth backend, normal backend]"},
+    "priors",
+    attrs=A.PriorsAttrs,
 )
 PRIORS_SEGMENT = Group(
     "priors/{seg}",
     "step priors: a segment's depth and normal priors, depth aligned per frame to the global SfM points",
+    "priors",
     arrays={
         "depth": Array("float32", ("T", "H", "W"), "frame", "aligned camera z; +inf for sky"),
         "normals": Array("float16", ("T", "H", "W", 3), "frame", "camera-space unit normals"),
@@ -324,23 +289,21 @@ PRIORS_SEGMENT = Group(
         "shift": Array("float64", ("T",), "whole"),
         "aligned": Array("bool", ("T",), "whole"),
     },
-    attrs={
-        "kind": "depth|inverse_depth",
-        "aligned_frames": "",
-        "frames": "",
-        "reasons": "",
-        "sky_share": "share of the segment's pixels whose aligned depth is +inf (sky: `sky_beyond_ref`)",
-    },
+    attrs=A.PriorsSegmentAttrs,
 )
-PRIORS_RAW = Group("priors_raw", "step priors: the depth network's raw output, kept across extensions")
+PRIORS_RAW = Group(
+    "priors_raw", "step priors: the depth network's raw output, kept across extensions", "priors", shared=(GT,)
+)
 PRIORS_RAW_SEGMENT = Group(
     "priors_raw/{seg}",
     "step priors: a segment's raw depth prediction (per attempt and model settings)",
+    "priors",
     arrays={
         "depth": Array("float32", ("T", "H", "W"), "frame", "network output, affine-ambiguous"),
         "confidence": Array("float16", ("T", "H", "W"), "frame"),
     },
-    attrs={"kind": "depth|inverse_depth"},
+    attrs=A.PriorsRawAttrs,
+    shared=(GT,),
 )
 _GAUSSIANS = {
     "means": Array("float32", ("N", 3), "whole"),
@@ -353,6 +316,7 @@ _GAUSSIANS = {
 SPLATS = Group(
     "splats",
     "step splats: the trained Gaussians, in the training frame (`normalization` maps it to the world)",
+    "splats",
     arrays={
         **_GAUSSIANS,
         "sky_map": Array(
@@ -363,44 +327,43 @@ SPLATS = Group(
             "only with train.sky_map_rows > 0, else the sky is metrics.background_rgb",
         ),
     },
-    attrs={
-        "normalization": "",
-        "metrics": "",
-        "files": "",
-        "frames": "",
-        "train_digest": "",
-        "extended_from": "",
-        "curves": "per-iteration loss terms",
-    },
+    attrs=A.SplatsAttrs,
 )
 SPLATS_CHECKPOINT = Group(
     "splats_checkpoint",
     "step splats: the latest training checkpoint (removed when training completes)",
+    "splats",
     arrays={"state": Array("uint8", ("N",), "blob", "the tensors end to end, as `layout` says; never a pickle")},
-    attrs={
-        "step": "iteration",
-        "run_key": "the training it belongs to",
-        "layout": "the state's tree (JSON) and its tensors' dtypes and shapes (wonderverse.splats.checkpoint)",
-    },
+    attrs=A.CheckpointAttrs,
 )
-OUTPUTS = Group(
+OUTPUTS = Group("outputs", "step outputs: the files written beside the store", "outputs", attrs=A.OutputsAttrs)
+OUTPUT_PRODUCT = Group(
+    "outputs/{product}",
+    "step outputs: one product (frame, mesh, splat_files, points, colmap, nerfstudio, camera_paths, videos, quality), "
+    "keyed by the settings it reads (tasks.outputs.PRODUCTS)",
     "outputs",
-    "step outputs: the files written beside the store",
-    attrs={
-        "files": "[{path, bytes, description}] of the files written beside the store",
-        "mesh": "",
-        "render_size": "",
-        "quality": "",
-        "frame": "the output world frame: world_from_sfm (Sim3 dict), up_in_sfm, world (in words), the evidence",
-        "colmap": "{tracks_from}: where colmap/'s points and observations come from",
-        "nerfstudio": "{depth_pixels, depth_clipped}: depth PNG pixels written, and dropped beyond 65.535 units",
-    },
+    attrs=A.OutputProductAttrs,
 )
 
 GROUPS: tuple[Group, ...] = (
-    PLAN, SEGMENTS, SEGMENT, ATTEMPTS, ATTEMPT, ATTEMPT_GT, ATTEMPT_SFM, ATTEMPT_CHECK, ACCEPTED, SEGMENT_GEOMETRY,
-    CHECK, SFM, SFM_MODEL, PRIORS, PRIORS_SEGMENT, PRIORS_RAW, PRIORS_RAW_SEGMENT, SPLATS, SPLATS_CHECKPOINT, OUTPUTS,
+    ROOT, PLAN, SEGMENTS, SEGMENT, ATTEMPTS, ATTEMPT, ATTEMPT_GT, ATTEMPT_SFM, ATTEMPT_CHECK, ACCEPTED,
+    SEGMENT_GEOMETRY, CHECK, SFM, SFM_MODEL, PRIORS, PRIORS_SEGMENT, PRIORS_RAW, PRIORS_RAW_SEGMENT, SPLATS,
+    SPLATS_CHECKPOINT, OUTPUTS, OUTPUT_PRODUCT,
 )  # fmt: skip
+
+_MATCHERS = [
+    (re.compile("^" + re.sub(r"\\\{\w+\\\}", "[^/]+", re.escape(g.template)) + "$"), g) for g in GROUPS if g.template
+]
+
+
+def group_of(path: str) -> Group | None:
+    """The declared group a concrete path belongs to (None: not declared, e.g. a test's ad-hoc group)."""
+    if isinstance(path, GroupPath):
+        return path.group
+    if path == "":
+        return ROOT
+    return next((g for pattern, g in _MATCHERS if pattern.match(path)), None)
+
 
 _CHILDREN: dict[tuple[str, str], Group] = {
     (g.template.rsplit("/", 1)[0], g.template.rsplit("/", 1)[1]): g for g in GROUPS if "/" in g.template

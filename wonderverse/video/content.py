@@ -375,7 +375,7 @@ def _count(word: str) -> int:
 
 def segment_words(prompt: str, scene_prompt: str) -> str:
     """The user's words in a segment's prompt: what follows the scene prompt ("... displaying {scene prompt}.
-    {words}.", `tasks.generate_segments.segment_prompt`), or the whole prompt when the scene prompt is not in it
+    {words}.", `wonderverse.video.prompts.segment_prompt`), or the whole prompt when the scene prompt is not in it
     (the scene's own words never place content a second time)."""
     norm = " ".join(prompt.split())
     scene = " ".join(scene_prompt.split())

@@ -1,0 +1,167 @@
+"""How each product of the outputs step is made from an `OutputScene`: one function per product, each calling the
+library's entry point for it (`wonderverse.products`) and returning the files written and the figures recorded in
+its group `outputs/<product>` (the records of the products it comes after are in `scene.records`)."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from tasks.output_scene import OutputScene
+from tasks.progress import callback
+from wonderverse.products import Written
+from wonderverse.schema import SFM
+
+Made = tuple[list[Written], dict[str, Any]]
+MIN_GROUND_POINTS = 30  # fewer SfM points than this: the ground is sought among the splats' opaque centres
+
+
+def make_frame(scene: OutputScene, prompt: str) -> Made:
+    """The output world frame: the `sfm/` frame turned so that +Z is up (`estimate_gravity` from the cameras and the
+    ground), origin on the ground below the cameras' centroid; poses from the conditioning path are already in the
+    video backend's +Z-up world, which is kept as it is."""
+    from wonderverse.gravity import estimate_gravity, given_frame
+    from wonderverse.mesh import gaussian_points
+    from wonderverse.products import world_statement
+
+    store = scene.store
+    source = store.meta(SFM.path).source
+    if source == "conditioning":  # the video backend's own world: its paths were planned with +Z up
+        gravity = given_frame("the conditioning camera path's world, +Z up by construction")
+    else:
+        # the ground plane is sought in the SfM points: on procedural scenes their plane was 2.5°, 13.2°, 8.7° and
+        # 5.0° off the true up where the fused mesh's was 10.2°, 14.5°, 16.1° and 14.6° (the cameras decided on
+        # all of them: within 0.05° on the 3-segment preview scenes, 0.2° and 1.6° on two 10-frame ones)
+        points = store.array(SFM.points3d)
+        if len(points) < MIN_GROUND_POINTS:
+            points = gaussian_points(scene.arrays, scene.norm_sfm, 0.5).points
+        gravity = estimate_gravity(scene.w2c_sfm, points)
+    g = gravity.world_from_input
+    world = world_statement(gravity, source)
+    frame = {"world_from_sfm": g.to_dict(), "up_in_sfm": gravity.up.tolist(), "world": world} | gravity.evidence
+    return [], {"frame": frame}
+
+
+def make_mesh(scene: OutputScene, prompt: str) -> Made:
+    from wonderverse.products.mesh import export_mesh
+
+    cams, views = scene.fusion
+    files, rec = export_mesh(
+        views, cams, scene.Kr, scene.p.mesh, scene.to_world, scene.world, scene.out, callback("views fused")
+    )
+    return files, {
+        "mesh": {"triangles": rec.triangles, "vertices": rec.vertices, "extent": rec.extent, "look": rec.look}
+    }
+
+
+def make_splat_files(scene: OutputScene, prompt: str) -> Made:
+    """The Gaussians, pruned of floaters, absurd and invisible ones (viewers frame and render what is left)."""
+    from wonderverse.products.splat_files import export_splats
+    from wonderverse.splats.ply import to_world
+
+    store, g = scene.store, scene.to_world
+    points = g.apply(store.array(SFM.points3d)) if store.exists(SFM.points3d) else None
+    extent = scene.records["mesh"].mesh.extent
+    gaussians = to_world(scene.arrays, scene.norm)
+    files, pruned = export_splats(
+        gaussians, scene.w2c, scene.K, scene.size, points, extent, scene.p.prune, scene.world, scene.out
+    )
+    return files, {"pruned": pruned}
+
+
+def make_points(scene: OutputScene, prompt: str) -> Made:
+    from wonderverse.products.splat_files import export_points
+
+    return export_points(scene.cloud, scene.world, scene.out), {"points": len(scene.cloud.points)}
+
+
+def make_colmap(scene: OutputScene, prompt: str) -> Made:
+    """A COLMAP dataset with the global SfM's tracks (or, without an SfM model, the point cloud's projections)."""
+    from wonderverse.products.datasets import FROM_MODEL, FROM_PROJECTIONS, export_colmap, projected_tracks
+
+    if not scene.p.colmap:
+        return [], {}
+    tracks = _model_tracks(scene)
+    tracks_from = FROM_MODEL
+    if tracks is None:
+        tracks_from = FROM_PROJECTIONS
+        tracks = projected_tracks(scene.cloud, scene.w2c, scene.K, scene.size, scene.training_depths, scene.Kr)
+    files = export_colmap(scene.frames, scene.K, scene.w2c, scene.names, tracks, tracks_from, scene.world, scene.out)
+    return files, {"colmap": {"tracks_from": tracks_from}}
+
+
+def _model_tracks(scene: OutputScene) -> Any:
+    """The global SfM's points and observations in the output frame (its COLMAP model, mapped into the world
+    through `model_to_world` and on into the output frame), or None when the poses did not come from SfM."""
+    from wonderverse.camera import Sim3
+    from wonderverse.products.datasets import model_tracks
+
+    store = scene.store
+    if not store.exists(SFM.colmap_model):
+        return None
+    stored = store.meta(SFM.path).model_to_world
+    model_to_world = Sim3.identity() if stored is None else Sim3.from_dict(stored)
+    g = scene.to_world
+    with tempfile.TemporaryDirectory() as d:
+        for f in store.children(SFM.colmap_model):
+            (Path(d) / f).write_bytes(store.array(SFM.colmap_model.array(f)).tobytes())
+        return model_tracks(Path(d), scene.names, scene.size, lambda p: g.apply(model_to_world.apply(p)))
+
+
+def make_nerfstudio(scene: OutputScene, prompt: str) -> Made:
+    from wonderverse.products.datasets import export_nerfstudio
+
+    if not scene.p.nerfstudio:
+        return [], {}
+    args = (scene.frames, scene.K, scene.w2c, scene.names, scene.training_depths, scene.cloud, scene.world, scene.out)
+    files, stats = export_nerfstudio(*args)
+    return files, {"nerfstudio": stats}
+
+
+def _video_paths(scene: OutputScene) -> dict[str, np.ndarray]:
+    from wonderverse.products.camera_paths import video_paths
+
+    p = scene.p
+    return video_paths(scene.w2c, p.video_frames, p.novel_offset_frac, scene.records["mesh"].mesh.look)
+
+
+def make_camera_paths(scene: OutputScene, prompt: str) -> Made:
+    from wonderverse.products.camera_paths import export_camera_paths
+
+    p = scene.p
+    ns = scene.w2c if p.nerfstudio else None
+    return export_camera_paths(
+        _video_paths(scene), scene.Kr, scene.render_size, p.video_fps, scene.world, scene.out, ns
+    ), {}
+
+
+def make_videos(scene: OutputScene, prompt: str) -> Made:
+    from wonderverse.products.videos import export_video
+
+    paths, files = _video_paths(scene), []
+    for name, unit, what in (
+        ("flythrough", "fly-through frames", "fly-through video of the splats (H.264, faststart)"),
+        ("novel", "novel-view frames", "novel-view video off the training path (H.264)"),
+    ):
+        rgb = _rgb(scene.render(paths[name], scene.norm, unit))
+        files.append(export_video(rgb, scene.p.video_fps, scene.out / f"{name}.mp4", what))
+    return files, {}
+
+
+def make_quality(scene: OutputScene, prompt: str) -> Made:
+    """No-reference quality of novel views: the scored frames of the novel path, rendered alone."""
+    from wonderverse.products.videos import quality_picks
+    from wonderverse.quality import score_views
+
+    novel = _video_paths(scene)["novel"]
+    picks = quality_picks(len(novel), scene.p.quality_frames)
+    rgb = _rgb(scene.render(novel[picks], scene.norm, "views scored"))
+    metrics = callback("quality metrics", eta=False)  # unequal: NIQE is quick, a CLIP model loads first
+    return [], {"quality": score_views(list(rgb), prompt, scene.p.quality, metrics)}
+
+
+def _rgb(views: list[Any]) -> np.ndarray:
+    return np.stack([np.round(v.rgb * 255).astype(np.uint8) for v in views])

@@ -1,0 +1,142 @@
+"""What the outputs' products are made from, read once per run: the trained splats, the posed stitched frames, the
+output world frame (the `frame` product's record) and splat renders, made when a product first needs them."""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from tasks.progress import callback
+from tasks.segments import attempt_path, posed_stitched
+from tasks.splats import stored_sky
+from wonderverse.config import ExecutionParams, OutputsParams
+from wonderverse.schema import SFM, SPLATS
+from wonderverse.schema.attrs import OutputProductAttrs
+from wonderverse.store import SceneStore
+
+if TYPE_CHECKING:
+    from wonderverse.camera import Sim3
+    from wonderverse.mesh import PointCloud
+
+
+def posed_frames(store: SceneStore) -> tuple[np.ndarray, np.ndarray, list[str]]:
+    """Stitched frames that have a global pose: frames (N,H,W,3) uint8, W2C (N,4,4) in the `sfm/` frame,
+    names `s000_0007`."""
+    rows, w2c, names = posed_stitched(store, {"frames": lambda seg: attempt_path(store, seg).frames})
+    return rows["frames"], w2c, names
+
+
+@dataclass
+class OutputScene:
+    """The splats (`arrays` in the training frame, `norm_sfm` mapping it to the `sfm/` frame, the `background`),
+    the posed frames (`frames`, `w2c_sfm`, `names`, K at `size` = (width, height)), the render size and K of every
+    product's renders (`render_size`, `Kr`), and the records of the products made so far (`records`)."""
+
+    store: SceneStore
+    p: OutputsParams
+    execution: ExecutionParams
+    arrays: dict[str, np.ndarray]
+    norm_sfm: Sim3
+    background: np.ndarray | None
+    frames: np.ndarray
+    w2c_sfm: np.ndarray
+    names: list[str]
+    K: np.ndarray
+    render_size: tuple[int, int]
+    Kr: np.ndarray
+    records: dict[str, OutputProductAttrs] = field(default_factory=dict)
+
+    @classmethod
+    def load(cls, store: SceneStore, p: OutputsParams, execution: ExecutionParams) -> OutputScene:
+        from wonderverse.camera import fit_intrinsics
+        from wonderverse.splats.model import GaussianModel, normalization_from_dict
+
+        frames, w2c_sfm, names = posed_frames(store)
+        K = store.array(SFM.K)
+        height, width = frames.shape[1:3]
+        w, h, Kr = fit_intrinsics(width, height, K, p.render_max_side_px)
+        norm = normalization_from_dict(store.meta(SPLATS.path).normalization)
+        arrays = {name: store.array(getattr(SPLATS, name)) for name in GaussianModel.PARAM_NAMES}
+        return cls(store, p, execution, arrays, norm, stored_sky(store), frames, w2c_sfm, names, K, (w, h), Kr)
+
+    @property
+    def out(self) -> Path:
+        """The folder the files are written to: the scene's, beside the store."""
+        return Path(self.store.scene_dir)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height) of the frames."""
+        return self.frames.shape[2], self.frames.shape[1]
+
+    @property
+    def to_world(self) -> Sim3:
+        """The rigid transform from the `sfm/` frame to the output world frame (the `frame` product's)."""
+        from wonderverse.camera import Sim3
+
+        return Sim3.from_dict(self.records["frame"].frame.world_from_sfm)
+
+    @property
+    def world(self) -> str:
+        """The output world frame in words (what every file states)."""
+        return self.records["frame"].frame.world
+
+    @property
+    def norm(self) -> Sim3:
+        """Output world -> the splats' training frame."""
+        return self.norm_sfm.compose(self.to_world.inverse())
+
+    @property
+    def w2c(self) -> np.ndarray:
+        """The training cameras W2C in the output world frame."""
+        return self.to_world.transform_w2c(self.w2c_sfm)
+
+    def render(self, poses: np.ndarray, norm: Sim3, unit: str) -> list[Any]:
+        """Splat renders (`RenderedView`s) from W2C `poses` of the frame `norm` maps to training, at the render
+        size; `unit` names them in the progress line."""
+        from wonderverse.splats.renderer import make_renderer
+        from wonderverse.splats.views import render_views
+
+        w, h = self.render_size
+        workers = self.execution.render_workers or _usable_cores()
+        renderer = make_renderer(self.execution.renderer)
+        views = render_views(
+            self.arrays, norm, poses, self.Kr, w, h, renderer, self.background, workers=workers, progress=callback(unit)
+        )
+        return list(views)
+
+    @cached_property
+    def fusion(self) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+        """The cameras fused into the mesh (the training cameras with `mesh.extra_views_per_gap` between each
+        pair, `sfm/` frame) and their renders: colour as uint8 and depth (all held until the extent is known)."""
+        from wonderverse.mesh import fusion_cameras
+
+        cams = fusion_cameras(self.w2c_sfm, self.p.mesh.extra_views_per_gap)
+        rendered = self.render(cams, self.norm_sfm, "views rendered for the mesh")
+        return cams, [(np.round(v.rgb * 255).astype(np.uint8), v.depth) for v in rendered]
+
+    @cached_property
+    def training_depths(self) -> list[np.ndarray]:
+        """Rendered depth (camera z, at `Kr`) from every training camera: the fusion's when it was rendered."""
+        if "fusion" in self.__dict__:
+            extra = self.p.mesh.extra_views_per_gap + 1  # views[i * extra] was rendered from training camera i
+            return [self.fusion[1][i * extra][1] for i in range(len(self.w2c_sfm))]
+        return [v.depth for v in self.render(self.w2c_sfm, self.norm_sfm, "views rendered for depth")]
+
+    @cached_property
+    def cloud(self) -> PointCloud:
+        """The opaque Gaussians' centres in the output frame (points.ply and the datasets' points)."""
+        from wonderverse.camera import camera_centers
+        from wonderverse.products.splat_files import point_cloud
+
+        return point_cloud(self.arrays, self.norm, self.p.mesh.points_min_opacity, camera_centers(self.w2c))
+
+
+def _usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity where the OS has one), not the host's count."""
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
