@@ -515,11 +515,13 @@ def run_all(world: World, engine: str, tmp_path: Path) -> list[Case]:
     return todo
 
 
+@pytest.mark.e2e
 def test_every_bad_input_is_one_error_line_exit_2_and_changes_nothing_local(world: World, tmp_path: Path):
     done = run_all(world, "local", tmp_path)
     assert len({c.name for c in done}) == len(done) >= 135
 
 
+@pytest.mark.e2e
 def test_every_bad_input_is_one_error_line_exit_2_and_changes_nothing_prefect(world: World, tmp_path: Path):
     done = run_all(world, "prefect", tmp_path)
     assert len(done) >= 110
@@ -536,6 +538,7 @@ def _run(*args: str, env: dict[str, str] | None = None, timeout: float = 300) ->
     )
 
 
+@pytest.mark.e2e
 @pytest.mark.parametrize("engine", ["local", "prefect"])
 def test_damaged_segment_data_is_rebuilt_by_its_step(world: World, tmp_path: Path, engine: str):
     """A deleted frame chunk and a segment's damaged array metadata (its inputs, the plan, intact): the same run
@@ -586,6 +589,7 @@ class _Nonsense(BaseHTTPRequestHandler):
         pass
 
 
+@pytest.mark.e2e
 def test_a_chat_server_answering_nonsense_falls_back_to_the_rules_with_a_warning(tmp_path: Path):
     httpd = ThreadingHTTPServer(("127.0.0.1", 0), _Nonsense)
     httpd.calls = 0  # type: ignore[attr-defined]

@@ -286,6 +286,7 @@ class Payload:
         return (Path.write_text, (self.marker, "pwned"))
 
 
+@pytest.mark.e2e
 def test_a_pickle_planted_as_the_checkpoint_is_never_run(tmp_path: Path, caplog: pytest.LogCaptureFixture) -> None:
     import io
 

@@ -55,6 +55,7 @@ def scenes(tmp_path_factory) -> tuple[Path, dict]:
     return scene, {"before": before, "results": {r.step: r.status for r in results}}
 
 
+@pytest.mark.e2e
 def test_only_the_new_segment_is_generated_and_checked(scenes) -> None:
     scene, info = scenes
     store = SceneStore.open(scene)
@@ -69,6 +70,7 @@ def test_only_the_new_segment_is_generated_and_checked(scenes) -> None:
     assert info["results"]["outputs"] == "ran" and info["results"]["splats"] == "ran"
 
 
+@pytest.mark.e2e
 def test_poses_register_only_the_new_frames_and_old_frames_keep_their_poses(scenes) -> None:
     scene, info = scenes
     store = SceneStore.open(scene)
@@ -81,6 +83,7 @@ def test_poses_register_only_the_new_frames_and_old_frames_keep_their_poses(scen
     assert any(np.isfinite(pose).all() for (seg, _), pose in after.items() if seg == "s002")
 
 
+@pytest.mark.e2e
 def test_splats_continue_from_the_existing_gaussians(scenes) -> None:
     scene, info = scenes
     a = SceneStore.open(scene).attrs("splats")
@@ -93,6 +96,7 @@ def test_splats_continue_from_the_existing_gaussians(scenes) -> None:
     assert len(a["curves"]["total"]) == round(splats.train.iterations * splats.extend_iterations_frac)
 
 
+@pytest.mark.e2e
 def test_history_is_kept_and_inspect_shows_it(scenes) -> None:
     scene, _ = scenes
     r = run_cli("inspect", str(scene), "--json")

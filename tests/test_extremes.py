@@ -817,6 +817,7 @@ def _non_finite(store) -> dict[str, tuple[int, int]]:
     return found
 
 
+@pytest.mark.e2e
 def test_end_to_end_stores_and_exports_only_finite_values(scaled_scenes) -> None:
     for scale, f in scaled_scenes.items():
         bad = _non_finite(f["store"])
@@ -840,6 +841,7 @@ def _numbers(doc) -> list[float]:
     return [float(doc)] if isinstance(doc, int | float) and not isinstance(doc, bool) else []
 
 
+@pytest.mark.e2e
 def test_end_to_end_is_the_same_scene_scaled(scaled_scenes) -> None:
     (small, ref), (large, f) = sorted(scaled_scenes.items())
     factor = large / small
@@ -855,6 +857,7 @@ def test_end_to_end_is_the_same_scene_scaled(scaled_scenes) -> None:
     assert f["prior_absrel"] == pytest.approx(ref["prior_absrel"], rel=1e-4)
 
 
+@pytest.mark.e2e
 @pytest.mark.parametrize("scale", E2E_SCALES)
 def test_end_to_end_quality_is_within_the_stated_bounds(scaled_scenes, scale: float) -> None:
     import open3d as o3d

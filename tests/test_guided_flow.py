@@ -81,6 +81,7 @@ def config_of(config: Path) -> RunConfig:
     return build_config(config_file=config)
 
 
+@pytest.mark.e2e
 def test_each_extension_is_generated_from_its_parents_guide(guided: tuple[Path, Path, str]) -> None:
     scene, _, _ = guided
     store = SceneStore.open(scene)
@@ -103,6 +104,7 @@ def test_each_extension_is_generated_from_its_parents_guide(guided: tuple[Path, 
         assert np.abs(first - ref).mean() < 8.0
 
 
+@pytest.mark.e2e
 def test_the_guide_and_geometry_settings_come_from_the_config(guided: tuple[Path, Path, str]) -> None:
     from tasks.segment_geometry import depth_settings, geometry_key
     from wonderverse.guide import GuideParams
@@ -169,6 +171,7 @@ def test_bad_guide_settings_are_refused_naming_the_setting(setting: dict[str, An
         build_config(PROMPT, preset="preview", overrides={"steps": {"generate_segments": setting}})
 
 
+@pytest.mark.e2e
 def test_segments_are_checked_and_placed_inside_generate_segments(guided: tuple[Path, Path, str]) -> None:
     scene, _, stderr = guided
     assert "checked and placed" in stderr and "3 segments (3 cached)" in stderr, stderr[-3000:]
@@ -189,6 +192,7 @@ def test_segments_are_checked_and_placed_inside_generate_segments(guided: tuple[
         assert np.median(np.abs(depth[both] - true_depth[both]) / true_depth[both]) < 0.25, seg
 
 
+@pytest.mark.e2e
 def test_inspect_and_the_report_show_the_guide_of_each_extension(guided: tuple[Path, Path, str]) -> None:
     """Per attempt: where its guide came from, its share of known pixels, and (procedural) its error against the
     truth; in `inspect --json`, inspect's table and the HTML report."""
@@ -253,6 +257,7 @@ def test_an_attempt_generated_without_its_guide_says_why() -> None:
     assert _guided_extensions(segments[:1]) == {}  # an unguided scene has no such section
 
 
+@pytest.mark.e2e
 def test_a_rerun_renders_nothing_and_a_new_depth_setting_regenerates_the_extensions_only(
     guided: tuple[Path, Path, str], tmp_path: Path
 ) -> None:
@@ -283,6 +288,7 @@ def test_a_rerun_renders_nothing_and_a_new_depth_setting_regenerates_the_extensi
     assert results[1].status == "cached" and keys == {g: SceneStore.open(scene).cache_key_of(g) for g in before}
 
 
+@pytest.mark.e2e
 def test_an_extension_gets_its_guide_from_the_parents_geometry_made_on_demand(
     guided: tuple[Path, Path, str], tmp_path: Path
 ) -> None:
@@ -307,6 +313,7 @@ def test_an_extension_gets_its_guide_from_the_parents_geometry_made_on_demand(
     assert store.attrs("segments/s003/geometry")["complete"] is True  # ready for the next extension
 
 
+@pytest.mark.e2e
 def test_an_unguided_flow_is_as_before(tmp_path: Path) -> None:
     cfg = tiny_config()
     assert "accept_guide" not in cfg.scene.video.options.model_dump()  # keys made before the option stay valid
@@ -328,6 +335,7 @@ def test_an_unguided_flow_is_as_before(tmp_path: Path) -> None:
         assert "guide" not in store.attrs(f"segments/{s.id}/attempts/0")
 
 
+@pytest.mark.e2e
 def test_an_extension_whose_parent_was_dropped_is_one_error_line(tmp_path: Path) -> None:
     """Under the Prefect engine (the guided scene above ran with the local one): the check runs as task runs nested
     in generate_segments', and the failure still reaches the user as one line."""
@@ -367,6 +375,7 @@ def test_a_guide_of_the_wrong_size_names_the_segment(tmp_path: Path) -> None:
         model.generate("", path, 0, None, guide=small)
 
 
+@pytest.mark.e2e
 def test_a_guided_family_without_a_mask_capable_pipeline_is_one_error_line(tmp_path: Path) -> None:
     """The guided family's weights are a pipeline that takes no mask (a plain Wan text-to-video folder)."""
     pytest.importorskip("diffusers")
@@ -432,6 +441,7 @@ def test_fusing_neighbouring_frames_removes_independent_depth_noise() -> None:
     np.testing.assert_array_equal(fuse_depth(noisy, w2c, intrinsics(W, H, 60.0), np.ones(T, bool), 0), noisy)
 
 
+@pytest.mark.e2e
 def test_a_guided_flow_without_a_depth_model_is_refused_before_any_segment(tmp_path: Path) -> None:
     overrides = {
         "scene": {"video": GUIDED_VIDEO},

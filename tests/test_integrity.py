@@ -84,6 +84,7 @@ def _damage(scene: Path, array: str, chunk: str, kind: str) -> None:
         DAMAGE[kind](folder / chunk)
 
 
+@pytest.mark.e2e
 @pytest.mark.parametrize("target", sorted(TARGETS))
 @pytest.mark.parametrize("kind", [*DAMAGE, "metadata"])
 def test_damaged_data_is_listed_refused_on_read_and_rebuilt_by_its_step(
@@ -121,6 +122,7 @@ def test_damaged_data_is_listed_refused_on_read_and_rebuilt_by_its_step(
         assert rebuilt.shape[1] == 3 and np.isfinite(rebuilt).all() and len(rebuilt) > 0.8 * len(truth)
 
 
+@pytest.mark.e2e
 def test_inspect_json_lists_the_damaged_group(made: tuple[Path, RunConfig], tmp_path: Path):
     original, _ = made
     scene = tmp_path / "scene"
@@ -136,6 +138,7 @@ def test_inspect_json_lists_the_damaged_group(made: tuple[Path, RunConfig], tmp_
     assert tree_digest(scene) == before  # inspect changes nothing
 
 
+@pytest.mark.e2e
 def test_damaged_input_read_by_a_step_fails_in_one_line_naming_the_group_then_the_next_run_rebuilds_it(
     made: tuple[Path, RunConfig], tmp_path: Path
 ):

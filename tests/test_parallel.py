@@ -41,6 +41,7 @@ def _opened(monkeypatch: pytest.MonkeyPatch) -> list[int]:
     return opened
 
 
+@pytest.mark.e2e
 def test_a_pool_starts_one_cluster_and_every_call_uses_it(monkeypatch: pytest.MonkeyPatch) -> None:
     opened = _opened(monkeypatch)
     me = os.getpid()
@@ -98,6 +99,7 @@ def test_map_segments_starts_a_cluster_per_call_only_when_it_needs_one(monkeypat
     assert not opened
 
 
+@pytest.mark.e2e
 def test_a_guided_scene_checks_every_wave_on_one_cluster(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """A guided 5-segment scene (initial, then two rounds of left and right: waves of 1, 2 and 2 segments) with two
     segment workers: one cluster for the whole step, each wave's two checks on it."""

@@ -25,6 +25,7 @@ def statuses(results) -> dict[str, str]:
     return {r.step: r.status for r in results}
 
 
+@pytest.mark.e2e
 def test_generate_stores_every_segment_and_reruns_cached(tmp_path: Path):
     cfg = tiny_config()
     first = execute(tmp_path / "s", cfg, until="generate_segments")
@@ -54,6 +55,7 @@ def test_generate_stores_every_segment_and_reruns_cached(tmp_path: Path):
     assert [r.cache_key for r in again] == [r.cache_key for r in first]
 
 
+@pytest.mark.e2e
 def test_changed_parameter_reruns_that_step_and_dependants_only(tmp_path: Path):
     cfg = tiny_config()
     execute(tmp_path / "s", cfg, until="generate_segments")
@@ -81,6 +83,7 @@ def test_changed_parameter_reruns_that_step_and_dependants_only(tmp_path: Path):
     assert results[1].detail == "2 rendered, 1 cached"
 
 
+@pytest.mark.e2e
 def test_sigkill_during_generation_resumes_from_last_complete_segment(tmp_path: Path):
     scene = tmp_path / "s"
     spec = {
@@ -143,6 +146,7 @@ def test_sigkill_during_generation_resumes_from_last_complete_segment(tmp_path: 
     assert cached == len(committed) and rendered == 5 - len(committed)
 
 
+@pytest.mark.e2e
 def test_a_second_writer_is_refused_and_changes_nothing(tmp_path: Path):
     from wonderverse.store import scene_lock
 

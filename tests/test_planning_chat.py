@@ -378,6 +378,7 @@ def test_mask_secret_masks_every_run_of_eight_or_more() -> None:
             assert_no_part_of_key(mask_secret(f"x{key[i:j]}y{key}", key))
 
 
+@pytest.mark.e2e
 def test_the_plan_step_stores_no_part_of_an_echoed_key(
     server: ChatServer, long_key: str, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:

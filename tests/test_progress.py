@@ -85,6 +85,7 @@ def _counts_up(seq: list[tuple[int, int, str]], total: int) -> None:
     assert done == sorted(done) and done[0] == 0 and done[-1] == total, done
 
 
+@pytest.mark.e2e
 def test_splats_reports_iterations_with_the_loss(run) -> None:
     seq = run["rec"].of("iterations")
     _counts_up(seq, ITERATIONS)
@@ -98,6 +99,7 @@ def test_splats_reports_iterations_with_the_loss(run) -> None:
     assert all(step == "splats" for step, *_, unit, _, _ in run["rec"].calls if unit == "iterations")
 
 
+@pytest.mark.e2e
 def test_outputs_report_views_and_frames(run) -> None:
     rec = run["rec"]
     rendered, fused = rec.of("views rendered for the mesh"), rec.of("views fused")
@@ -111,6 +113,7 @@ def test_outputs_report_views_and_frames(run) -> None:
         assert [d for d, _, _ in rec.of(unit)] == list(range(VIDEO_FRAMES + 1)), unit
 
 
+@pytest.mark.e2e
 def test_segment_steps_report_each_segment_as_it_finishes(run) -> None:
     rec = run["rec"]
     segs = SceneStore.open(run["scene"]).children("segments")
@@ -125,6 +128,7 @@ def test_segment_steps_report_each_segment_as_it_finishes(run) -> None:
     assert rec.caller_threads == {run["thread"]}  # reported from the step's thread, never a worker's
 
 
+@pytest.mark.e2e
 def test_plain_lines_of_the_run(run) -> None:
     text = run["rec"].text()
     assert re.search(rf"\[6/7\] splats: iterations 0/{ITERATIONS} \(0 %\)", text), text
@@ -182,6 +186,7 @@ def test_fan_out_reports_from_the_calling_thread_in_completion_order() -> None:
     assert {ident for *_, ident in reports} == {threading.get_ident()}
 
 
+@pytest.mark.e2e
 def test_check_counts_only_attempts_generated_in_this_run(run, tmp_path: Path) -> None:
     """An extension re-runs the check: the old segments are cached and their earlier regenerations are
     not this run's; only the new segment's attempts count."""
@@ -214,6 +219,7 @@ for r in run_pipeline(sys.argv[1], cfg, until="splats", engine="prefect"):
 """
 
 
+@pytest.mark.e2e
 def test_prefect_task_runs_log_the_progress(run, tmp_path: Path) -> None:
     """Under the Prefect engine the step task runs' logs hold the same progress lines: a re-run whose
     check settings changed re-checks every segment (as Prefect sub-task runs) and re-trains the splats."""

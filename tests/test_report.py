@@ -247,6 +247,7 @@ def test_user_text_is_escaped_everywhere(prompt, reason, intent):
 # -- the report of a real scene -----------------------------------------------------------------
 
 
+@pytest.mark.e2e
 def test_report_lists_every_segment_and_attempt_with_its_verdict(full_scene: Path):
     text = (full_scene / "report.html").read_text()
     store = SceneStore.open(full_scene)
@@ -269,6 +270,7 @@ def test_report_lists_every_segment_and_attempt_with_its_verdict(full_scene: Pat
     assert segments.count("normal priors") >= 3
 
 
+@pytest.mark.e2e
 def test_a_generated_scene_has_its_plan_and_priors_and_no_clips(full_scene: Path):
     text = (full_scene / "report.html").read_text()
     assert '<section id="plan">' in text and '<section id="clips">' not in text
@@ -286,6 +288,7 @@ def test_a_generated_scene_has_its_plan_and_priors_and_no_clips(full_scene: Path
     }
 
 
+@pytest.mark.e2e
 def test_report_shows_prompt_escaped_timings_metrics_curves_and_files(full_scene: Path):
     text = (full_scene / "report.html").read_text()
     page = assert_self_contained(text, full_scene)
@@ -306,6 +309,7 @@ def test_report_shows_prompt_escaped_timings_metrics_curves_and_files(full_scene
     assert len(page.attrs_of("img")) >= 4 * 2 + 3 + 4  # attempts, previews, overview/paths/trajectory/curves
 
 
+@pytest.mark.e2e
 def test_scene_section_shows_the_videos_and_the_mesh(full_scene: Path):
     text = (full_scene / "report.html").read_text()
     assert text.index('<section id="scene">') < text.index('<section id="plan">')  # near the top
@@ -337,6 +341,7 @@ def test_scene_section_shows_the_videos_and_the_mesh(full_scene: Path):
     assert "No renders" not in scene and "No mesh" not in scene
 
 
+@pytest.mark.e2e
 def test_report_is_rewritten_only_when_the_store_changed(full_scene: Path, tmp_path: Path):
     scene = tmp_path / "copy"
     shutil.copytree(full_scene, scene)
@@ -367,6 +372,7 @@ def test_report_is_rewritten_only_when_the_store_changed(full_scene: Path, tmp_p
     assert [v["src"] for v in Page(section(text, "scene")).attrs_of("video")] == ["flythrough.mp4"]
 
 
+@pytest.mark.e2e
 def test_partial_scene_report_says_what_is_missing(partial_scene: Path, tmp_path: Path):
     scene = tmp_path / "scene"
     shutil.copytree(partial_scene, scene)
@@ -411,6 +417,7 @@ def test_report_of_an_empty_store_and_of_no_store(tmp_path: Path):
 # -- in a browser -------------------------------------------------------------------------------
 
 
+@pytest.mark.e2e
 def test_report_renders_in_headless_chromium(full_scene: Path):
     try:
         from playwright.sync_api import sync_playwright

@@ -101,6 +101,7 @@ def text_of(fragment: str) -> str:
     return " ".join(re.sub(r"<[^>]+>", " ", fragment).split())
 
 
+@pytest.mark.e2e
 def test_clips_table_lists_each_clip_in_order(scene: Path, clips):
     text = (scene / "report.html").read_text()
     assert_self_contained(text, scene)
@@ -124,6 +125,7 @@ def test_clips_table_lists_each_clip_in_order(scene: Path, clips):
     )
 
 
+@pytest.mark.e2e
 def test_a_reconstruction_has_no_rounds_moves_plan_or_users_words(scene: Path):
     text = (scene / "report.html").read_text()
     for words in ("round(s)", "towards left", "user&#x27;s words", "user's words", "up 0, left 0", "camera move",
@@ -135,6 +137,7 @@ def test_a_reconstruction_has_no_rounds_moves_plan_or_users_words(scene: Path):
     assert "one segment per clip, in the order given (nothing planned)" in steps and "read every clip" in steps
 
 
+@pytest.mark.e2e
 def test_no_priors_is_said_in_one_line_in_the_summary_and_where_the_previews_would_be(scene: Path):
     store = SceneStore.open(scene)
     assert store.attrs("priors")["backends"] == ["none", "none"]
@@ -146,6 +149,7 @@ def test_no_priors_is_said_in_one_line_in_the_summary_and_where_the_previews_wou
     assert "depth (turbo" not in segments  # no preview pictures (their caption)
 
 
+@pytest.mark.e2e
 def test_inspect_describes_the_clips_and_the_priors(scene: Path, clips):
     r = run_cli("inspect", str(scene), "--json")
     assert r.returncode == 0, r.stderr
@@ -178,6 +182,7 @@ def test_inspect_describes_the_clips_and_the_priors(scene: Path, clips):
     assert "up 0, left 0" not in r.stdout and " role " not in r.stdout and " move " not in r.stdout
 
 
+@pytest.mark.e2e
 def test_a_failing_clip_kept_and_where_k_came_from(checked: Path, tmp_path: Path):
     """Before the priors step, the configuration says there are none; a kept failing clip says why; K's source
     is read from the check's SfM when it records one, else from the segment's guess flag."""
@@ -200,6 +205,7 @@ def test_a_failing_clip_kept_and_where_k_came_from(checked: Path, tmp_path: Path
     assert [c["k_source"] for c in summarize(store)["clips"]] == ["estimated", "guessed"]
 
 
+@pytest.mark.e2e
 def test_the_global_solve_says_where_its_k_came_from(scene: Path, tmp_path: Path):
     copy = tmp_path / "scene"
     shutil.copytree(scene, copy)
@@ -222,6 +228,7 @@ def test_clip_names_are_escaped():
     assert "<img src=x" not in text and "<script>" not in text and "&lt;b&gt;" in text
 
 
+@pytest.mark.e2e
 def test_clip_report_renders_in_headless_chromium(scene: Path):
     try:
         from playwright.sync_api import sync_playwright

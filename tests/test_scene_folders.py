@@ -53,6 +53,7 @@ def cli_in(cwd: Path, *args: str) -> subprocess.CompletedProcess:
     )
 
 
+@pytest.mark.e2e
 def test_generate_without_out_keeps_another_prompts_scene_and_says_where_it_went(tmp_path):
     r = cli_in(tmp_path, "generate", "a house, decorated!", "--until", "plan", "--engine", "local")
     assert r.returncode == 0, r.stderr

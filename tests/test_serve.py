@@ -150,6 +150,7 @@ def _at(ts: str) -> datetime:
     return datetime.fromisoformat(ts.replace("Z", "+00:00"))
 
 
+@pytest.mark.e2e
 def test_serve_registers_a_cron_deployment_whose_runs_complete(tmp_path: Path):
     """serve over a folder with one spec: the cron schedule creates runs on the minute, a run triggered through
     the API and a cron run both complete, each scene is a subflow whose task runs are the steps (and one per
@@ -228,6 +229,7 @@ def test_serve_registers_a_cron_deployment_whose_runs_complete(tmp_path: Path):
     assert store.children("segments") == ["s000"]
 
 
+@pytest.mark.e2e
 def test_batch_runs_every_spec_and_survives_an_invalid_one(tmp_path: Path):
     """`batch` on Prefect's ephemeral API (no server): the valid scene completes, the invalid spec is named as a
     failure with its reason, exit code 2."""

@@ -168,6 +168,7 @@ def _put_segment(store, world: dict, seg: str, role: str, frames: np.ndarray | N
         write_array(g.create_group("attempts/0"), "frames", frames)
 
 
+@pytest.mark.e2e
 def test_poses_step_registers_an_extension_into_the_stored_reconstruction(world: dict, tmp_path: Path) -> None:
     from conftest import tiny_config
 

@@ -211,6 +211,7 @@ def test_only_files_inside_the_scene_are_served(tmp_path: Path):
 # ------------------------------------------------------------------------------------------- bad input
 
 
+@pytest.mark.e2e
 def test_a_folder_without_splats_or_without_a_scene_is_one_error_line(tmp_path: Path):
     (tmp_path / "empty" / "scene.zarr").mkdir(parents=True)
     for folder, words in [
@@ -225,6 +226,7 @@ def test_a_folder_without_splats_or_without_a_scene_is_one_error_line(tmp_path: 
         assert not (folder / VIEWER_HTML).exists()
 
 
+@pytest.mark.e2e
 def test_a_busy_port_is_one_error_line(scene: Path):
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
@@ -237,6 +239,7 @@ def test_a_busy_port_is_one_error_line(scene: Path):
     ]
 
 
+@pytest.mark.e2e
 def test_a_read_only_scene_is_one_error_line(scene: Path, tmp_path: Path):
     copy = tmp_path / "ro"
     shutil.copytree(scene, copy, ignore=shutil.ignore_patterns(VIEWER_HTML))
@@ -269,6 +272,7 @@ def test_the_viewer_not_installed_is_one_error(monkeypatch, tmp_path: Path):
 # ------------------------------------------------------------------------------------------- the viewer
 
 
+@pytest.mark.e2e
 def test_spark_renders_the_training_cameras_as_our_renderer_does(scene: Path):
     """The served page opens at the first camera; `#camera=K` at camera K; each canvas is within MIN_PSNR_DB of
     our renderer. Nothing is fetched from anywhere but the server. The fly-through plays the outputs' path."""
@@ -327,6 +331,7 @@ def flows_view_files() -> list[str]:
     return list(VIEWER_FILES)
 
 
+@pytest.mark.e2e
 def test_the_spz_is_viewed_in_place_of_the_ply_with_the_same_picture(scene: Path, tmp_path: Path):
     from wonderverse.splats.ply import read_ply
     from wonderverse.splats.web import write_spz
@@ -352,6 +357,7 @@ def test_the_spz_is_viewed_in_place_of_the_ply_with_the_same_picture(scene: Path
     assert not any(r.endswith("/splats.ply") for r in requests)
 
 
+@pytest.mark.e2e
 def test_viewer_html_is_self_contained_and_takes_a_dropped_file_from_disk(scene: Path):
     """viewer.html (written by view) from a web server fetches only the splat file beside it; opened from disk
     it says the file cannot be read beside it, then shows the scene when the file is dropped on it."""
@@ -390,6 +396,7 @@ def test_viewer_html_is_self_contained_and_takes_a_dropped_file_from_disk(scene:
     assert _psnr(dropped, served) >= 40.0
 
 
+@pytest.mark.e2e
 def test_ctrl_c_stops_the_server_and_its_process(scene: Path):
     import psutil
 
