@@ -13,8 +13,8 @@ from typing import Any
 
 from tasks.attempts import RenderParams, generate_segment, segment_key
 from tasks.base import Step, StepContext
+from tasks.fan_out import fan_out
 from tasks.guided import GuidedParams, run_guided
-from tasks.parallel import fan_out
 from tasks.plan import load_plan
 from tasks.progress import advance
 from tasks.segment_geometry import depth_settings

@@ -21,7 +21,8 @@ from typing import Any
 
 from tasks.attempts import RenderParams, generate_segment, guided_key
 from tasks.base import StepContext
-from tasks.parallel import SegmentPool, fan_out, segment_pool
+from tasks.fan_out import fan_out
+from tasks.parallel import SegmentPool, segment_pool
 from tasks.progress import callback
 from tasks.segment_check import CheckParams, SegmentChecked, check_segment, is_checked
 from tasks.segment_geometry import parent_geometry_key, place

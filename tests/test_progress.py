@@ -24,7 +24,7 @@ import tasks.progress
 from flows.extend import extended_config
 from flows.pipeline import execute
 from flows.progress import PlainReporter
-from tasks.parallel import fan_out
+from tasks.fan_out import fan_out
 from wonderverse.config import RunConfig
 from wonderverse.store import SceneStore
 

@@ -196,3 +196,38 @@ def test_every_setting_changes_exactly_the_keys_of_the_steps_that_read_it() -> N
         assert not unreached, f"{s.name}: fields no setting changes: {unreached}"
     print(f"{total} (step, setting) pairs checked over {len(every)} settings")
     assert total >= len(every)
+
+
+def test_every_output_setting_changes_exactly_the_keys_of_the_products_that_read_it() -> None:
+    """The outputs step keys each product by the settings it reads (`tasks.outputs.PRODUCTS`): changing a setting
+    re-makes the products that read it and those that come after them, nothing else; every product reads some
+    setting or an earlier product's record; a new video_fps re-makes the camera paths and the videos alone."""
+    from tasks.outputs import PRODUCTS, params, product_keys
+
+    cfg = build_config("a small house decorated for Christmas", preset="preview")
+    p = params(cfg)
+    keys = product_keys(p, "splats-key")
+    assert product_keys(p, "other-splats") != keys and all(
+        a != b for a, b in zip(product_keys(p, "other-splats").values(), keys.values(), strict=True)
+    )  # every product follows the splats
+    by_name = {product.name: product for product in PRODUCTS}
+    checked = 0
+    for path, value, annotation in leaves(cfg.steps.outputs):
+        other = perturbed(cfg, ("steps", "outputs", *path), value, annotation)
+        if other is None:
+            continue
+        new_p = params(other)
+        reads = {n for n, product in by_name.items() if product.reads(new_p) != product.reads(p)}
+        expected = set(reads)
+        for product in PRODUCTS:  # in order: what comes after a re-made product is re-made
+            if set(product.after) & expected:
+                expected.add(product.name)
+        changed = {n for n, k in product_keys(new_p, "splats-key").items() if k != keys[n]}
+        assert changed == expected, f"{'.'.join(path)}: changed {sorted(changed)}, expected {sorted(expected)}"
+        assert reads, f"{'.'.join(path)} is read by no product"
+        checked += 1
+    assert checked >= 30
+    fps = perturbed(cfg, ("steps", "outputs", "video_fps"), cfg.steps.outputs.video_fps, float)
+    assert fps is not None
+    changed = {n for n, k in product_keys(params(fps), "splats-key").items() if k != keys[n]}
+    assert changed == {"camera_paths", "videos"}

@@ -63,6 +63,11 @@ def writing(step: str) -> Iterator[None]:
         _writer = before
 
 
+def current_writer() -> str | None:
+    """The step whose commits this process makes now (`writing`), None outside any step."""
+    return _writer
+
+
 def attrs_json(group_path: str, attrs: dict[str, Any]) -> dict[str, Any]:
     """`attrs` validated by the model of the group `group_path` belongs to (`schema.attrs`), as JSON; ValueError
     naming the group when they do not fit it. Undeclared groups (a test's) take them as they are."""
