@@ -61,6 +61,7 @@ def _default_scene_folder(prompt: str, name_from: str | None = None) -> tuple[Pa
 
 def _fits_prompt(folder: Path, prompt: str) -> bool:
     """True when a run of `prompt` may use `folder`: absent, empty, or holding a scene made from `prompt`."""
+    from flows.inspect import scene_spec
     from wonderverse.store import LOCK_NAME, STORE_NAME, SceneStore
 
     if not folder.exists():
@@ -70,10 +71,10 @@ def _fits_prompt(folder: Path, prompt: str) -> bool:
     if not (folder / STORE_NAME).exists():
         return not any(p.name != LOCK_NAME for p in folder.iterdir())
     try:
-        spec = SceneStore.open(folder).root.attrs.get("spec")
+        spec = scene_spec(SceneStore.open(folder))
     except WonderError:
         return False
-    return isinstance(spec, dict) and spec.get("prompt") == prompt
+    return spec is not None and spec.prompt == prompt
 
 
 Engine = Annotated[
@@ -214,7 +215,8 @@ def _output_files(scene_dir: Path, steps: set[str]) -> list[Path]:
 
     if "outputs" not in steps:
         return []
-    return [Path(scene_dir) / f["path"] for f in SceneStore.open(scene_dir).attrs(OUTPUTS.path).get("files", [])]
+    meta = SceneStore.open(scene_dir).meta(OUTPUTS.path)
+    return [Path(scene_dir) / f.path for f in meta.files] if meta is not None else []
 
 
 @app.command()
@@ -343,82 +345,86 @@ def inspect(
     """Steps with status and cache key, segments (or clips) with attempts and checks, priors, arrays and sizes."""
     from rich.table import Table
 
-    from flows.inspect import damaged_lines, guide_words, summarize
+    from flows.inspect import damaged_lines, guide_words, scene_spec, scene_summary
     from wonderverse.report import CLIP_VERDICTS
     from wonderverse.store import SceneStore
 
-    info = summarize(SceneStore.open(scene_dir))
+    store = SceneStore.open(scene_dir)
+    info = scene_summary(store)
     if as_json:
-        print(json.dumps(info, indent=2))
+        print(json.dumps(info.model_dump(mode="json"), indent=2))
         return
-    spec = info.get("spec") or {}
-    clips = {c["segment"]: c for c in info["clips"] or []}
-    if info["clips"] is not None:
-        n = len(info["clips"])
-        out.print(f"[bold]{info['scene_dir']}[/] — reconstruction of {n} clip{'s' * (n != 1)}", highlight=False)
+    clips = {c.segment: c for c in info.clips or []}
+    if info.clips is not None:
+        n = len(info.clips)
+        out.print(f"[bold]{info.scene_dir}[/] — reconstruction of {n} clip{'s' * (n != 1)}", highlight=False)
     else:
-        out.print(f"[bold]{info['scene_dir']}[/] — {spec.get('prompt', '?')!r} (seed {spec.get('seed')})")
-    later = "" if info["priors"]["computed"] else " (the priors step has not run)"
-    out.print(f"priors: {info['priors']['words']}{later}", highlight=False)
+        spec = scene_spec(store)
+        prompt, seed = (spec.prompt, spec.seed) if spec is not None else ("?", None)
+        out.print(f"[bold]{info.scene_dir}[/] — {prompt!r} (seed {seed})")
+    later = "" if info.priors.computed else " (the priors step has not run)"
+    out.print(f"priors: {info.priors.words}{later}", highlight=False)
     t = Table(title="steps")
     for c in ("step", "status", "cache key"):
         t.add_column(c)
-    for s in info["steps"]:
-        t.add_row(s["name"], s["status"], (s["cache_key"] or "-")[:12])
+    for s in info.steps:
+        t.add_row(s.name, s.status, (s.cache_key or "-")[:12])
     out.print(t)
     if clips:
         t = Table(title="clips (in the order given; each is one segment)")
         columns: tuple[str, ...] = ("segment", "clip", "frames", "K", "check", "MB")
     else:
-        t = Table(title="segments (stitched order: " + " ".join(info["order"]) + ")")
+        t = Table(title="segments (stitched order: " + " ".join(info.order) + ")")
         columns = ("segment", "role", "move", "attempts", "accepted", "check", "frames", "MB")
     # guided extensions: the share of known pixels of the guide the shown attempt (accepted, else the last) came from
-    guided = not clips and any(a["guide"] is not None for s in info["segments"] for a in s["attempts"])
+    guided = not clips and any(a.guide is not None for s in info.segments for a in s.attempts)
     unguided: list[str] = []
     if guided:
         columns = (*columns[:6], "guide known", *columns[6:])
     for c in columns:
         t.add_column(c)
-    for s in info["segments"]:
-        acc = next((a for a in s["attempts"] if a["index"] == s["accepted_attempt"]), None)
-        shown = acc or (s["attempts"][-1] if s["attempts"] else {})
-        check = (acc or {}).get("check") or {}
-        verdict = "-" if not check else ("ok" if check.get("accepted") else "rejected")
-        shape = ((acc or {}).get("arrays", {}).get("frames") or {}).get("shape", "-")
-        mb = sum(a["bytes"] for a in s["attempts"]) / 1e6
-        clip = clips.get(s["id"])
+    for s in info.segments:
+        acc = next((a for a in s.attempts if a.index == s.accepted_attempt), None)
+        shown = acc or (s.attempts[-1] if s.attempts else None)
+        check = acc.check if acc is not None else None
+        verdict = "-" if check is None else ("ok" if check.accepted else "rejected")
+        frames_info = acc.arrays.get("frames") if acc is not None else None
+        mb = sum(a.bytes for a in s.attempts) / 1e6
+        clip = clips.get(s.id)
         if clip is not None:
-            name = clip["name"] + ("/" if clip["kind"] == "folder" else "")
-            fov = f" {clip['fov_deg']:.1f}°" if clip["fov_deg"] is not None else ""
-            size = f" ({clip['size'][0]}x{clip['size'][1]})" if clip["size"] else ""
-            frames = "-" if clip["frames"] is None else f"{clip['frames']}{size}"
-            row = [s["id"], name, frames, f"{clip['k_source'] or '-'}{fov}", CLIP_VERDICTS[clip["verdict"]]]
-            t.add_row(*row, f"{mb:.1f}")
+            fov = f" {clip.fov_deg:.1f}°" if clip.fov_deg is not None else ""
+            size = f" ({clip.size[0]}x{clip.size[1]})" if clip.size else ""
+            frames = "-" if clip.frames is None else f"{clip.frames}{size}"
+            row = [s.id, _clip_label(clip.name, clip.kind), frames, f"{clip.k_source or '-'}{fov}"]
+            t.add_row(*row, CLIP_VERDICTS[clip.verdict], f"{mb:.1f}")
             continue
-        row = [s["id"], str(s["role"]), str(s["move"]), str(len(s["attempts"])), str(s["accepted_attempt"]), verdict]
+        row = [s.id, s.role, s.move, str(len(s.attempts)), str(s.accepted_attempt), verdict]
+        g = shown.guide if shown is not None else None
         if guided:
-            row.append(guide_words(shown.get("guide")))
-            if shown.get("guide") and guide_words(shown["guide"]) == "none":
-                unguided.append(
-                    f"{s['id']}: generated without a guide: {shown['guide']['reason'] or 'no reason recorded'}"
-                )
-        t.add_row(*row, "x".join(map(str, shape)) if shape != "-" else "-", f"{mb:.1f}")
+            row.append(guide_words(g))
+            if g is not None and guide_words(g) == "none":
+                unguided.append(f"{s.id}: generated without a guide: {g.reason or 'no reason recorded'}")
+        t.add_row(*row, "x".join(map(str, frames_info.shape)) if frames_info else "-", f"{mb:.1f}")
     out.print(t)
     for line in unguided:
         out.print(line, highlight=False)
     for c in clips.values():
-        if c["reasons"]:
-            label = c["name"] + ("/" if c["kind"] == "folder" else "")
-            out.print(f"{c['segment']} {label}: {'; '.join(c['reasons'])}", highlight=False)
-    if info["global_k"]:
-        g = info["global_k"]
-        fov = f", {g['fov_deg']:.1f}° horizontal field of view" if g["fov_deg"] is not None else ""
-        out.print(f"global camera path: K {g['k_source']}{fov}", highlight=False)
-    for e in info["extensions"]:
-        out.print(f"extension {e['segment']}: {e['words']!r}", highlight=False)
+        if c.reasons:
+            out.print(f"{c.segment} {_clip_label(c.name, c.kind)}: {'; '.join(c.reasons)}", highlight=False)
+    if info.global_k is not None:
+        k = info.global_k
+        fov = f", {k.fov_deg:.1f}° horizontal field of view" if k.fov_deg is not None else ""
+        out.print(f"global camera path: K {k.k_source}{fov}", highlight=False)
+    for e in info.extensions:
+        out.print(f"extension {e.segment}: {e.words!r}", highlight=False)
     for line in damaged_lines(info):
         out.print(line, highlight=False)
-    out.print(f"store size: {info['size_bytes'] / 1e6:.1f} MB")
+    out.print(f"store size: {info.size_bytes / 1e6:.1f} MB")
+
+
+def _clip_label(name: str, kind: str) -> str:
+    """A clip's name as a person reads it: folders end with a slash."""
+    return name + ("/" if kind == "folder" else "")
 
 
 @app.command()

@@ -1,8 +1,9 @@
-"""What a scene store holds, as a JSON-able summary (`wonderverse inspect`).
+"""What a scene store holds, as typed records (`scene_summary`) and as JSON (`summarize`, `wonderverse inspect`).
 
-A scene made from the user's clips (video backend `files`) is described as what it is: `clips` lists each clip
-in order with the frames used, where its K came from and its check's verdict; `priors` says which priors every
-scene has (none: the splats train on colours alone)."""
+Every attribute is read through the schema's models (`SceneStore.meta`). A scene made from the user's clips (video
+backend `files`) is described as what it is: `clips` lists each clip in order with the frames used, where its K came
+from and its check's verdict; `priors` says which priors every scene has (none: the splats train on colours
+alone)."""
 
 from __future__ import annotations
 
@@ -12,25 +13,181 @@ from typing import Any
 
 import numpy as np
 import zarr
+from pydantic import BaseModel, ConfigDict, ValidationError
 
 from tasks import STEPS, step_keys
-from tasks.segments import accepted_attempt, attempt_ids, segment_ids
-from wonderverse.config import validate_config
+from tasks.segments import accepted_attempt, attempt_ids, segment_ids, segment_meta
+from wonderverse.config import RunConfig, SceneSpec, validate_config
 from wonderverse.errors import WonderError
-from wonderverse.schema import ATTEMPT, PRIORS, PRIORS_SEGMENT, SEGMENT, SEGMENTS, SFM
+from wonderverse.schema import ATTEMPT, PRIORS, PRIORS_SEGMENT, ROOT, SEGMENT, SEGMENTS, SFM
+from wonderverse.schema.attrs import AttemptCheckAttrs, GuideTruth, RootAttrs
 from wonderverse.store import SceneStore
 
 
-def _arrays(store: SceneStore, group_path: str) -> dict[str, Any]:
+class Record(BaseModel):
+    """A record `inspect` shows; `model_dump(mode="json")` is its part of `inspect --json`."""
+
+    model_config = ConfigDict(frozen=True)
+
+
+class StepStatus(Record):
+    """A pipeline step in the store: complete (its key matches the stored config's), stale (complete under another
+    key) or missing."""
+
+    name: str
+    group: str
+    status: str
+    cache_key: str | None
+
+
+class GuideInfo(Record):
+    """The guide an attempt of a guided flow's extension was generated from (see `guide`)."""
+
+    source: str | None
+    coverage: float | None
+    reason: str = ""
+    truth: GuideTruth | None = None
+
+
+class ArrayInfo(Record):
+    shape: list[int]
+    dtype: str
+    chunks: list[int]
+
+
+class AttemptSummary(Record):
+    """A generation attempt: its seed, the check's decision (None: not checked), the injected faults (procedural
+    ground truth; None without one), its guide, its arrays by path below it, and its bytes."""
+
+    index: int
+    seed: int | None
+    check: AttemptCheckAttrs | None
+    faults: dict[str, Any] | None
+    guide: GuideInfo | None
+    arrays: dict[str, ArrayInfo]
+    bytes: int
+
+
+class SegmentSummary(Record):
+    id: str
+    role: str
+    move: str
+    intent: str
+    reversed: bool
+    reference_segment: str | None
+    reference_frame: int | None
+    complete: bool
+    accepted_attempt: int | None
+    attempts: list[AttemptSummary]
+
+
+class Extension(Record):
+    """One `extend`: the user's words and the segment they made."""
+
+    words: str
+    segment: str
+
+
+class ClipRow(Record):
+    """One of the user's clips (see `clips`)."""
+
+    segment: str
+    source: str
+    name: str
+    kind: str
+    frames: int | None = None
+    size: list[int] | None = None
+    k_source: str | None = None
+    fov_deg: float | None = None
+    verdict: str = "unread"
+    reasons: list[str] = []
+
+
+class PriorsInfo(Record):
+    """The scene's priors (see `priors`)."""
+
+    depth_backend: str | None
+    normal_backend: str | None
+    computed: bool
+    sky_share: float | None
+    words: str
+
+
+class GlobalK(Record):
+    """Where the global solve's K came from and its horizontal field of view (degrees)."""
+
+    k_source: str
+    fov_deg: float | None
+
+
+class DamagedGroup(Record):
+    group: str
+    problems: list[str]
+
+
+class SceneSummary(Record):
+    """Everything `inspect` shows; its JSON is documented in docs/usage.md (`inspect --json`)."""
+
+    scene_dir: str
+    format: int
+    wonderverse_version: str
+    spec: dict[str, Any] | None
+    order: list[str]
+    steps: list[StepStatus]
+    segments: list[SegmentSummary]
+    extensions: list[Extension]
+    clips: list[ClipRow] | None
+    priors: PriorsInfo
+    global_k: GlobalK | None
+    size_bytes: int
+    damaged: list[DamagedGroup]
+
+
+# -- the scene's settings -------------------------------------------------------------------------
+
+
+def root_meta(store: SceneStore) -> RootAttrs:
+    """The root group's attributes: format, version, spec and config as stored."""
+    return store.meta(ROOT.path, complete=False)
+
+
+def scene_spec(store: SceneStore) -> SceneSpec | None:
+    """The SceneSpec of the scene's latest run; None when none is stored or this version cannot read it."""
+    spec = root_meta(store).spec
+    try:
+        return SceneSpec.model_validate(spec) if spec is not None else None
+    except ValidationError:
+        return None
+
+
+def run_config(store: SceneStore) -> RunConfig | None:
+    """The RunConfig of the scene's last completed run; None when none is stored or this version cannot read it."""
+    config = root_meta(store).config
+    try:
+        return validate_config(config) if config else None
+    except WonderError:
+        return None
+
+
+def is_clip_scene(store: SceneStore) -> bool:
+    """Whether the scene is the user's own clips (video backend `files`): nothing generated, nothing planned."""
+    spec = scene_spec(store)
+    return spec is not None and spec.video.backend == "files"
+
+
+# -- arrays ---------------------------------------------------------------------------------------
+
+
+def _arrays(store: SceneStore, group_path: str) -> dict[str, ArrayInfo]:
     """Every array under a group: relative path -> shape, dtype, chunks."""
-    out: dict[str, Any] = {}
+    out: dict[str, ArrayInfo] = {}
     g = store.group(group_path)
     try:
         arrays, groups = list(g.arrays()), list(g.groups())
     except Exception:  # damaged metadata (listed under `damaged`): name what still reads, one node at a time
         arrays, groups = _readable_members(store, group_path)
     for name, arr in arrays:
-        out[name] = {"shape": list(arr.shape), "dtype": str(arr.dtype), "chunks": list(arr.chunks)}
+        out[name] = ArrayInfo(shape=list(arr.shape), dtype=str(arr.dtype), chunks=list(arr.chunks))
     for name, sub in groups:
         if isinstance(sub, zarr.Group):
             out |= {f"{name}/{k}": v for k, v in _arrays(store, f"{group_path}/{name}").items()}
@@ -57,15 +214,6 @@ def _shape(store: SceneStore, path: str) -> tuple[int, ...] | None:
         return None
 
 
-def _spec(store: SceneStore) -> dict[str, Any]:
-    return store.root.attrs.get("spec") or {}
-
-
-def is_clip_scene(store: SceneStore) -> bool:
-    """Whether the scene is the user's own clips (video backend `files`): nothing generated, nothing planned."""
-    return (_spec(store).get("video") or {}).get("backend") == "files"
-
-
 def fov_deg(K: Any, width: int) -> float | None:
     """Horizontal field of view in degrees (to 0.01) of a pinhole K (pixels) for frames `width` pixels wide."""
     try:
@@ -77,36 +225,39 @@ def fov_deg(K: Any, width: int) -> float | None:
     return round(math.degrees(2.0 * math.atan(width / (2.0 * fx))), 2)
 
 
+# -- clips ----------------------------------------------------------------------------------------
+
+
 def _k_source(store: SceneStore, seg: str, sfm: str, width: int) -> tuple[str, float | None]:
     """Where a clip's K came from ("given", "estimated" or "guessed") and its horizontal FOV in degrees.
 
     The check's SfM records `k_source` (and the K it used, as `K` or `fov_deg`) in its attributes; stores
     written before it did say only whether the segment's K was a guess (`k_is_guess`; absent: a guess)."""
-    a = store.attrs(sfm)
-    source = a.get("k_source")
+    a = store.meta(sfm, complete=False)
+    source = a.k_source if a is not None else None
     if source is None:
-        source = "guessed" if store.attrs(SEGMENT.at(seg=seg)).get("k_is_guess", True) is not False else "given"
-    if a.get("K") is not None:  # the K itself before its recorded FOV: one truth
-        return str(source), fov_deg(a["K"], width)
-    if isinstance(a.get("fov_deg"), int | float):
-        return str(source), float(a["fov_deg"])
+        source = "guessed" if segment_meta(store, seg).k_is_guess else "given"
+    if a is not None and a.K is not None:  # the K itself before its recorded FOV: one truth
+        return source, fov_deg(a.K, width)
+    if a is not None and a.fov_deg is not None:
+        return source, float(a.fov_deg)
     # an estimated K is the one the SfM found; a given or guessed one is the segment's
     k_path = f"{sfm}/K" if source == "estimated" and _shape(store, f"{sfm}/K") else SEGMENT.at(seg=seg).K
     try:
-        return str(source), fov_deg(store.array(k_path), width)
+        return source, fov_deg(store.array(k_path), width)
     except Exception:
-        return str(source), None
+        return source, None
 
 
-def _verdict(store: SceneStore, seg: str, check: dict[str, Any]) -> tuple[str, list[str]]:
+def _verdict(store: SceneStore, seg: str, check: AttemptCheckAttrs | None) -> tuple[str, list[str]]:
     """The check's verdict on a clip (`accepted`, `kept_failing`, `dropped`, `unchecked`) and its reasons."""
-    acc = store.attrs(SEGMENT.at(seg=seg).accepted)
-    if acc.get("complete") is not True:
+    acc = store.meta(SEGMENT.at(seg=seg).accepted)
+    if acc is None:
         return "unchecked", []
-    reasons = [str(r) for r in acc.get("reasons") or check.get("reasons") or []]
-    if acc.get("dropped"):
+    reasons = [str(r) for r in acc.reasons or (check.reasons if check is not None else [])]
+    if acc.dropped:
         return "dropped", reasons
-    if acc.get("reasons"):
+    if acc.reasons:
         return "kept_failing", reasons
     return "accepted", []
 
@@ -121,31 +272,22 @@ def clip_kind(source: str) -> str:
     return "video"
 
 
-def clips(store: SceneStore) -> list[dict[str, Any]] | None:
+def clips(store: SceneStore) -> list[ClipRow] | None:
     """Per clip of a `files` scene, in the given order: segment, source (as given), name, kind, frames used,
     size [width, height], k_source and fov_deg, the check's verdict and its reasons. None for other scenes."""
-    if not is_clip_scene(store):
+    spec = scene_spec(store)
+    if spec is None or spec.video.backend != "files":
         return None
-    given = list((_spec(store).get("video") or {}).get("clips") or [])
+    given = list(spec.video.clips)
     segs = segment_ids(store)
     n = max(len(given), max((int(s.lstrip("s")) + 1 for s in segs if s.lstrip("s").isdigit()), default=0))
     out = []
     for i in range(n):
         seg = f"s{i:03d}"
         # the segment records the clip it was read from (its plan entry's words); before that, the spec says
-        source = str(store.attrs(SEGMENT.at(seg=seg)).get("intent") or (given[i] if i < len(given) else ""))
-        row: dict[str, Any] = {
-            "segment": seg,
-            "source": source,
-            "name": Path(source).name or source,
-            "kind": clip_kind(source),
-            "frames": None,
-            "size": None,
-            "k_source": None,
-            "fov_deg": None,
-            "verdict": "unread",
-            "reasons": [],
-        }
+        written = store.meta(SEGMENT.at(seg=seg), complete=False)
+        source = str((written.intent if written is not None else "") or (given[i] if i < len(given) else ""))
+        row: dict[str, Any] = {}
         ks = attempt_ids(store, seg)
         if ks:
             k = accepted_attempt(store, seg)
@@ -154,9 +296,12 @@ def clips(store: SceneStore) -> list[dict[str, Any]] | None:
             if shape:
                 row["frames"], row["size"] = shape[0], [shape[2], shape[1]]
                 row["k_source"], row["fov_deg"] = _k_source(store, seg, ap.sfm, shape[2])
-            row["verdict"], row["reasons"] = _verdict(store, seg, store.attrs(ap.check))
-        out.append(row)
+            row["verdict"], row["reasons"] = _verdict(store, seg, store.meta(ap.check))
+        out.append(ClipRow(segment=seg, source=source, name=Path(source).name or source, kind=clip_kind(source), **row))
     return out
+
+
+# -- priors, K, guides ----------------------------------------------------------------------------
 
 
 def priors_words(depth: str | None, normal: str | None) -> str:
@@ -168,164 +313,167 @@ def priors_words(depth: str | None, normal: str | None) -> str:
     return f"depth {depth}, normals {normal}"
 
 
-def priors(store: SceneStore) -> dict[str, Any]:
+def priors(store: SceneStore) -> PriorsInfo:
     """The scene's priors: depth and normal backends (from the priors step when it ran, else from the stored
-    configuration), whether the step computed them, the mean share of pixels the depth prior marked sky (None
+    configuration), whether the step computed them, the share of pixels the depth prior marked sky (None
     without one), and in words."""
-    backends = store.attrs(PRIORS.path).get("backends")
-    done = store.cache_key_of(PRIORS.path) is not None and isinstance(backends, list) and len(backends) == 2
+    step = store.meta(PRIORS.path)
+    done = step is not None and len(step.backends) == 2
+    depth: str | None
+    normal: str | None
     if done:
-        depth, normal = (str(b) for b in backends)
+        depth, normal = (str(b) for b in step.backends)
     else:
-        models = (((store.root.attrs.get("config") or {}).get("steps") or {}).get("priors") or {}).get("models") or {}
-        depth, normal = models.get("depth_backend"), models.get("normal_backend")
+        cfg = run_config(store)
+        models = cfg.steps.priors.models if cfg is not None else None
+        depth, normal = (models.depth_backend, models.normal_backend) if models is not None else (None, None)
     # the share of pixels the depth prior calls sky (`sky_beyond_ref`), over all frames as the step's line gives it
-    segs = [store.attrs(PRIORS_SEGMENT.at(seg=s)) for s in store.children(PRIORS.path)] if done else []
-    counted = [
-        (float(a["sky_share"]), int(a["frames"]))
-        for a in segs
-        if isinstance(a.get("sky_share"), int | float) and isinstance(a.get("frames"), int)
-    ]
+    segs = [store.meta(PRIORS_SEGMENT.at(seg=s), complete=False) for s in store.children(PRIORS.path)] if done else []
+    counted = [(a.sky_share, a.frames) for a in segs if a is not None and a.sky_share is not None]
     frames = sum(n for _, n in counted)
     sky = round(sum(x * n for x, n in counted) / frames, 4) if frames else None
     words = priors_words(depth, normal) + ("" if sky is None else f"; {100 * sky:.1f} % of pixels sky")
-    return {"depth_backend": depth, "normal_backend": normal, "computed": done, "sky_share": sky, "words": words}
+    return PriorsInfo(depth_backend=depth, normal_backend=normal, computed=done, sky_share=sky, words=words)
 
 
-def global_k(store: SceneStore) -> dict[str, Any] | None:
+def global_k(store: SceneStore) -> GlobalK | None:
     """Where the global solve's K came from (`k_source`, recorded by the poses step) and its FOV; None when the
     poses step has not run or did not record it."""
-    a = store.attrs(SFM.path)
-    if store.cache_key_of(SFM.path) is None or a.get("k_source") is None:
+    a = store.meta(SFM.path)
+    if a is None or a.k_source is None:
         return None
-    segs = a.get("segments") or []
-    k = accepted_attempt(store, segs[0]) if segs else None
-    shape = _shape(store, ATTEMPT.at(seg=segs[0], attempt=k).frames) if k is not None else None
+    k = accepted_attempt(store, a.segments[0]) if a.segments else None
+    shape = _shape(store, ATTEMPT.at(seg=a.segments[0], attempt=k).frames) if k is not None else None
     fov = None
-    if shape and (a.get("K") is not None or _shape(store, SFM.K)):  # the K itself before its recorded FOV
-        fov = fov_deg(a["K"] if a.get("K") is not None else store.array(SFM.K), shape[2])
-    if fov is None and isinstance(a.get("fov_deg"), int | float):
-        fov = float(a["fov_deg"])
-    return {"k_source": str(a["k_source"]), "fov_deg": fov}
+    if shape and (a.K is not None or _shape(store, SFM.K)):  # the K itself before its recorded FOV
+        fov = fov_deg(a.K if a.K is not None else store.array(SFM.K), shape[2])
+    if fov is None and a.fov_deg is not None:
+        fov = float(a.fov_deg)
+    return GlobalK(k_source=a.k_source, fov_deg=fov)
 
 
-GUIDE_TRUTH = ("coverage", "psnr_db", "depth_absrel", "depth_off_share")
-
-
-def guide(store: SceneStore, seg: str, k: int) -> dict[str, Any] | None:
-    """The guide attempt `k` of segment `seg` was generated from (guided flows' extensions): {source, coverage,
-    reason, truth}. source: where it was rendered from ("segment s000, attempt 0"), None when the extension was
-    generated without one (its parent could not be placed in the plan's world: `reason` says why); coverage:
-    share of its pixels known (0..1); truth: the guide against the ground truth, measured by the procedural
-    backend ({coverage, psnr_db, depth_absrel, depth_off_share}; None for other backends). None when the attempt
-    was generated without looking for a guide (an unguided flow, an initial segment)."""
+def guide(store: SceneStore, seg: str, k: int) -> GuideInfo | None:
+    """The guide attempt `k` of segment `seg` was generated from (guided flows' extensions). source: where it was
+    rendered from ("segment s000, attempt 0"), None when the extension was generated without one (its parent could
+    not be placed in the plan's world: `reason` says why); coverage: share of its pixels known (0..1); truth: the
+    guide against the ground truth, measured by the procedural backend (None for other backends). None when the
+    attempt was generated without looking for a guide (an unguided flow, an initial segment)."""
     ap = ATTEMPT.at(seg=seg, attempt=k)
-    record = store.attrs(ap).get("guide")
-    if not isinstance(record, dict):
+    attempt = store.meta(ap, complete=False)
+    record = attempt.guide if attempt is not None else None
+    if record is None:
         return None
-    truth = store.attrs(ap.gt).get("guide") if store.exists(ap.gt) else None
-    coverage = record.get("coverage")
-    return {
-        "source": record.get("source"),
-        "coverage": float(coverage) if isinstance(coverage, int | float) else None,
-        "reason": str(record.get("reason") or ""),
-        "truth": {name: truth.get(name) for name in GUIDE_TRUTH} if isinstance(truth, dict) else None,
-    }
+    truth = store.meta(ap.gt, complete=False)
+    return GuideInfo(
+        source=record.source,
+        coverage=record.coverage,
+        reason=record.reason,
+        truth=truth.guide if truth is not None else None,
+    )
 
 
-def guide_words(g: dict[str, Any] | None) -> str:
+def guide_words(g: GuideInfo | None) -> str:
     """A guide (`guide`) in a few words: its share of known pixels ("71 %"), "none" when the extension was
     generated without one, "-" for an attempt that looked for none."""
     if g is None:
         return "-"
-    if g["source"] is None or g["coverage"] is None:
+    if g.source is None or g.coverage is None:
         return "none"
-    return f"{100 * g['coverage']:.0f} %"
+    return f"{100 * g.coverage:.0f} %"
 
 
-def _expected_keys(store: SceneStore) -> dict[str, str]:
-    config = store.root.attrs.get("config")
-    if not config:
-        return {}
-    try:
-        return step_keys(STEPS, validate_config(config))
-    except WonderError:
-        return {}
+# -- the summary ----------------------------------------------------------------------------------
 
 
-def summarize(store: SceneStore) -> dict[str, Any]:
-    """The scene's steps, segments and sizes. Schema documented in docs/usage.md (`inspect --json`)."""
-    expected = _expected_keys(store)
-    steps = []
+def expected_keys(store: SceneStore) -> dict[str, str]:
+    """The cache key of every step under the stored config ({} when none is stored or readable)."""
+    cfg = run_config(store)
+    return step_keys(STEPS, cfg) if cfg is not None else {}
+
+
+def step_statuses(store: SceneStore) -> list[StepStatus]:
+    """Every pipeline step with its status against the stored config and its cache key."""
+    expected = expected_keys(store)
+    out = []
     for s in STEPS:
         key = store.cache_key_of(s.group)
         status = "missing" if key is None else ("complete" if key == expected.get(s.name) else "stale")
-        steps.append({"name": s.name, "group": s.group, "status": status, "cache_key": key})
-    segments = []
-    for seg in segment_ids(store):
-        a = store.attrs(SEGMENT.at(seg=seg))
-        attempts = []
-        for k in attempt_ids(store, seg):
-            ap = ATTEMPT.at(seg=seg, attempt=k)
-            at = store.attrs(ap)
-            attempts.append(
-                {
-                    "index": k,
-                    "seed": at.get("seed"),
-                    "check": store.attrs(ap.check) or None,
-                    "faults": store.attrs(ap.gt).get("faults") if store.exists(ap.gt) else None,
-                    "guide": guide(store, seg, k),
-                    "arrays": _arrays(store, ap),
-                    "bytes": store.size_bytes(ap),
-                }
-            )
-        segments.append(
-            {
-                "id": seg,
-                "role": a.get("role"),
-                "move": a.get("move"),
-                "intent": a.get("intent"),
-                "reversed": a.get("reversed"),
-                "reference_segment": a.get("reference_segment"),
-                "reference_frame": a.get("reference_frame"),
-                "complete": a.get("complete") is True,
-                "accepted_attempt": accepted_attempt(store, seg),
-                "attempts": attempts,
-            }
-        )
-    root = dict(store.root.attrs)
-    added = ((root.get("spec") or {}).get("extensions") or {}).get("added") or []
+        out.append(StepStatus(name=s.name, group=s.group, status=status, cache_key=key))
+    return out
+
+
+def _attempt(store: SceneStore, seg: str, k: int) -> AttemptSummary:
+    ap = ATTEMPT.at(seg=seg, attempt=k)
+    attempt, truth = store.meta(ap, complete=False), store.meta(ap.gt, complete=False)
+    return AttemptSummary(
+        index=k,
+        seed=attempt.seed if attempt is not None else None,
+        check=store.meta(ap.check),
+        faults=truth.faults if truth is not None else None,
+        guide=guide(store, seg, k),
+        arrays=_arrays(store, ap),
+        bytes=store.size_bytes(ap),
+    )
+
+
+def _segment(store: SceneStore, seg: str) -> SegmentSummary:
+    a = segment_meta(store, seg)
+    return SegmentSummary(
+        id=seg,
+        role=a.role,
+        move=a.move,
+        intent=a.intent,
+        reversed=a.reversed,
+        reference_segment=a.reference_segment,
+        reference_frame=a.reference_frame,
+        complete=store.cache_key_of(SEGMENT.at(seg=seg)) is not None,
+        accepted_attempt=accepted_attempt(store, seg),
+        attempts=[_attempt(store, seg, k) for k in attempt_ids(store, seg)],
+    )
+
+
+def scene_summary(store: SceneStore) -> SceneSummary:
+    """The scene's steps, segments, clips, priors and sizes."""
+    root = root_meta(store)
+    segments = [_segment(store, seg) for seg in segment_ids(store)]
+    spec = scene_spec(store)
+    added = list(spec.extensions.added) if spec is not None else []
     # the added extensions are the last segments of the plan, in order
     extensions = [
-        {"words": w, "segment": seg["id"]}
+        Extension(words=w, segment=seg.id)
         for w, seg in zip(added, segments[len(segments) - len(added) :], strict=False)
     ]
-    return {
-        "scene_dir": str(store.scene_dir),
-        "format": root.get("format"),
-        "wonderverse_version": root.get("wonderverse_version"),
-        "spec": root.get("spec"),
-        "order": store.attrs(SEGMENTS.path).get("order", []),
-        "steps": steps,
-        "segments": segments,
-        "extensions": extensions,
-        "clips": clips(store),
-        "priors": priors(store),
-        "global_k": global_k(store),
-        "size_bytes": store.size_bytes(),
-        "damaged": damaged(store),
-    }
+    order = store.meta(SEGMENTS.path, complete=False)
+    return SceneSummary(
+        scene_dir=str(store.scene_dir),
+        format=root.format,
+        wonderverse_version=root.wonderverse_version,
+        spec=root.spec,
+        order=order.order if order is not None else [],
+        steps=step_statuses(store),
+        segments=segments,
+        extensions=extensions,
+        clips=clips(store),
+        priors=priors(store),
+        global_k=global_k(store),
+        size_bytes=store.size_bytes(),
+        damaged=damaged(store),
+    )
 
 
-def damaged(store: SceneStore) -> list[dict[str, Any]]:
-    """The store's damaged groups (`SceneStore.damaged_groups`): [{group, problems}], by path. A group listed here
-    is rebuilt by the step that wrote it on the next run, where its inputs are intact."""
-    return [{"group": g, "problems": p} for g, p in store.damaged_groups().items()]
+def summarize(store: SceneStore) -> dict[str, Any]:
+    """`scene_summary` as JSON (`inspect --json`; schema documented in docs/usage.md)."""
+    return scene_summary(store).model_dump(mode="json")
 
 
-def damaged_lines(info: dict[str, Any]) -> list[str]:
-    """One line per damaged group of a `summarize` result, for the text output (none when nothing is damaged)."""
+def damaged(store: SceneStore) -> list[DamagedGroup]:
+    """The store's damaged groups (`SceneStore.damaged_groups`), by path. A group listed here is rebuilt by the step
+    that wrote it on the next run, where its inputs are intact."""
+    return [DamagedGroup(group=g, problems=p) for g, p in store.damaged_groups().items()]
+
+
+def damaged_lines(summary: SceneSummary) -> list[str]:
+    """One line per damaged group of a summary, for the text output (none when nothing is damaged)."""
     return [
-        f"damaged: {d['group']}: {'; '.join(d['problems'][:3])}{' …' if len(d['problems']) > 3 else ''}"
-        for d in info.get("damaged") or []
+        f"damaged: {d.group}: {'; '.join(d.problems[:3])}{' …' if len(d.problems) > 3 else ''}" for d in summary.damaged
     ]

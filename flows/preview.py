@@ -7,50 +7,52 @@ from pathlib import Path
 
 import numpy as np
 
+from flows.inspect import run_config, scene_spec
 from tasks.segments import attempt_ids, segment_ids, stitched
+from wonderverse.check import CheckResult
 from wonderverse.errors import WonderError
 from wonderverse.schema import ATTEMPT, SFM
+from wonderverse.schema.attrs import AttemptCheckAttrs
 from wonderverse.store import SceneStore, check_writable
 
 PREVIEW_FILE = "preview.mp4"
 
 
-def _check_result(attrs: dict) -> object:
-    from wonderverse.check import CheckResult
+def check_result(check: AttemptCheckAttrs) -> CheckResult:
+    """The check's decision on an attempt as the `CheckResult` it was recorded from (None -> NaN), to plot it."""
 
-    arr = {
-        k: np.array([np.nan if v is None else v for v in attrs.get(k, [])], float)
-        for k in ("trans_steps", "step_ratio", "rot_steps")
-    }
-    median = attrs.get("median_step")
+    def steps(values: list[float | None]) -> np.ndarray:
+        return np.array([np.nan if v is None else v for v in values], float)
+
     return CheckResult(
-        accepted=attrs["accepted"],
-        reasons=attrs.get("reasons", []),
-        flagged_frames=attrs.get("flagged_frames", []),
-        notes=attrs.get("notes", []),
-        median_step=np.nan if median is None else median,
-        registered_frac=attrs.get("registered_frac", 0.0),
-        **arr,
+        accepted=check.accepted,
+        reasons=list(check.reasons),
+        flagged_frames=list(check.flagged_frames),
+        notes=list(check.notes),
+        median_step=np.nan if check.median_step is None else check.median_step,
+        registered_frac=check.registered_frac,
+        trans_steps=steps(check.trans_steps),
+        step_ratio=steps(check.step_ratio),
+        rot_steps=steps(check.rot_steps),
     )
 
 
 def write_plots(store: SceneStore, out: Path) -> list[Path]:
     """Check plot + SfM top view per checked attempt, and the global trajectory; returns the paths."""
-    from wonderverse.config import validate_config
     from wonderverse.plots import segment_check_plot, trajectory_topview_plot
 
-    config = store.root.attrs.get("config")
-    params = validate_config(config).steps.check.rules if config else None
+    cfg = run_config(store)
+    params = cfg.steps.check.rules if cfg is not None else None
     out.mkdir(parents=True, exist_ok=True)
     written = []
     for seg in segment_ids(store):
         for k in attempt_ids(store, seg):
             ap = ATTEMPT.at(seg=seg, attempt=k)
-            attrs = store.attrs(ap.check)
-            if attrs.get("complete") is not True:
+            check = store.meta(ap.check)
+            if check is None:
                 continue
             p = out / f"{seg}_attempt{k}_check.png"
-            p.write_bytes(segment_check_plot(_check_result(attrs), params, f"{seg} attempt {k}"))
+            p.write_bytes(segment_check_plot(check_result(check), params, f"{seg} attempt {k}"))
             written.append(p)
             p = out / f"{seg}_attempt{k}_topview.png"
             p.write_bytes(
@@ -81,7 +83,8 @@ def write_preview(scene_dir: Path) -> list[Path]:
     if len(frames) == 0:
         raise WonderError(f"{scene_dir} has no rendered segments yet; run `wonderverse generate` first")
     check_writable(scene_dir, f"{PREVIEW_FILE} in {scene_dir}")  # before ffmpeg starts (it prints its own errors)
-    fps = float((store.root.attrs.get("spec") or {}).get("video", {}).get("fps", 8))
+    spec = scene_spec(store)
+    fps = spec.video.fps if spec is not None else 8.0
     mp4 = write_mp4(frames, Path(scene_dir) / PREVIEW_FILE, fps)
     pick = sorted(set(range(0, len(frames), max(1, len(frames) // 32))))
     png = Path(scene_dir) / "contact_sheet.png"

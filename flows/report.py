@@ -32,6 +32,8 @@ from typing import Any
 import numpy as np
 import zarr
 
+from flows.inspect import clips as clip_rows
+from flows.inspect import expected_keys, global_k, guide, priors, root_meta, run_config, scene_spec, step_statuses
 from tasks import STEPS
 from tasks.segments import accepted_attempt, attempt_ids, attempt_path, segment_ids, stitched
 from wonderverse import __version__
@@ -50,6 +52,7 @@ from wonderverse.report import (
     render_html,
 )
 from wonderverse.schema import ATTEMPT, CHECK, OUTPUTS, PLAN, PRIORS_SEGMENT, SEGMENT, SFM, SPLATS
+from wonderverse.schema.attrs import Bounds, OutputFrame, PruneRecord
 from wonderverse.store import STORE_NAME, SceneStore, StoreError, check_writable
 
 log = logging.getLogger("wonderverse.report")
@@ -105,14 +108,8 @@ def _has_array(store: SceneStore, path: str) -> bool:
 
 
 def _check_params(store: SceneStore) -> Any:
-    from wonderverse.config import validate_config
-    from wonderverse.errors import WonderError
-
-    config = store.root.attrs.get("config")
-    try:
-        return validate_config(config).steps.check.rules if config else None
-    except WonderError:
-        return None
+    cfg = run_config(store)
+    return cfg.steps.check.rules if cfg is not None else None
 
 
 def _fault_words(faults: Any) -> str:
@@ -161,25 +158,27 @@ def _ate_percent(est: np.ndarray, gt: np.ndarray) -> float | None:
 
 
 def _attempt(store: SceneStore, seg: str, k: int, chosen: int | None, params: Any) -> AttemptInfo:
-    from flows.preview import _check_result
+    from flows.preview import check_result
     from wonderverse.plots import segment_check_plot
 
     ap = ATTEMPT.at(seg=seg, attempt=k)
-    info = AttemptInfo(index=k, seed=store.attrs(ap).get("seed"), chosen=k == chosen)
-    has_gt = store.exists(ap.gt)
-    if has_gt:
-        info.fault = _fault_words(store.attrs(ap.gt).get("faults"))
+    attempt = store.meta(ap, complete=False)
+    info = AttemptInfo(index=k, seed=attempt.seed if attempt is not None else None, chosen=k == chosen)
+    truth = store.meta(ap.gt, complete=False)
+    has_gt = truth is not None
+    if truth is not None:
+        info.fault = _fault_words(truth.faults)
     _guide(store, seg, k, info)
-    check = store.attrs(ap.check)
-    if check.get("complete") is not True:
+    check = store.meta(ap.check)
+    if check is None:
         return info
-    info.accepted = bool(check.get("accepted"))
-    info.reasons = list(check.get("reasons", []))
-    info.notes = list(check.get("notes", []))
-    info.flagged_frames = [int(i) for i in check.get("flagged_frames", [])]
-    info.registered_frac = check.get("registered_frac")
-    info.sfm_seconds = check.get("sfm_seconds")
-    info.check_plot = segment_check_plot(_check_result(check), params, f"{seg} attempt {k}")
+    info.accepted = check.accepted
+    info.reasons = list(check.reasons)
+    info.notes = list(check.notes)
+    info.flagged_frames = list(check.flagged_frames)
+    info.registered_frac = check.registered_frac
+    info.sfm_seconds = check.sfm_seconds
+    info.check_plot = segment_check_plot(check_result(check), params, f"{seg} attempt {k}")
     if _has_array(store, ap.sfm.poses):
         est = store.array(ap.sfm.poses)
         gt = store.array(ap.gt.poses) if has_gt and _has_array(store, ap.gt.poses) else None
@@ -192,29 +191,27 @@ def _attempt(store: SceneStore, seg: str, k: int, chosen: int | None, params: An
 def _guide(store: SceneStore, seg: str, k: int, info: AttemptInfo) -> None:
     """Into `info`: the guide attempt `k` was generated from (in words, and its share of known pixels) and its
     errors against the ground truth when the procedural backend measured them (attempts table columns)."""
-    from flows.inspect import guide
-
     g = guide(store, seg, k)
     if g is None:
         return
-    if g["source"] is None or g["coverage"] is None:
-        info.guide = f"none: {g['reason'] or 'no reason recorded'}"
+    if g.source is None or g.coverage is None:
+        info.guide = f"none: {g.reason or 'no reason recorded'}"
         return
-    info.guide = f"{100 * g['coverage']:.0f} % of pixels known, from {g['source']}"
-    info.guide_coverage = g["coverage"]
-    if g["truth"]:
-        info.metrics["guide PSNR vs GT (dB)"] = g["truth"].get("psnr_db")
-        info.metrics["guide depth AbsRel vs GT"] = g["truth"].get("depth_absrel")
+    info.guide = f"{100 * g.coverage:.0f} % of pixels known, from {g.source}"
+    info.guide_coverage = g.coverage
+    if g.truth is not None:
+        info.metrics["guide PSNR vs GT (dB)"] = g.truth.psnr_db
+        info.metrics["guide depth AbsRel vs GT"] = g.truth.depth_absrel
 
 
 def _status(store: SceneStore, seg: str, n_attempts: int) -> tuple[str, bool | None]:
-    acc = store.attrs(SEGMENT.at(seg=seg).accepted)
-    if acc.get("complete") is True:
-        if acc.get("dropped"):
-            return f"dropped after {acc.get('attempts', n_attempts)} attempts", False
-        if acc.get("reasons"):
-            return f"kept failing attempt {acc.get('attempt')} (best of {acc.get('attempts', n_attempts)})", False
-        return f"attempt {acc.get('attempt')} accepted", True
+    acc = store.meta(SEGMENT.at(seg=seg).accepted)
+    if acc is not None:
+        if acc.dropped:
+            return f"dropped after {acc.attempts or n_attempts} attempts", False
+        if acc.reasons:
+            return f"kept failing attempt {acc.attempt} (best of {acc.attempts or n_attempts})", False
+        return f"attempt {acc.attempt} accepted", True
     if n_attempts:
         return "not checked yet", None
     return "not generated yet", None
@@ -241,16 +238,17 @@ def _previews(store: SceneStore, seg: str, p: ReportParams) -> list[Picture]:
         gt_normals=_rows(store, ap.gt.normals, idx).astype(np.float32) if gt else None,
         thumb_width_px=p.preview_thumb_width_px,
     )
-    kind = store.attrs(PRIORS_SEGMENT.at(seg=seg)).get("kind", "")
+    kind = store.meta(PRIORS_SEGMENT.at(seg=seg)).kind  # complete: its cache key was checked above
     words = f" (the network predicts {kind.replace('_', ' ')})" if kind else ""
     return [Picture(png, f"{seg}: depth (turbo, near = warm, sky grey) and normal priors{words}")]
 
 
 def _global_gt(store: SceneStore) -> tuple[np.ndarray, np.ndarray] | None:
     """(global SfM poses, ground-truth poses of the same stitched frames), when every frame has GT."""
-    if store.cache_key_of(SFM.path) is None:
+    sfm = store.meta(SFM.path)
+    if sfm is None:
         return None
-    segs = store.attrs(SFM.path).get("segments", [])
+    segs = sfm.segments
     index = store.array(SFM.frame_index)
     gts: dict[str, np.ndarray] = {}
     for seg in segs:
@@ -313,28 +311,25 @@ def _prior_errors(store: SceneStore, segments: list[SegmentInfo], sfm_to_gt_scal
 
 def _clip_infos(store: SceneStore) -> list[ClipInfo] | None:
     """The user's clips in order (video backend `files`), as `inspect` reads them; None for other scenes."""
-    from flows.inspect import clips
-
-    rows = clips(store)
+    rows = clip_rows(store)
     if rows is None:
         return None
     out = []
     for r in rows:
-        folder = str(Path(r["source"]).parent) if r["source"] else ""
-        width, height = r["size"] or (None, None)
+        width, height = r.size or (None, None)
         out.append(
             ClipInfo(
-                segment=r["segment"],
-                name=r["name"],
-                kind=r["kind"],
-                folder=folder,
-                frames=r["frames"],
+                segment=r.segment,
+                name=r.name,
+                kind=r.kind,
+                folder=str(Path(r.source).parent) if r.source else "",
+                frames=r.frames,
                 width=width,
                 height=height,
-                k_source=r["k_source"],
-                fov_deg=r["fov_deg"],
-                verdict=r["verdict"],
-                reasons=tuple(r["reasons"]),
+                k_source=r.k_source,
+                fov_deg=r.fov_deg,
+                verdict=r.verdict,
+                reasons=tuple(r.reasons),
             )
         )
     return out
@@ -346,18 +341,24 @@ def _segments(store: SceneStore, p: ReportParams, clips: list[ClipInfo] | None =
     if clips is not None:
         return _clip_segments(store, p, clips)
     params = _check_params(store)
-    plan = store.attrs(PLAN.path) if store.cache_key_of(PLAN.path) else {}
-    planned = list((plan.get("plan") or {}).get("segments", []))
-    moves = list(plan.get("moves", []))
-    ids = [s["id"] for s in planned] + [s for s in segment_ids(store) if s not in {x["id"] for x in planned}]
+    plan = store.meta(PLAN.path)
+    planned = list(plan.plan.segments) if plan is not None else []
+    moves = list(plan.moves) if plan is not None else []
+    ids = [s.id for s in planned] + [s for s in segment_ids(store) if s not in {x.id for x in planned}]
     out = []
     for i, seg in enumerate(ids):
-        entry = planned[i] if i < len(planned) else {}
-        attrs = store.attrs(SEGMENT.at(seg=seg))
-        ref_seg = attrs.get("reference_segment", entry.get("reference_segment"))
+        entry = planned[i] if i < len(planned) else None
+        # what the segment recorded when it was generated, else its plan entry (not generated yet)
+        written = store.meta(SEGMENT.at(seg=seg), complete=False)
+        role, intent, ref_seg, frame = "", "", None, None
+        if written is not None:
+            role, intent = written.role, written.intent
+            ref_seg, frame = written.reference_segment, written.reference_frame
+        elif entry is not None:
+            role, intent, ref_seg = entry.role, entry.intent, entry.reference_segment
         if ref_seg:
-            frame = attrs.get("reference_frame")
-            ref = f"{ref_seg}, frame {frame}" if frame is not None else f"{ref_seg}, {entry.get('reference')} frame"
+            where = f"frame {frame}" if frame is not None else f"{entry.reference if entry else None} frame"
+            ref = f"{ref_seg}, {where}"
         else:
             ref = ""
         ks = attempt_ids(store, seg)
@@ -365,9 +366,9 @@ def _segments(store: SceneStore, p: ReportParams, clips: list[ClipInfo] | None =
         status, ok = _status(store, seg, len(ks))
         info = SegmentInfo(
             id=seg,
-            role=str(attrs.get("role", entry.get("role", ""))),
-            move=str(attrs.get("move") or (moves[i] if i < len(moves) else "")),
-            intent=str(attrs.get("intent", entry.get("intent", "")) or ""),
+            role=role,
+            move=(written.move if written is not None else "") or (moves[i] if i < len(moves) else ""),
+            intent=intent,
             reference=ref,
             status=status,
             status_ok=ok,
@@ -404,14 +405,13 @@ def _clip_segments(store: SceneStore, p: ReportParams, clips: list[ClipInfo]) ->
 
 
 def _timings(store: SceneStore, clips: bool = False) -> list[StepTiming]:
-    from flows.inspect import summarize
-
-    status = {s["name"]: s["status"] for s in summarize(store)["steps"]}
+    status = {s.name: s.status for s in step_statuses(store)}
     out = []
     for s in STEPS:
-        seconds = store.attrs(s.group).get("seconds") if status[s.name] != "missing" else None
+        meta = store.meta(s.group)  # None unless complete (missing)
+        seconds = meta.seconds if meta is not None else None
         what = CLIP_STEPS.get(s.name, s.description) if clips else s.description
-        out.append(StepTiming(s.name, status[s.name], None if seconds is None else float(seconds), what))
+        out.append(StepTiming(s.name, status[s.name], seconds, what))
     return out
 
 
@@ -419,11 +419,10 @@ def _files(store: SceneStore) -> list[FileEntry]:
     """Files and folders beside the store: the known ones, and those steps list in their attributes."""
     root = store.scene_dir.resolve()
     wanted: dict[str, str] = {}
-    for group in (SPLATS.path, OUTPUTS.path):
-        for f in store.attrs(group).get("files", []) or []:
-            name, what = (f.get("path") or f.get("name"), f.get("description", "")) if isinstance(f, dict) else (f, "")
-            if isinstance(name, str) and name:
-                wanted.setdefault(name, what or KNOWN_FILES.get(name, f"written by {group}"))
+    outputs = store.meta(OUTPUTS.path)
+    for f in outputs.files if outputs is not None else []:
+        if f.path:
+            wanted.setdefault(f.path, f.description or KNOWN_FILES.get(f.path, f"written by {OUTPUTS.path}"))
     for name, what in KNOWN_FILES.items():
         wanted.setdefault(name, what)
     out = []
@@ -449,10 +448,11 @@ def _stitched_pictures(store: SceneStore, p: ReportParams) -> tuple[Picture | No
         overview = Picture(png, f"{len(frames)} stitched frames, {len(pick)} shown (segment:frame)")
     trajectory = None
     pair = _global_gt(store)
-    if store.cache_key_of(SFM.path) is not None:
+    sfm = store.meta(SFM.path)
+    if sfm is not None:
         est = store.array(SFM.poses)
         gt = pair[1] if pair is not None else None
-        src = store.attrs(SFM.path).get("source", "sfm")
+        src = sfm.source
         png = _topview(est, gt, f"global ({src})", "stitched video: global camera path from above")
         trajectory = Picture(png, "global camera path (square = first frame, arrows = viewing direction)")
     return overview, trajectory
@@ -492,7 +492,8 @@ def _one_line(e: BaseException) -> str:
 
 def _first_camera(store: SceneStore) -> tuple[np.ndarray, np.ndarray, np.ndarray, int, int] | None:
     """(W2C of the first posed frame, every finite W2C, K, width, height) of the global poses, or None."""
-    if store.cache_key_of(SFM.path) is None or not _has_array(store, SFM.K):
+    sfm = store.meta(SFM.path)
+    if sfm is None or not _has_array(store, SFM.K):
         return None
     poses = store.array(SFM.poses)
     finite = np.isfinite(poses).all(axis=(1, 2))
@@ -500,7 +501,7 @@ def _first_camera(store: SceneStore) -> tuple[np.ndarray, np.ndarray, np.ndarray
         return None
     first = int(np.flatnonzero(finite)[0])
     seg_index, _ = store.array(SFM.frame_index)[first]
-    seg = store.attrs(SFM.path)["segments"][int(seg_index)]
+    seg = sfm.segments[int(seg_index)]
     shape = _shape(store, attempt_path(store, seg).frames) if accepted_attempt(store, seg) is not None else None
     if shape is None:
         return None
@@ -583,42 +584,40 @@ def _planned_paths(store: SceneStore, segments: list[SegmentInfo]) -> Picture | 
 
 def _metrics(store: SceneStore, segments: list[SegmentInfo]) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
     """Metric groups, and headline figures for the summary."""
-    from flows.inspect import global_k
-
     metrics: dict[str, dict[str, Any]] = {}
     headline: dict[str, Any] = {}
-    check = store.attrs(CHECK.path)
+    check = store.meta(CHECK.path)
     clips = {s.id: s.clip.label for s in segments if s.clip is not None}
-    if check.get("complete") is True and clips:  # a clip cannot be regenerated: no extra trials to count
+    if check is not None and clips:  # a clip cannot be regenerated: no extra trials to count
         metrics["Geometric correction"] = {
-            "dropped clips": ", ".join(clips.get(s, s) for s in check.get("dropped", [])) or "none",
-            "kept although failing": ", ".join(clips.get(s, s) for s in check.get("kept_failing", [])) or "none",
+            "dropped clips": ", ".join(clips.get(s, s) for s in check.dropped) or "none",
+            "kept although failing": ", ".join(clips.get(s, s) for s in check.kept_failing) or "none",
         }
-    elif check.get("complete") is True:
+    elif check is not None:
         metrics["Geometric correction"] = {
-            "mean extra trials per segment": check.get("mean_extra_trials"),
-            "dropped segments": ", ".join(check.get("dropped", [])) or "none",
-            "kept failing": ", ".join(check.get("kept_failing", [])) or "none",
+            "mean extra trials per segment": check.mean_extra_trials,
+            "dropped segments": ", ".join(check.dropped) or "none",
+            "kept failing": ", ".join(check.kept_failing) or "none",
         }
     guided = _guided_extensions(segments)
     if guided:
         metrics["Guided extensions"] = guided
-    if store.cache_key_of(SFM.path) is not None:
-        a = store.attrs(SFM.path)
+    sfm = store.meta(SFM.path)
+    if sfm is not None:
         poses = store.array(SFM.poses)
         points = _shape(store, SFM.points3d)
         metrics["Global camera path"] = {
-            "source": a.get("source"),
-            "mapper": a.get("mapper"),
+            "source": sfm.source,
+            "mapper": sfm.mapper,
             "frames posed": f"{int(np.isfinite(poses[:, 0, 0]).sum())} of {len(poses)}",
-            "frames used by SfM": a.get("frames_used"),
-            "reprojection error (px)": a.get("reproj_error_px"),
+            "frames used by SfM": sfm.frames_used,
+            "reprojection error (px)": sfm.reproj_error_px,
             "3D points": points[0] if points else None,
         }
         k = global_k(store)
         if k is not None:
-            fov = f", {k['fov_deg']:.1f}° horizontal field of view" if k["fov_deg"] is not None else ""
-            metrics["Global camera path"]["intrinsics (K)"] = f"{k['k_source']}{fov}"
+            fov = f", {k.fov_deg:.1f}° horizontal field of view" if k.fov_deg is not None else ""
+            metrics["Global camera path"]["intrinsics (K)"] = f"{k.k_source}{fov}"
     pair = _global_gt(store)
     if pair is not None:
         from wonderverse.camera import camera_centers, umeyama
@@ -639,32 +638,31 @@ def _metrics(store: SceneStore, segments: list[SegmentInfo]) -> tuple[dict[str, 
             ok = np.isfinite(est).all(axis=(1, 2)) & np.isfinite(gt).all(axis=(1, 2))
             scale = umeyama(camera_centers(gt[ok]), camera_centers(est[ok]), allow_degenerate=True).s
             metrics |= _prior_errors(store, segments, scale)
-    sp = store.attrs(SPLATS.path)
-    if sp.get("complete") is True:
-        m = sp.get("metrics", {})
+    splats = store.meta(SPLATS.path)
+    if splats is not None:
+        m = splats.metrics
         metrics["Gaussian splats"] = {
-            "held-out PSNR (dB)": m.get("test_psnr"),
-            "held-out SSIM": m.get("test_ssim"),
-            "training PSNR (dB)": m.get("train_psnr"),
-            "training SSIM": m.get("train_ssim"),
-            "Gaussians": m.get("n_gaussians"),
-            "views (training / held out)": f"{len(m.get('train_views', []))} / {len(m.get('test_views', []))}",
-            "training time (s)": m.get("seconds"),
-            "skipped steps (non-finite)": m.get("skipped_steps"),
+            "held-out PSNR (dB)": m.test_psnr,
+            "held-out SSIM": m.test_ssim,
+            "training PSNR (dB)": m.train_psnr,
+            "training SSIM": m.train_ssim,
+            "Gaussians": m.n_gaussians,
+            "views (training / held out)": f"{len(m.train_views)} / {len(m.test_views)}",
+            "training time (s)": m.seconds,
+            "skipped steps (non-finite)": m.skipped_steps,
         }
-        if m.get("test_psnr") is not None:
-            headline["held-out PSNR"] = f"{m['test_psnr']:.2f} dB"
-    q = store.attrs(OUTPUTS.path).get("quality") if store.attrs(OUTPUTS.path).get("complete") is True else None
-    if q:
+        if m.test_psnr is not None:
+            headline["held-out PSNR"] = f"{m.test_psnr:.2f} dB"
+    outputs = store.meta(OUTPUTS.path)
+    if outputs is not None and "quality" in outputs.model_fields_set:  # older outputs scored nothing
+        q = outputs.quality
         metrics["Novel views, no reference"] = {
-            "NIQE (lower is better)": q.get("niqe"),
-            "CLIP-S (0..2.5)": q.get("clip_s"),
-            "Q-Align": q.get("q_align"),
+            "NIQE (lower is better)": q.niqe,
+            "CLIP-S (0..2.5)": q.clip_s,
+            "Q-Align": q.q_align,
         }
-    out = store.attrs(OUTPUTS.path)
-    pruned = out.get("pruned") if out.get("complete") is True else None
-    if pruned:
-        metrics["Exported splats"] = _export_facts(pruned, out.get("frame") or {})
+    if outputs is not None and outputs.pruned is not None:
+        metrics["Exported splats"] = _export_facts(outputs.pruned, outputs.frame)
     return metrics, headline
 
 
@@ -686,25 +684,24 @@ def _guided_extensions(segments: list[SegmentInfo]) -> dict[str, Any]:
     }
 
 
-def _export_facts(pruned: dict[str, Any], frame: dict[str, Any]) -> dict[str, Any]:
+def _export_facts(pruned: PruneRecord, frame: OutputFrame) -> dict[str, Any]:
     """What `prune_for_export` removed before splats.ply/.spz/.glb were written, their bounds, and the frame."""
 
-    def box(bounds: Any) -> str | None:
-        if not bounds:
+    def box(bounds: Bounds | None) -> str | None:
+        if bounds is None:
             return None
-        lo, hi = np.asarray(bounds["min"], float), np.asarray(bounds["max"], float)
+        lo, hi = np.asarray(bounds.min, float), np.asarray(bounds.max, float)
         size = " × ".join(f"{v:.3g}" for v in hi - lo)
         return f"{size} (from {np.round(lo, 3).tolist()} to {np.round(hi, 3).tolist()})"
 
-    removed = pruned.get("removed") or {}
     facts = {
-        "Gaussians exported": f"{pruned.get('after')} of {pruned.get('before')}",
-        "removed": ", ".join(f"{n} {why.replace('_', ' ')}" for why, n in removed.items() if n) or "none",
-        "bounds before (world units)": box(pruned.get("bounds_before")),
-        "bounds exported (world units)": box(pruned.get("bounds_after")),
+        "Gaussians exported": f"{pruned.after} of {pruned.before}",
+        "removed": ", ".join(f"{n} {why.replace('_', ' ')}" for why, n in pruned.removed.items() if n) or "none",
+        "bounds before (world units)": box(pruned.bounds_before),
+        "bounds exported (world units)": box(pruned.bounds_after),
     }
-    if frame.get("source"):
-        facts["world frame: +Z up from"] = frame["source"]
+    if frame.source:
+        facts["world frame: +Z up from"] = frame.source
     return facts
 
 
@@ -714,62 +711,56 @@ def _clip_count(clips: list[ClipInfo]) -> str:
 
 
 def _facts(store: SceneStore, clips: list[ClipInfo] | None = None) -> dict[str, Any]:
-    root = dict(store.root.attrs)
-    spec = root.get("spec") or {}
-    video = spec.get("video") or {}
-    config = root.get("config") or {}
+    from wonderverse.video.files import ClipParams
+
+    root, spec, cfg = root_meta(store), scene_spec(store), run_config(store)
+    written = f"format {root.format}, written by WonderVerse {root.wonderverse_version}"
     facts: dict[str, Any] = {"scene folder": str(store.scene_dir)}
-    if config.get("preset"):
-        facts["preset"] = config["preset"]
+    if cfg is not None and cfg.preset:
+        facts["preset"] = cfg.preset
     if clips is not None:  # nothing generated or planned: no seed, rounds or frame counts of a video model
-        opts = video.get("options") or {}
-        most = opts.get("max_frames")
-        side = opts.get("max_side_px")
+        opts = spec.video.options if spec is not None else None
+        most = opts.max_frames if isinstance(opts, ClipParams) else None
+        side = opts.max_side_px if isinstance(opts, ClipParams) else None
         facts["scene"] = f"reconstruction of {_clip_count(clips)}, one segment each, in the order given (backend files)"
         facts["clips read"] = (
             f"{'every frame' if most is None else f'at most {most} frames'} per clip, evenly spread; "
             f"{'full size' if side is None else f'longer side at most {side} px'}"
         )
-        facts["store"] = f"format {root.get('format')}, written by WonderVerse {root.get('wonderverse_version')}"
+        facts["store"] = written
         return facts
-    if "seed" in spec:
-        facts["seed"] = spec["seed"]
-    if video:
+    if spec is not None:
+        video, ext = spec.video, spec.extensions
+        facts["seed"] = spec.seed
         facts["video"] = (
-            f"{video.get('backend')} backend, {video.get('width')}×{video.get('height')} px, "
-            f"{video.get('frames_per_segment')} frames per segment at {video.get('fps')} fps, "
-            f"{video.get('fov_deg')}° field of view"
+            f"{video.backend} backend, {video.width}×{video.height} px, "
+            f"{video.frames_per_segment} frames per segment at {video.fps} fps, {video.fov_deg}° field of view"
         )
-    ext = spec.get("extensions") or {}
-    if ext:
-        rounds, dirs = ext.get("rounds", 0), ", ".join(ext.get("directions", []))
-        facts["extensions"] = f"{rounds} round(s) towards {dirs}" if rounds else "none"
-    facts["store"] = f"format {root.get('format')}, written by WonderVerse {root.get('wonderverse_version')}"
+        facts["extensions"] = f"{ext.rounds} round(s) towards {', '.join(ext.directions)}" if ext.rounds else "none"
+    facts["store"] = written
     return facts
 
 
 def _priors_note(store: SceneStore) -> str:
     """One line when the scene has no depth or normal prior (by its priors step, or, before that step ran,
     by its stored configuration); "" when it has priors."""
-    from flows.inspect import priors
-
     pr = priors(store)
-    return NO_PRIORS_NOTE if (pr["depth_backend"], pr["normal_backend"]) == ("none", "none") else ""
+    return NO_PRIORS_NOTE if (pr.depth_backend, pr.normal_backend) == ("none", "none") else ""
 
 
 def gather(store: SceneStore, params: ReportParams | None = None) -> ReportContent:
     """Everything the report shows, read from the store (nothing is written)."""
     p = params or ReportParams()
-    spec = store.root.attrs.get("spec") or {}
-    plan = store.attrs(PLAN.path) if store.cache_key_of(PLAN.path) else {}
-    plan_model = plan.get("plan") or {}
+    spec = scene_spec(store)
+    plan = store.meta(PLAN.path)
     clips = _clip_infos(store)
     segments = _segments(store, p, clips)
     overview, trajectory = _stitched_pictures(store, p)
     videos, mesh_views, scene_notes = _scene(store, p)
     metrics, headline = _metrics(store, segments)
     timings = _timings(store, clips is not None)
-    curves = {k: [float(x) for x in v] for k, v in (store.attrs(SPLATS.path).get("curves") or {}).items()}
+    splats = store.meta(SPLATS.path)
+    curves = {k: [float(x) for x in v] for k, v in (splats.curves if splats is not None else {}).items()}
     skipped = curves.pop("skipped", [])
     notes = []
     stale = [t.step for t in timings if t.status == "stale"]
@@ -783,13 +774,13 @@ def gather(store: SceneStore, params: ReportParams | None = None) -> ReportConte
     if clips is not None:
         prompt = f"Reconstruction of {_clip_count(clips)}: {', '.join(c.label for c in clips)}"
     else:
-        prompt = str(spec.get("prompt", ""))
+        prompt = spec.prompt if spec is not None else ""
     return ReportContent(
         title=f"WonderVerse report — {store.scene_dir.name}",
         prompt=prompt,
         facts=facts,
-        planner="" if clips is not None else str(plan_model.get("planner", "")),
-        plan_note=f"fallback: {plan_model['fallback_reason']}" if plan_model.get("fallback_reason") else "",
+        planner=plan.plan.planner if plan is not None and clips is None else "",
+        plan_note=f"fallback: {plan.plan.fallback_reason}" if plan is not None and plan.plan.fallback_reason else "",
         segments=segments,
         overview=overview,
         trajectory=trajectory,
@@ -841,9 +832,6 @@ def report_state(store: SceneStore, params: ReportParams | None = None) -> str:
     beside the store; the report's parameters; and the code that draws the report (WonderVerse's version
     and the report modules' source). Cheap: metadata files only, no array and no plotting library
     (4 ms on a tiny scene; 0.09 s with 10 MB of training curves in the splats' attributes)."""
-    from tasks import step_keys
-    from wonderverse.config import validate_config
-    from wonderverse.errors import WonderError
 
     p = params or ReportParams()
     h = hashlib.sha256()
@@ -859,12 +847,7 @@ def report_state(store: SceneStore, params: ReportParams | None = None) -> str:
     for rel in _REPORT_CODE:
         with_code = code_root / rel
         add(rel, with_code.read_bytes() if with_code.is_file() else b"")
-    config = store.root.attrs.get("config")
-    try:
-        expected = step_keys(STEPS, validate_config(config)) if config else {}
-    except WonderError:
-        expected = {}
-    add("expected keys", json.dumps(expected, sort_keys=True).encode())
+    add("expected keys", json.dumps(expected_keys(store), sort_keys=True).encode())
     for rel, raw in _metadata_files(store.path):
         add(f"store:{rel}", raw)
     beside = []

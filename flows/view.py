@@ -130,8 +130,10 @@ def scene_view(scene_dir: Path) -> SceneView:
     import numpy as np
     import zarr
 
+    from flows.inspect import run_config
     from tasks.segments import attempt_path
     from wonderverse.camera import camera_centers
+    from wonderverse.config import OutputsParams
     from wonderverse.paths import flythrough_path
     from wonderverse.schema import SFM, SPLATS
     from wonderverse.splats.web import Y_UP_FROM_WORLD
@@ -153,14 +155,14 @@ def scene_view(scene_dir: Path) -> SceneView:
     if not ok.any():
         raise WonderError(f"{scene_dir}: no frame has a camera pose")
     w2c, K = world_from_sfm(store).transform_w2c(poses[ok]), store.array(SFM.K)
-    seg = store.attrs(SFM.path)["segments"][int(store.array(SFM.frame_index)[np.argmax(ok), 0])]
+    seg = store.meta(SFM.path).segments[int(store.array(SFM.frame_index)[np.argmax(ok), 0])]
     frames = zarr.open_array(store.root.store, path=attempt_path(store, seg).frames, mode="r")
     height, width = (int(v) for v in frames.shape[1:3])
-    config = store.root.attrs.get("config") or {}
-    outputs = config.get("steps", {}).get("outputs", {})
-    fly = flythrough_path(w2c, int(outputs.get("video_frames", 120)))
-    metrics = store.attrs(SPLATS.path).get("metrics", {}) if store.cache_key_of(SPLATS.path) else {}
-    background = tuple(float(c) for c in (metrics.get("background_rgb") or (0.0, 0.0, 0.0)))
+    cfg = run_config(store)
+    outputs = cfg.steps.outputs if cfg is not None else OutputsParams()
+    fly = flythrough_path(w2c, outputs.video_frames)
+    splats = store.meta(SPLATS.path)
+    background = tuple(float(c) for c in (splats.metrics.background_rgb if splats else None) or (0.0, 0.0, 0.0))
     look, size = _look_distance(scene_dir / splat, w2c[0], camera_centers(w2c))
     return SceneView(
         splat_file=splat,
@@ -170,7 +172,7 @@ def scene_view(scene_dir: Path) -> SceneView:
         width=width,
         height=height,
         flythrough=fly,
-        fps=float(outputs.get("video_fps", 24.0)),
+        fps=outputs.video_fps,
         background=background,  # type: ignore[arg-type]
         look_distance=look,
         scene_size=size,
@@ -184,10 +186,8 @@ def world_from_sfm(store: Any) -> Any:
     from wonderverse.camera import Sim3
     from wonderverse.schema import OUTPUTS
 
-    frame = store.attrs(OUTPUTS.path).get("frame") if store.cache_key_of(OUTPUTS.path) else None
-    if isinstance(frame, dict) and "world_from_sfm" in frame:
-        return Sim3.from_dict(frame["world_from_sfm"])
-    return Sim3.identity()
+    outputs = store.meta(OUTPUTS.path)
+    return Sim3.from_dict(outputs.frame.world_from_sfm) if outputs is not None else Sim3.identity()
 
 
 def _look_distance(splat_path: Path, w2c0: np.ndarray, centres: np.ndarray) -> tuple[float, float]:

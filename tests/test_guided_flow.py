@@ -236,11 +236,11 @@ def test_inspect_and_the_report_show_the_guide_of_each_extension(guided: tuple[P
 
 
 def test_an_attempt_generated_without_its_guide_says_why() -> None:
-    from flows.inspect import guide_words
+    from flows.inspect import GuideInfo, guide_words
 
     assert guide_words(None) == "-"
-    assert guide_words({"source": None, "coverage": 0.0, "reason": "its parent could not be placed"}) == "none"
-    assert guide_words({"source": "segment s000, attempt 1", "coverage": 0.694, "reason": ""}) == "69 %"
+    assert guide_words(GuideInfo(source=None, coverage=0.0, reason="its parent could not be placed")) == "none"
+    assert guide_words(GuideInfo(source="segment s000, attempt 1", coverage=0.694)) == "69 %"
     # the report's summary over the extensions: the attempt each follows (the chosen one)
     from flows.report import _guided_extensions
     from wonderverse.report import AttemptInfo, SegmentInfo

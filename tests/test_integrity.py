@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from conftest import complete_config, run_cli, tree_digest
 
-from flows.inspect import damaged_lines, summarize
+from flows.inspect import damaged_lines, scene_summary
 from flows.pipeline import StepFailed, _direct, execute
 from wonderverse.config import RunConfig
 from wonderverse.errors import WonderError
@@ -98,8 +98,8 @@ def test_damaged_data_is_listed_refused_on_read_and_rebuilt_by_its_step(
     _damage(scene, array, chunk, kind)
 
     store = SceneStore.open(scene)  # read-only, as inspect opens it: it reports and changes nothing
-    info = summarize(store)
-    assert [d["group"] for d in info["damaged"]] == [group]
+    info = scene_summary(store)
+    assert [d.group for d in info.damaged] == [group]
     assert damaged_lines(info)[0].startswith(f"damaged: {group}: ")
     with pytest.raises(DamagedData) as err:
         store.array(array)  # never the fill value in place of a missing chunk

@@ -295,6 +295,27 @@ class MeshFigures(Attrs):
     points: int | None = Field(None, description="points in points.ply")
 
 
+class Bounds(Attrs):
+    """An axis-aligned box: its lowest and highest corner."""
+
+    min: list[float]
+    max: list[float]
+
+
+class PruneRecord(BaseModel):
+    """What `splats.cleanup.prune_for_export` removed before the splat files were written (extra keys are kept)."""
+
+    model_config = ConfigDict(extra="allow", frozen=True)
+
+    before: int = Field(description="Gaussians trained")
+    after: int = Field(description="Gaussians exported")
+    removed: dict[str, int] = Field(default_factory=dict, description="Gaussians removed, by reason")
+    extent: float | None = Field(None, description="the scene extent the thresholds followed (world units)")
+    bounds_before: Bounds | None = Field(None, description="the box of the finite centres before (world units)")
+    bounds_after: Bounds | None = Field(None, description="the box of the exported centres (world units)")
+    params: dict[str, Any] = Field(default_factory=dict, description="the ExportPruneParams it ran with")
+
+
 class QualityScores(Attrs):
     niqe: float | None = None
     clip_s: float | None = None
@@ -307,7 +328,7 @@ class OutputProductAttrs(Attrs):
     files: list[FileEntry] = Field(default_factory=list)
     frame: OutputFrame | None = None
     mesh: MeshFigures | None = None
-    pruned: dict[str, Any] | None = Field(None, description="the splat files: what pruning removed")
+    pruned: PruneRecord | None = Field(None, description="the splat files: what pruning removed")
     points: int | None = Field(None, description="the point cloud: its points")
     colmap: dict[str, Any] | None = Field(None, description="the COLMAP dataset: {tracks_from}")
     nerfstudio: dict[str, Any] | None = Field(None, description="the nerfstudio dataset: depth pixels written, clipped")
@@ -320,10 +341,16 @@ class OutputsAttrs(StepAttrs):
     mesh: MeshFigures
     render_size: list[int] = Field(description="[width, height] of the renders")
     quality: QualityScores = Field(default_factory=QualityScores)
-    pruned: dict[str, Any] = Field(default_factory=dict, description="what pruning removed before the splat files")
+    pruned: PruneRecord | None = Field(None, description="what pruning removed before the splat files")
     colmap: dict[str, Any] | None = None
     nerfstudio: dict[str, Any] | None = None
     made: list[str] = Field(default_factory=list, description="the products the last run made (the rest unchanged)")
+
+    @field_validator("pruned", mode="before")
+    @classmethod
+    def _nothing_pruned(cls, v: Any) -> Any:
+        """Older stores wrote {} when nothing was recorded."""
+        return v or None
 
 
 class NoAttrs(Attrs):
