@@ -71,7 +71,7 @@ def mean_extra_trials(n_scenes: int, width: int, height: int, frames: int) -> fl
                 },
             )
             execute(Path(tmp) / f"s{s}", cfg, until="check")
-            extra += [x["extra_trials"] for x in SceneStore.open(Path(tmp) / f"s{s}").attrs(CHECK.path)["segments"]]
+            extra += [x.extra_trials for x in SceneStore.open(Path(tmp) / f"s{s}").meta(CHECK.path).segments]
     return float(np.mean(extra))
 
 

@@ -51,13 +51,13 @@ def _up_error_deg(store: Any) -> float:
     from tasks.segments import attempt_path
     from wonderverse.schema import OUTPUTS, SFM
 
-    segs, index, poses = store.attrs(SFM.path)["segments"], store.array(SFM.frame_index), store.array(SFM.poses)
+    segs, index, poses = store.meta(SFM.path).segments, store.array(SFM.frame_index), store.array(SFM.poses)
     ok = np.isfinite(poses).all(axis=(1, 2))
     gt = {a: store.array(attempt_path(store, segs[a]).gt.poses) for a in np.unique(index[:, 0])}
     gt_w2c = np.stack([gt[a][i] for (a, i), k in zip(index, ok, strict=True) if k])
     U, _, Vt = np.linalg.svd(np.einsum("nji,njk->ik", gt_w2c[:, :3, :3], poses[ok][:, :3, :3]))
     R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt  # sfm -> true world
-    up = np.asarray(store.attrs(OUTPUTS.path)["frame"]["up_in_sfm"])
+    up = np.asarray(store.meta(OUTPUTS.path).frame.up_in_sfm)
     cos = float(np.clip(up @ (R.T @ np.array([0.0, 0.0, 1.0])) / np.linalg.norm(up), -1, 1))
     return float(np.degrees(np.arccos(cos)))
 
@@ -137,7 +137,7 @@ def main() -> None:
             store = SceneStore.open(scene)
             up = _up_error_deg(store)
             ups.append(up)
-            kept = store.attrs(OUTPUTS.path)["pruned"]["after"]
+            kept = store.meta(OUTPUTS.path).pruned.after
             sizes = {f: (scene / f).stat().st_size for f in ("splats.ply", "splats.spz", "splats.glb", "mesh.glb")}
             rows.append({"scene": name, "up_error_deg": round(up, 3), "gaussians": kept,
                          **{f"{f} kB": round(b / 1e3) for f, b in sizes.items()}})  # fmt: skip

@@ -114,7 +114,8 @@ def _step_seconds(scene: Path) -> dict[str, float]:
     from wonderverse.store import SceneStore
 
     store = SceneStore.open(scene)
-    return {s.name: round(float(store.attrs(s.group).get("seconds", 0.0)), 1) for s in STEPS}
+    metas = {s.name: store.meta(s.group) for s in STEPS}  # None: the step has not completed
+    return {name: round(m.seconds or 0.0, 1) if m is not None else 0.0 for name, m in metas.items()}
 
 
 def main() -> None:

@@ -149,14 +149,14 @@ def prefect_rows(tmp: Path, cfg: RunConfig, reps: int, api: str | None = None) -
 def pose_error(scene: Path) -> float:
     """ATE of a scene's global poses against the procedural world's true path, as a share of its length."""
     store = SceneStore.open(scene)
-    segs = store.attrs(SFM.path)["segments"]
+    segs = store.meta(SFM.path).segments
     true = {seg: store.array(attempt_path(store, seg).gt.poses) for seg in segs}
     gt = np.stack([true[segs[a]][i] for a, i in store.array(SFM.frame_index)])
     return float(ate(store.array(SFM.poses), gt)["rmse_frac"])
 
 
 def _quality(scene: Path, pose_ate: float) -> str:
-    psnr = SceneStore.open(scene).attrs(SPLATS.path)["metrics"]["test_psnr"]
+    psnr = SceneStore.open(scene).meta(SPLATS.path).metrics.test_psnr
     return f"{100 * pose_ate:.2f} % / {psnr:.2f} dB"
 
 

@@ -81,9 +81,9 @@ def load_trained(scene_dir: Path) -> dict[str, Any]:
     store = SceneStore.open(scene_dir)
     names = ("means", "quats", "log_scales", "logit_opacities", "sh0", "shN")
     arrays = {n: store.array(getattr(SPLATS, n)) for n in names}
-    norm = normalization_from_dict(store.attrs(SPLATS.path)["normalization"])
+    norm = normalization_from_dict(store.meta(SPLATS.path).normalization)
     poses, K = store.array(SFM.poses), store.array(SFM.K)
-    segs, index = store.attrs(SFM.path)["segments"], store.array(SFM.frame_index)
+    segs, index = store.meta(SFM.path).segments, store.array(SFM.frame_index)
     attempts = {a: attempt_path(store, segs[a]) for a in np.unique(index[:, 0])}
     arrays_of = {"poses": lambda ap: ap.gt.poses, "depth": lambda ap: ap.gt.depth, "frames": lambda ap: ap.frames}
     per_seg = {name: {a: store.array(get(ap)) for a, ap in attempts.items()} for name, get in arrays_of.items()}

@@ -552,21 +552,22 @@ def guided_config(guided: bool, workers: int, quick: bool) -> Any:
 def guide_records(scene_dir: Any) -> list[dict[str, Any]]:
     """Per extension segment: the guide record of its accepted attempt (gt `guide`: coverage, psnr_db,
     depth_absrel, depth_off_share); segments without one are left out."""
-    from tasks.segments import attempt_path, segment_ids
-    from wonderverse.schema import SEGMENT
+    from tasks.segments import attempt_path, segment_ids, segment_meta
     from wonderverse.store import SceneStore
 
     store = SceneStore.open(scene_dir)
     out = []
     for seg in segment_ids(store):
-        if store.attrs(SEGMENT.at(seg=seg)).get("role") == "init":
+        if segment_meta(store, seg).role == "init":
             continue
         try:
-            rec = store.attrs(attempt_path(store, seg).gt).get("guide")
+            truth = store.meta(attempt_path(store, seg).gt, complete=False)
         except KeyError:  # dropped by the check
             continue
-        if rec:
-            out.append({"segment": seg} | {k: (float("nan") if v is None else v) for k, v in rec.items()})
+        rec = truth.guide if truth is not None else None
+        if rec is not None:
+            figures = rec.model_dump()
+            out.append({"segment": seg} | {k: (float("nan") if v is None else v) for k, v in figures.items()})
     return out
 
 
@@ -574,9 +575,10 @@ def seam_psnr(scene_dir: Any) -> dict[str, float]:
     """Per extension segment: PSNR (dB) of its first SEAM_FRAMES frames after the reference frame against the
     final splats rendered at those frames' global SfM poses (video size, the splats' learnt background)."""
     from tasks.output_scene import posed_frames
+    from tasks.segments import segment_meta
     from tasks.splats import stored_sky
     from wonderverse.metrics import psnr
-    from wonderverse.schema import SEGMENT, SFM, SPLATS
+    from wonderverse.schema import SFM, SPLATS
     from wonderverse.splats.model import GaussianModel, normalization_from_dict
     from wonderverse.splats.renderer import make_renderer
     from wonderverse.splats.views import render_views
@@ -584,8 +586,7 @@ def seam_psnr(scene_dir: Any) -> dict[str, float]:
 
     store = SceneStore.open(scene_dir)
     frames, w2c, names = posed_frames(store)
-    splats = store.attrs(SPLATS.path)
-    norm = normalization_from_dict(splats["normalization"])
+    norm = normalization_from_dict(store.meta(SPLATS.path).normalization)
     arrays = {name: store.array(getattr(SPLATS, name)) for name in GaussianModel.PARAM_NAMES}
     background = stored_sky(store)
     K = store.array(SFM.K)
@@ -593,7 +594,7 @@ def seam_psnr(scene_dir: Any) -> dict[str, float]:
     by_seg: dict[str, list[tuple[int, int]]] = {}
     for row, name in enumerate(names):
         seg, idx = name.rsplit("_", 1)
-        if int(idx) >= 1 and store.attrs(SEGMENT.at(seg=seg)).get("role") != "init":
+        if int(idx) >= 1 and segment_meta(store, seg).role != "init":
             by_seg.setdefault(seg, []).append((int(idx), row))
     out = {}
     renderer = make_renderer("torch")

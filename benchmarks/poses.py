@@ -106,7 +106,7 @@ def main() -> None:
         t = time.perf_counter()
         execute(Path(tmp) / "g", cfg, until="poses")
         store = SceneStore.open(Path(tmp) / "g")
-        segs = store.attrs(SFM.path)["segments"]
+        segs = store.meta(SFM.path).segments
         gt = np.stack(
             [store.array(ATTEMPT.at(seg=segs[a], attempt=0).gt.poses)[b] for a, b in store.array(SFM.frame_index)]
         )

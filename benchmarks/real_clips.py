@@ -119,22 +119,23 @@ def run_clip(clip: Path, options: dict[str, Any], until: str = "poses") -> dict[
         seconds = {r.step: r.seconds for r in results}
         store = SceneStore.open(scene)
         at = ATTEMPT.at(seg="s000", attempt=0)
-        check = store.attrs(at.check) if store.exists(at.check) else {}
-        sfm = store.attrs(at.sfm) if store.exists(at.sfm) else {}
+        check, sfm = store.meta(at.check, complete=False), store.meta(at.sfm, complete=False)  # None: absent
         out |= {
             "check_s": seconds.get("check", float("nan")),
             "poses_s": seconds.get("poses", float("nan")),
-            "accepted": check.get("accepted"),
-            "reasons": list(check.get("reasons") or []),
-            "k_source": sfm.get("k_source", ""),
-            "fov_deg": sfm.get("fov_deg"),
+            "accepted": check.accepted if check is not None else None,
+            "reasons": list(check.reasons) if check is not None else [],
+            "k_source": sfm.k_source if sfm is not None else "",
+            "fov_deg": sfm.fov_deg if sfm is not None else None,
             "n_frames": len(store.array(at.frames)) if store.exists(at.frames) else 0,
         }
-        if store.exists(SFM.poses):
-            out |= {"poses": store.array(SFM.poses), "solve": store.attrs(SFM.path).get("solve")}
-            out |= {"k_source": store.attrs(SFM.path).get("k_source", out["k_source"])}
-        if until == "outputs" and store.exists(SPLATS.path):
-            out["test_psnr"] = (store.attrs(SPLATS.path).get("metrics") or {}).get("test_psnr")
+        solved = store.meta(SFM.path, complete=False)
+        if store.exists(SFM.poses) and solved is not None:
+            out |= {"poses": store.array(SFM.poses), "solve": solved.solve}
+            out |= {"k_source": solved.k_source or out["k_source"]}
+        splats = store.meta(SPLATS.path, complete=False)
+        if until == "outputs" and splats is not None:
+            out["test_psnr"] = splats.metrics.test_psnr
     return out
 
 

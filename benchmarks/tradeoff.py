@@ -117,7 +117,7 @@ def _scored_frames(store: Any) -> dict[str, Any]:
     """SfM and true poses, true depth and names of the posed frames (the splat step's order)."""
     from tasks.segments import attempt_path
 
-    segs, index, poses = store.attrs(SFM.path)["segments"], store.array(SFM.frame_index), store.array(SFM.poses)
+    segs, index, poses = store.meta(SFM.path).segments, store.array(SFM.frame_index), store.array(SFM.poses)
     ok = np.isfinite(poses).all(axis=(1, 2))
     paths = {a: attempt_path(store, segs[a]) for a in np.unique(index[:, 0])}
     gt = {a: (store.array(p.gt.poses), store.array(p.gt.depth)) for a, p in paths.items()}
@@ -174,13 +174,13 @@ def score(scene_dir: Path, cfg: Any) -> dict[str, Any]:
     store = SceneStore.open(scene_dir)
     f = _scored_frames(store)
     to_world = umeyama(camera_centers(f["w2c"]), camera_centers(f["gt_w2c"]), with_scale=True)
-    splats = store.attrs(SPLATS.path)
-    metrics = splats["metrics"]
-    test = [f["names"].index(splats["frames"][j]) for j in metrics.get("test_views", [])]
+    splats = store.meta(SPLATS.path)
+    metrics = splats.metrics
+    test = [f["names"].index(splats.frames[j]) for j in metrics.test_views]
 
     # rendered depth at the held-out frames, in metres, against the truth
     arrays = {n: store.array(getattr(SPLATS, n)) for n in GaussianModel.PARAM_NAMES}
-    norm = normalization_from_dict(splats["normalization"])
+    norm = normalization_from_dict(splats.normalization)
     v = cfg.scene.video
     absrel = []
     views = render_views(arrays, norm, f["w2c"][test], store.array(SFM.K), v.width, v.height, make_renderer("auto"))
@@ -193,7 +193,7 @@ def score(scene_dir: Path, cfg: Any) -> dict[str, Any]:
     mesh = trimesh.load(scene_dir / "mesh.ply", force="mesh")
     vertices = output_frame(store).apply_inverse(np.asarray(mesh.vertices))  # the files' frame -> sfm/ frame
     pred = to_world.apply(sample_mesh_points(vertices, np.asarray(mesh.faces), 300_000, seed=1))
-    reach = cfg.steps.outputs.mesh.reach_frac * store.attrs(OUTPUTS.path)["mesh"]["extent"] * to_world.s
+    reach = cfg.steps.outputs.mesh.reach_frac * store.meta(OUTPUTS.path).mesh.extent * to_world.s
     extent = scene_extent(f["gt_w2c"], f["gt_depth"])
     gt_pts = visible_gt_points(video.world, video.K, f["gt_w2c"], f["gt_depth"], reach)
     fs = chamfer_fscore(pred, gt_pts, [0.01 * extent])
@@ -201,15 +201,15 @@ def score(scene_dir: Path, cfg: Any) -> dict[str, Any]:
     novel = iio.imread(scene_dir / "novel.mp4")
     picks = novel[np.linspace(0, len(novel) - 1, NIQE_FRAMES).round().astype(int)]
     return {
-        "extra_trials": float(store.attrs(CHECK.path)["mean_extra_trials"]),
+        "extra_trials": store.meta(CHECK.path).mean_extra_trials,
         "ate_frac": ate(f["all_w2c"], f["all_gt_w2c"])["rmse_frac"],
         "depth_absrel": float(np.mean(absrel)),
-        "psnr": float(metrics["test_psnr"]),
+        "psnr": float(metrics.test_psnr),
         "fscore_1pct": float(fs["fscore"][0]),
         "precision_1pct": float(fs["precision"][0]),
         "recall_1pct": float(fs["recall"][0]),
         "niqe": niqe_many(list(picks)) if min(picks.shape[1:3]) >= 192 else float("nan"),
-        "gaussians": int(metrics["n_gaussians"]),
+        "gaussians": metrics.n_gaussians,
         "by_range": by_range(pred, gt_pts, camera_centers(f["gt_w2c"]), extent, 0.01 * extent),
     }
 
