@@ -204,7 +204,9 @@ class SfmAttrs(StepAttrs, KRecord):
     )
     new_frames: int | None = Field(None, description="incremental solves: frames registered into the kept model")
     model_to_world: dict[str, Any] | None = Field(None, description="Sim3 (to_dict) from the COLMAP model to the world")
-    kept_frame: str | None = Field(None, description="the frame the world was kept in (a previous solve's)")
+    kept_frame: dict[str, Any] | None = Field(
+        None, description="a full re-solve mapped into the previous solve's world: {shared_frames, scale}"
+    )
     incremental_problems: list[str] = Field(default_factory=list, description="why an incremental solve fell back")
     incremental_timings: dict[str, float | None] = Field(default_factory=dict)
     segment_disagreement: dict[str, float] = Field(
