@@ -611,9 +611,10 @@ def test_a_chat_server_answering_nonsense_falls_back_to_the_rules_with_a_warning
         assert not any(ln.startswith("error") for ln in r.stderr.splitlines()) and "Traceback" not in r.stderr
         assert "rules (fallback from chat)" in r.stderr, r.stderr  # the plan line says so
         assert not _raw_controls(r.stderr + r.stdout), r.stderr
-        plan = SceneStore.open(scene).attrs(PLAN.path)["plan"]
-        assert plan["planner"] == "rules (fallback from chat)" and plan["fallback_reason"], plan
-        assert not _raw_controls(json.dumps(plan, ensure_ascii=False)), plan  # the answer's escapes are not kept
+        plan = SceneStore.open(scene).meta(PLAN.path).plan
+        assert plan.planner == "rules (fallback from chat)" and plan.fallback_reason, plan
+        stored = json.dumps(plan.model_dump(mode="json"), ensure_ascii=False)
+        assert not _raw_controls(stored), plan  # the answer's escapes are not kept
         assert httpd.calls >= 1  # type: ignore[attr-defined]
     finally:
         httpd.shutdown()

@@ -194,7 +194,7 @@ def test_resume_from_a_stored_checkpoint_is_the_uninterrupted_run(
 ) -> None:
     store = SceneStore.open_or_create(tmp_path / "scene")
     _save_checkpoint(store, RUN_KEY, 8, uninterrupted["saved"][8])
-    assert store.attrs(CHECKPOINT)["complete"] is True
+    assert store.cache_key_of(CHECKPOINT) is not None  # complete
     with caplog.at_level(logging.WARNING, logger="wonderverse.splats"):
         state = _load(store)
     assert [r.getMessage() for r in caplog.records] == ["resuming splat training from the checkpoint at step 8"]
@@ -220,11 +220,11 @@ def test_a_checkpoint_for_another_run_is_not_read(tmp_path: Path, uninterrupted:
 
 
 def _tamper_state(store: SceneStore, change: Any) -> None:
-    a = store.attrs(CHECKPOINT)
-    state = unpack(store.array(CHECKPOINT.state).tobytes(), a["layout"])
+    a, key = store.meta(CHECKPOINT), store.cache_key_of(CHECKPOINT)
+    state = unpack(store.array(CHECKPOINT.state).tobytes(), a.layout)
     change(state)
     blob, layout = pack(state)
-    with store.staged(CHECKPOINT, a["cache_key"], step=a["step"], run_key=a["run_key"], layout=layout) as g:
+    with store.staged(CHECKPOINT, key, step=a.step, run_key=a.run_key, layout=layout) as g:
         write_array(g, CHECKPOINT.state, np.frombuffer(blob, np.uint8))
 
 
@@ -333,7 +333,7 @@ def test_a_pickle_planted_as_the_checkpoint_is_never_run(tmp_path: Path, caplog:
         ignored = [r for r in caplog.records if "ignoring the splat training checkpoint" in r.getMessage()]
         assert len(ignored) == 1 and not [r for r in caplog.records if "resuming" in r.getMessage()]
         done = SceneStore.open(scene)
-        assert len(done.attrs("splats")["curves"]["total"]) == 12  # trained from the start
+        assert len(done.meta("splats").curves["total"]) == 12  # trained from the start
         assert not done.exists(CHECKPOINT)
         done = SceneStore.open(scene, mode="r+")
         done.remove("splats")  # train again for the next plant

@@ -46,25 +46,25 @@ def corrected(tmp_path_factory) -> tuple[Path, int]:
 
 def test_faulty_segment_is_regenerated_whole_with_a_new_seed(corrected):
     store = SceneStore.open(corrected[0])
-    a0, a1 = (store.attrs(f"segments/s000/attempts/{k}") for k in (0, 1))
-    assert a0["seed"] != a1["seed"]
-    assert store.attrs("segments/s000/attempts/0/gt")["faults"]["type"] == "teleport"
-    c0, c1 = store.attrs("segments/s000/attempts/0/check"), store.attrs("segments/s000/attempts/1/check")
-    assert not c0["accepted"] and any("translation" in r for r in c0["reasons"]), c0["reasons"]
-    assert c1["accepted"], c1["reasons"]
-    assert store.attrs("segments/s000/accepted")["attempt"] == 1
-    summary = store.attrs("check")
-    assert summary["mean_extra_trials"] == pytest.approx(1 / 3)
-    assert [s["extra_trials"] for s in summary["segments"]] == [1, 0, 0]
+    a0, a1 = (store.meta(f"segments/s000/attempts/{k}", complete=False) for k in (0, 1))
+    assert a0.seed != a1.seed
+    assert store.meta("segments/s000/attempts/0/gt", complete=False).faults["type"] == "teleport"
+    c0, c1 = store.meta("segments/s000/attempts/0/check"), store.meta("segments/s000/attempts/1/check")
+    assert not c0.accepted and any("translation" in r for r in c0.reasons), c0.reasons
+    assert c1.accepted, c1.reasons
+    assert store.meta("segments/s000/accepted").attempt == 1
+    summary = store.meta("check")
+    assert summary.mean_extra_trials == pytest.approx(1 / 3)
+    assert [s.extra_trials for s in summary.segments] == [1, 0, 0]
     # per-frame values are stored beside the decision
-    assert len(c0["rot_steps"]) == VIDEO["frames_per_segment"] - 1
+    assert len(c0.rot_steps) == VIDEO["frames_per_segment"] - 1
 
 
 def test_global_poses_match_ground_truth(corrected):
     store = SceneStore.open(corrected[0])
     poses, idx = store.array("sfm/poses"), store.array("sfm/frame_index")
-    segs = store.attrs("sfm")["segments"]
-    acc = {s: store.attrs(f"segments/{s}/accepted")["attempt"] for s in segs}
+    segs = store.meta("sfm").segments
+    acc = {s: store.meta(f"segments/{s}/accepted").attempt for s in segs}
     gt = np.stack([store.array(f"segments/{segs[a]}/attempts/{acc[segs[a]]}/gt/poses")[b] for a, b in idx])
     assert len(poses) == 14 + 2 * 13 and np.isfinite(poses).all()
     # measured on 2026-12-04 (commit 088e394): ATE 0.23 % of the path, 1422 points; margins 2x
@@ -74,10 +74,10 @@ def test_global_poses_match_ground_truth(corrected):
 
 def test_global_poses_agree_with_each_segments_own_sfm(corrected):
     store = SceneStore.open(corrected[0])
-    a = store.attrs("sfm")
-    assert set(a["segment_disagreement"]) == {"s000", "s001", "s002"}
-    assert max(a["segment_disagreement"].values()) <= 0.05, a["segment_disagreement"]
-    assert 1 <= a["solves"] <= 3 and a["seed_offset"] < a["solves"]  # re-solves are rare, not impossible (2 threads)
+    a = store.meta("sfm")
+    assert set(a.segment_disagreement) == {"s000", "s001", "s002"}
+    assert max(a.segment_disagreement.values()) <= 0.05, a.segment_disagreement
+    assert 1 <= a.solves <= 3 and a.seed_offset < a.solves  # re-solves are rare, not impossible (2 threads)
 
 
 def test_a_segment_bent_away_from_its_own_sfm_is_re_solved_and_the_least_bent_kept(corrected, tmp_path: Path):
@@ -90,7 +90,7 @@ def test_a_segment_bent_away_from_its_own_sfm_is_re_solved_and_the_least_bent_ke
     scene = tmp_path / "scene"
     shutil.copytree(corrected[0], scene)
     store = SceneStore.open(scene, mode="r+")
-    sfm = f"segments/s001/attempts/{store.attrs('segments/s001/accepted')['attempt']}/sfm"
+    sfm = f"segments/s001/attempts/{store.meta('segments/s001/accepted').attempt}/sfm"
     arr = store.group(sfm)["poses"]
     own = arr[:]
     c = camera_centers(own)
@@ -111,16 +111,16 @@ def test_a_segment_bent_away_from_its_own_sfm_is_re_solved_and_the_least_bent_ke
         }
     )
     assert [r.status for r in execute(scene, cfg, until="poses")] == ["cached", "cached", "cached", "ran"]
-    a = SceneStore.open(scene).attrs("sfm")
-    assert a["solves"] == 2 and a["seed_offset"] in (0, 1)
-    assert a["segment_disagreement"]["s001"] > 0.05
-    assert max(a["segment_disagreement"][s] for s in ("s000", "s002")) <= 0.05  # the unbent ones still agree
+    a = SceneStore.open(scene).meta("sfm")
+    assert a.solves == 2 and a.seed_offset in (0, 1)
+    assert a.segment_disagreement["s001"] > 0.05
+    assert max(a.segment_disagreement[s] for s in ("s000", "s002")) <= 0.05  # the unbent ones still agree
 
 
 def test_priors_are_aligned_to_sfm_scale(corrected):
     store = SceneStore.open(corrected[0])
     poses, idx = store.array("sfm/poses"), store.array("sfm/frame_index")
-    segs = store.attrs("sfm")["segments"]
+    segs = store.meta("sfm").segments
     gt_poses = np.stack(
         [store.array(f"segments/{segs[a]}/attempts/{1 if segs[a] == 's000' else 0}/gt/poses")[b] for a, b in idx]
     )
@@ -129,7 +129,7 @@ def test_priors_are_aligned_to_sfm_scale(corrected):
     s = umeyama(camera_centers(gt_poses), camera_centers(poses)).s  # metres -> SfM units
     for seg in segs:
         prior = store.array(f"priors/{seg}/depth")
-        k = store.attrs(f"segments/{seg}/accepted")["attempt"]
+        k = store.meta(f"segments/{seg}/accepted").attempt
         gt = store.array(f"segments/{seg}/attempts/{k}/gt/depth") * s
         assert not np.isnan(prior).any() and prior.dtype == np.float32
         # sky is +inf in the prior, as in the ground truth
@@ -171,8 +171,8 @@ def test_segment_failing_every_attempt_follows_policy(tmp_path: Path, policy: st
         return
     execute(tmp_path / "s", cfg, until="check")
     store = SceneStore.open(tmp_path / "s")
-    assert store.attrs("segments/s000/accepted")["dropped"] is True
-    assert store.attrs("check")["dropped"] == ["s000"]
+    assert store.meta("segments/s000/accepted").dropped is True
+    assert store.meta("check").dropped == ["s000"]
 
 
 def test_preview_writes_check_plots_for_every_attempt(corrected):

@@ -30,7 +30,7 @@ def _config():
 
 
 def _poses_by_frame(store: SceneStore) -> dict[tuple[str, int], object]:
-    segs = store.attrs("sfm")["segments"]
+    segs = store.meta("sfm").segments
     return {
         (segs[a], int(i)): pose
         for (a, i), pose in zip(store.array("sfm/frame_index"), store.array("sfm/poses"), strict=True)
@@ -46,9 +46,9 @@ def scenes(tmp_path_factory) -> tuple[Path, dict]:
         "keys": {
             g: store.cache_key_of(g) for g in ("segments/s000", "segments/s001", "priors_raw/s000", "priors_raw/s001")
         },
-        "checks": {s: store.attrs(f"segments/{s}/attempts/0/check") for s in ("s000", "s001")},
-        "n_gaussians": store.attrs("splats")["metrics"]["n_gaussians"],
-        "frames": store.attrs("splats")["frames"],
+        "checks": {s: store.meta(f"segments/{s}/attempts/0/check") for s in ("s000", "s001")},
+        "n_gaussians": store.meta("splats").metrics.n_gaussians,
+        "frames": store.meta("splats").frames,
         "sfm": _poses_by_frame(store),
     }
     results = extend(scene, WORDS, engine="local")
@@ -60,13 +60,13 @@ def test_only_the_new_segment_is_generated_and_checked(scenes) -> None:
     scene, info = scenes
     store = SceneStore.open(scene)
     assert store.children("segments") == ["s000", "s001", "s002"]
-    new = store.attrs("segments/s002")
-    assert new["role"] == "left" and new["intent"] == WORDS
+    new = store.meta("segments/s002")
+    assert new.role == "left" and new.intent == WORDS
     for group, key in info["before"]["keys"].items():
         assert store.cache_key_of(group) == key, f"{group} was recomputed"
     for seg, check in info["before"]["checks"].items():
-        assert store.attrs(f"segments/{seg}/attempts/0/check") == check
-    assert store.attrs("segments/s002/attempts/0/check")["accepted"] in (True, False)
+        assert store.meta(f"segments/{seg}/attempts/0/check") == check
+    assert store.meta("segments/s002/attempts/0/check").accepted in (True, False)
     assert info["results"]["outputs"] == "ran" and info["results"]["splats"] == "ran"
 
 
@@ -74,9 +74,9 @@ def test_only_the_new_segment_is_generated_and_checked(scenes) -> None:
 def test_poses_register_only_the_new_frames_and_old_frames_keep_their_poses(scenes) -> None:
     scene, info = scenes
     store = SceneStore.open(scene)
-    a = store.attrs("sfm")
-    assert a["solve"] == "incremental", a.get("incremental_problems")
-    assert a["new_frames"] == VIDEO["frames_per_segment"] - 1  # s002 without the frame repeating its reference
+    a = store.meta("sfm")
+    assert a.solve == "incremental", a.incremental_problems
+    assert a.new_frames == VIDEO["frames_per_segment"] - 1  # s002 without the frame repeating its reference
     after = _poses_by_frame(store)
     for frame, pose in info["before"]["sfm"].items():
         assert (after[frame] == pose).all() or not np.isfinite(pose).all(), frame  # exactly, where posed before
@@ -86,14 +86,14 @@ def test_poses_register_only_the_new_frames_and_old_frames_keep_their_poses(scen
 @pytest.mark.e2e
 def test_splats_continue_from_the_existing_gaussians(scenes) -> None:
     scene, info = scenes
-    a = SceneStore.open(scene).attrs("splats")
-    assert a["extended_from"] == {
+    a = SceneStore.open(scene).meta("splats")
+    assert a.extended_from == {
         "frames": len(info["before"]["frames"]),
         "kept_gaussians": info["before"]["n_gaussians"],
     }
-    assert set(info["before"]["frames"]) < set(a["frames"]) and any(f.startswith("s002_") for f in a["frames"])
+    assert set(info["before"]["frames"]) < set(a.frames) and any(f.startswith("s002_") for f in a.frames)
     splats = _config().steps.splats
-    assert len(a["curves"]["total"]) == round(splats.train.iterations * splats.extend_iterations_frac)
+    assert len(a.curves["total"]) == round(splats.train.iterations * splats.extend_iterations_frac)
 
 
 @pytest.mark.e2e

@@ -767,9 +767,9 @@ def scene_figures(scene: Path) -> dict:
     ap = "segments/s000/attempts/0"
     gt_poses, gt_depth = store.array(f"{ap}/gt/poses"), store.array(f"{ap}/gt/depth")
     sfm_poses = store.array(f"{ap}/sfm/poses")
-    splats = store.attrs("splats")
+    splats = store.meta("splats")
     arrays = {k: store.array(f"splats/{k}") for k in GaussianModel.PARAM_NAMES}
-    norm = normalization_from_dict(splats["normalization"])
+    norm = normalization_from_dict(splats.normalization)
     K = store.array("sfm/K")
     h, w = gt_depth.shape[1:]
     rendered = np.stack([v.depth for v in render_views(arrays, norm, gt_poses, K, w, h, make_renderer("torch"))])
@@ -780,7 +780,7 @@ def scene_figures(scene: Path) -> dict:
         "ate_frac": ate(sfm_poses, gt_poses)["rmse_frac"],
         "prior_absrel": depth_errors(store.array("priors/s000/depth"), gt_depth)["absrel"],
         "depth_absrel": depth_errors(rendered, gt_depth)["absrel"],
-        "test_psnr": splats["metrics"]["test_psnr"],
+        "test_psnr": splats.metrics.test_psnr,
         "points": _ply_xyz(scene / "points.ply"),
         "splats": _ply_xyz(scene / "splats.ply"),
         "mesh": _ply_xyz(scene / "mesh.ply"),

@@ -102,8 +102,8 @@ def test_a_guide_of_the_wrong_size_names_the_segment_and_keeps_its_parent(tmp_pa
     assert "segment s001: guide frames is 80x56, 9 frames but the video is 160x112" in line, line
     store = SceneStore.open(scene)
     intact(store, "s000")  # the parent, made before the failure: generated, checked and placed
-    assert store.attrs("segments/s000/accepted")["complete"] is True
-    assert store.attrs("segments/s000/geometry")["placed"] is True and store.damage("segments/s000/geometry") == {}
+    assert store.cache_key_of("segments/s000/accepted") is not None  # complete
+    assert store.meta("segments/s000/geometry").placed is True and store.damage("segments/s000/geometry") == {}
     assert store.cache_key_of("segments/s001") is None  # the extension was never committed
 
 
@@ -125,7 +125,7 @@ def test_an_extension_whose_parent_has_no_geometry_names_both_and_keeps_the_pare
     assert "so there is no geometry to guide it" in line
     store = SceneStore.open(scene)
     intact(store, "s000")
-    assert store.attrs("segments/s000/accepted")["dropped"] is True
+    assert store.meta("segments/s000/accepted").dropped is True
     assert store.cache_key_of("segments/s001") is None and store.cache_key_of("segments/s002") is None
     frames = store.array("segments/s000/attempts/0/frames")
 

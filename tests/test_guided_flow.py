@@ -86,20 +86,21 @@ def test_each_extension_is_generated_from_its_parents_guide(guided: tuple[Path, 
     scene, _, _ = guided
     store = SceneStore.open(scene)
     assert store.children("segments") == ["s000", "s001", "s002"]
-    assert "guide" not in store.attrs("segments/s000/attempts/0")  # the initial segment continues from nothing
+    # the initial segment continues from nothing
+    assert store.meta("segments/s000/attempts/0", complete=False).guide is None
     parent_geometry = store.cache_key_of("segments/s000/geometry")
     for seg in ("s001", "s002"):
-        a = store.attrs(f"segments/{seg}")
-        assert a["reference_segment"] == "s000" and a["guide_geometry_key"] == parent_geometry
-        record = store.attrs(f"segments/{seg}/attempts/0")["guide"]
-        assert record["source"] == "segment s000, attempt 0" and record["geometry_key"] == parent_geometry
-        truth = store.attrs(f"segments/{seg}/attempts/0/gt")["guide"]  # measured by the procedural backend
-        assert truth["coverage"] == pytest.approx(record["coverage"])
-        assert truth["coverage"] > 0.3, (seg, truth)  # a 30 deg turn keeps most of what the parent shows
-        assert truth["psnr_db"] > 20.0, (seg, truth)  # measured 22.1 (left) and 21.0 (right)
-        assert truth["depth_absrel"] < 0.3, (seg, truth)
+        a = store.meta(f"segments/{seg}")
+        assert a.reference_segment == "s000" and a.guide_geometry_key == parent_geometry
+        record = store.meta(f"segments/{seg}/attempts/0", complete=False).guide
+        assert record.source == "segment s000, attempt 0" and record.geometry_key == parent_geometry
+        truth = store.meta(f"segments/{seg}/attempts/0/gt", complete=False).guide  # measured by the procedural backend
+        assert truth.coverage == pytest.approx(record.coverage)
+        assert truth.coverage > 0.3, (seg, truth)  # a 30 deg turn keeps most of what the parent shows
+        assert truth.psnr_db > 20.0, (seg, truth)  # measured 22.1 (left) and 21.0 (right)
+        assert truth.depth_absrel < 0.3, (seg, truth)
         # the guided model kept the known pixels: frame 0 is (nearly) the parent's reference frame again
-        ref = store.array("segments/s000/attempts/0/frames")[a["reference_frame"]].astype(int)
+        ref = store.array("segments/s000/attempts/0/frames")[a.reference_frame].astype(int)
         first = store.array(f"segments/{seg}/attempts/0/frames")[0].astype(int)
         assert np.abs(first - ref).mean() < 8.0
 
@@ -115,11 +116,11 @@ def test_the_guide_and_geometry_settings_come_from_the_config(guided: tuple[Path
     store = SceneStore.open(scene)
     guide = GuideParams(depth_tol_rel=0.15, **GUIDE_SETTINGS)  # the flow's default depth tolerance, kept
     for seg in ("s001", "s002"):
-        assert store.attrs(f"segments/{seg}")["guide_params"] == guide.model_dump(mode="json")
-    accepted = store.attrs("segments/s000/accepted")
+        assert store.meta(f"segments/{seg}").guide_params == guide.model_dump(mode="json")
+    accepted = store.cache_key_of("segments/s000/accepted")
     frames = store.array("segments/s000/attempts/0/frames")
     placed_by = GeometryParams(**GEOMETRY_SETTINGS)
-    key = geometry_key(accepted["cache_key"], 0, frames, depth_settings(cfg.steps.priors), placed_by)
+    key = geometry_key(accepted, 0, frames, depth_settings(cfg.steps.priors), placed_by)
     assert store.cache_key_of("segments/s000/geometry") == key
 
 
@@ -177,9 +178,9 @@ def test_segments_are_checked_and_placed_inside_generate_segments(guided: tuple[
     assert "checked and placed" in stderr and "3 segments (3 cached)" in stderr, stderr[-3000:]
     store = SceneStore.open(scene)
     for seg in ("s000", "s001", "s002"):
-        assert store.attrs(f"segments/{seg}/accepted")["attempt"] == 0
-        g = store.attrs(f"segments/{seg}/geometry")
-        assert g["placed"] and g["registered_frames"] == 9, (seg, g)
+        assert store.meta(f"segments/{seg}/accepted").attempt == 0
+        g = store.meta(f"segments/{seg}/geometry")
+        assert g.placed and g.registered_frames == 9, (seg, g)
         # the plan is the truth for a fault-free procedural segment: the placed poses and depth are the world's
         gt = f"segments/{seg}/attempts/0/gt"
         poses, true_poses = store.array(f"segments/{seg}/geometry/poses"), store.array(f"{gt}/poses")
@@ -211,11 +212,11 @@ def test_inspect_and_the_report_show_the_guide_of_each_extension(guided: tuple[P
     coverage = {}
     for seg in ("s001", "s002"):
         shown = attempts[seg][0]["guide"]
-        truth = store.attrs(f"segments/{seg}/attempts/0/gt")["guide"]
+        truth = store.meta(f"segments/{seg}/attempts/0/gt", complete=False).guide
         assert shown["source"] == "segment s000, attempt 0" and shown["reason"] == ""
-        assert shown["coverage"] == pytest.approx(truth["coverage"]) and 0.3 < shown["coverage"] < 1.0
-        assert shown["truth"]["psnr_db"] == pytest.approx(truth["psnr_db"])
-        assert shown["truth"]["depth_absrel"] == pytest.approx(truth["depth_absrel"])
+        assert shown["coverage"] == pytest.approx(truth.coverage) and 0.3 < shown["coverage"] < 1.0
+        assert shown["truth"]["psnr_db"] == pytest.approx(truth.psnr_db)
+        assert shown["truth"]["depth_absrel"] == pytest.approx(truth.depth_absrel)
         coverage[seg] = shown["coverage"]
 
     r = run_cli("inspect", str(scene))
@@ -278,7 +279,7 @@ def test_a_rerun_renders_nothing_and_a_new_depth_setting_regenerates_the_extensi
     assert store.cache_key_of("segments/s000/accepted") == checked
     for seg in ("s001", "s002"):  # its geometry changed, so did what its extensions were generated from
         assert store.cache_key_of(f"segments/{seg}") not in (None, before[f"segments/{seg}"])
-        assert store.attrs(f"segments/{seg}")["guide_geometry_key"] == store.cache_key_of("segments/s000/geometry")
+        assert store.meta(f"segments/{seg}").guide_geometry_key == store.cache_key_of("segments/s000/geometry")
 
     # a normal-prior setting places nothing differently: every segment stays as it is
     data = {**GUIDED, "steps": {**GUIDED["steps"], "priors": {"models": {"oracle_level": "mild", "oracle_seed": 0}}}}
@@ -306,11 +307,11 @@ def test_an_extension_gets_its_guide_from_the_parents_geometry_made_on_demand(
     store = SceneStore.open(scene)
     assert {s: store.cache_key_of(f"segments/{s}") for s in kept} == kept
     assert store.cache_key_of("segments/s001/geometry") == parent_key  # made again, the same
-    a = store.attrs("segments/s003")
-    assert a["reference_segment"] == "s001" and a["guide_geometry_key"] == parent_key
-    truth = store.attrs("segments/s003/attempts/0/gt")["guide"]
-    assert truth["coverage"] > 0.3 and truth["psnr_db"] > 18.0, truth
-    assert store.attrs("segments/s003/geometry")["complete"] is True  # ready for the next extension
+    a = store.meta("segments/s003")
+    assert a.reference_segment == "s001" and a.guide_geometry_key == parent_key
+    truth = store.meta("segments/s003/attempts/0/gt", complete=False).guide
+    assert truth.coverage > 0.3 and truth.psnr_db > 18.0, truth
+    assert store.cache_key_of("segments/s003/geometry") is not None  # complete: ready for the next extension
 
 
 @pytest.mark.e2e
@@ -332,7 +333,7 @@ def test_an_unguided_flow_is_as_before(tmp_path: Path) -> None:
         made[s.id] = cache_key("segment", 2, {"params": old, "segment": s}, parent)
         assert store.cache_key_of(f"segments/{s.id}") == made[s.id]
         assert not store.exists(f"segments/{s.id}/accepted") and not store.exists(f"segments/{s.id}/geometry")
-        assert "guide" not in store.attrs(f"segments/{s.id}/attempts/0")
+        assert store.meta(f"segments/{s.id}/attempts/0", complete=False).guide is None
 
 
 @pytest.mark.e2e
@@ -356,7 +357,7 @@ def test_an_extension_whose_parent_was_dropped_is_one_error_line(tmp_path: Path)
     assert "step generate_segments failed" in line and "its parent segment s000 was dropped by the check" in line
     assert "segment s001:" in line or "segment s002:" in line, line
     store = SceneStore.open(scene)  # what was made is kept: the initial segment, its check
-    assert store.attrs("segments/s000/accepted")["dropped"] is True
+    assert store.meta("segments/s000/accepted").dropped is True
     assert store.array("segments/s000/attempts/0/frames").shape == (6, 64, 96, 3)
 
 

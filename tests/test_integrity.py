@@ -105,7 +105,7 @@ def test_damaged_data_is_listed_refused_on_read_and_rebuilt_by_its_step(
         store.array(array)  # never the fill value in place of a missing chunk
     assert err.value.group == group and group in str(err.value) and "\n" not in str(err.value)
     assert isinstance(err.value, WonderError)  # the CLI prints it as one `error:` line
-    assert not store.is_complete(group, store.attrs(group)["cache_key"])
+    assert not store.is_complete(group, store.group(group).attrs["cache_key"])  # kept, though now incomplete
 
     results = {r.step: r.status for r in execute(scene, cfg)}
     assert results == {s: ("ran" if s == step else "cached") for s in results}
@@ -117,7 +117,7 @@ def test_damaged_data_is_listed_refused_on_read_and_rebuilt_by_its_step(
         np.testing.assert_array_equal(rebuilt, truth)
         # the units the check committed inside the segment were kept through the rewrite
         for unit in (SEGMENT.at(seg="s000").accepted, ATTEMPT.at(seg="s000", attempt=0).sfm):
-            assert repaired.attrs(unit).get("complete") is True
+            assert repaired.cache_key_of(unit) is not None  # complete
     else:  # the global SfM (two threads) is not bit-reproducible: a full solve of the same frames again
         assert rebuilt.shape[1] == 3 and np.isfinite(rebuilt).all() and len(rebuilt) > 0.8 * len(truth)
 
@@ -171,7 +171,7 @@ def test_groups_committed_before_digests_are_read_unverified_without_alarm(tmp_p
     data = np.arange(24, dtype=np.float32).reshape(2, 3, 4)
     with store.staged("a", key) as g:
         write_array(g, "data", data)
-    assert DIGESTS not in store.attrs("a")  # kept out of what steps and inspect read
+    assert DIGESTS in store.group("a").attrs  # recorded beside the attributes, never read as one of them
     del store.group("a").attrs[DIGESTS]  # as a store written before digests existed
     assert store.is_complete("a", key) and store.damaged_groups() == {}
     np.testing.assert_array_equal(store.array("a/data"), data)
@@ -196,7 +196,7 @@ def test_a_rewrite_under_another_key_drops_what_other_steps_kept_inside(tmp_path
     assert not store.is_complete("s", old)
     with store.staged("s", old) as g:  # the repair
         write_array(g, "frames", np.ones((2, 4, 4, 3), np.uint8))
-    assert store.is_complete("s", old) and store.attrs("s/unit").get("complete") is True
+    assert store.is_complete("s", old) and store.cache_key_of("s/unit") is not None
     np.testing.assert_array_equal(store.array("s/unit/x"), np.arange(3.0))
     with store.staged("s", new) as g:
         write_array(g, "frames", np.zeros((2, 4, 4, 3), np.uint8))

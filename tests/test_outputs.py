@@ -62,7 +62,7 @@ def _truth(store: SceneStore) -> tuple[np.ndarray, np.ndarray]:
     from tasks.segments import attempt_path
     from wonderverse.schema import SFM
 
-    segs, index, poses = store.attrs(SFM.path)["segments"], store.array(SFM.frame_index), store.array(SFM.poses)
+    segs, index, poses = store.meta(SFM.path).segments, store.array(SFM.frame_index), store.array(SFM.poses)
     ok = np.isfinite(poses).all(axis=(1, 2))
     gt = {a: store.array(attempt_path(store, segs[a]).gt.poses) for a in np.unique(index[:, 0])}
     true = np.stack([gt[a][i] for (a, i), keep in zip(index, ok, strict=True) if keep])
@@ -88,13 +88,13 @@ def _world(store: SceneStore):
 
 def test_files_are_listed_and_a_rerun_is_cached(scene: Path) -> None:
     store = SceneStore.open(scene)
-    listed = {f["path"]: f["description"] for f in store.attrs("outputs")["files"]}
+    listed = {f.path: f.description for f in store.meta("outputs").files}
     expected = {"splats.ply", "splats.spz", "splats.glb", "points.ply", "mesh.ply", "mesh.glb", "colmap", "nerfstudio"}
     assert set(listed) == expected | {"camera_path.json", "novel_path.json", "flythrough.mp4", "novel.mp4"}
     assert all((scene / f).exists() for f in listed)
     assert "+Z up" in listed["splats.ply"] and "SfM units" in listed["mesh.ply"]
     # novel views of 160x112 are under NIQE's two 96-px blocks per side, and no CLIP/Q-Align weights are given
-    assert store.attrs("outputs")["quality"] == {"niqe": None, "clip_s": None, "q_align": None}
+    assert store.meta("outputs").quality.model_dump() == {"niqe": None, "clip_s": None, "q_align": None}
     again = RunConfig.model_validate(store.root.attrs["config"])
     assert [r.status for r in execute(scene, again)] == ["cached"] * 7
     # how many views render at once changes the speed, not the files: still cached
@@ -109,14 +109,14 @@ def test_the_priors_mark_most_of_the_true_sky_and_say_how_much(scene: Path) -> N
     from wonderverse.schema import PRIORS_SEGMENT
 
     store = SceneStore.open(scene)
-    for seg in store.attrs("sfm")["segments"]:
+    for seg in store.meta("sfm").segments:
         truth = np.isinf(store.array(attempt_path(store, seg).gt.depth))
         depth = store.array(PRIORS_SEGMENT.at(seg=seg).depth)
         marked = np.isinf(depth)
         assert truth.mean() > 0.02, seg  # the scene shows sky
         # seen (s000): 86 % of the sky, 1.1 % of the surfaces (far terrain no SfM point reaches)
         assert marked[truth].mean() > 0.5 and marked[~truth].mean() < 0.02, seg
-        assert store.attrs(PRIORS_SEGMENT.at(seg=seg))["sky_share"] == pytest.approx(marked.mean(), abs=1e-4)
+        assert store.meta(PRIORS_SEGMENT.at(seg=seg)).sky_share == pytest.approx(marked.mean(), abs=1e-4)
 
 
 def test_the_sky_map_is_stored_with_the_splats(scene: Path) -> None:
@@ -126,38 +126,39 @@ def test_the_sky_map_is_stored_with_the_splats(scene: Path) -> None:
     sky = stored_sky(store)
     assert sky.shape == (16, 32, 3) and sky.dtype == np.float32 and sky.min() >= 0.0 and sky.max() <= 1.0
     assert sky.reshape(-1, 3).std(axis=0).max() > 0.01  # more than one colour was learnt
-    metrics = store.attrs("splats")["metrics"]
-    np.testing.assert_allclose(metrics["background_rgb"], sky.reshape(-1, 3).mean(axis=0), rtol=1e-5)
+    metrics = store.meta("splats").metrics
+    np.testing.assert_allclose(metrics.background_rgb, sky.reshape(-1, 3).mean(axis=0), rtol=1e-5)
 
 
 def test_the_exported_splats_are_pruned_and_the_same_in_every_format(scene: Path) -> None:
     from wonderverse.splats.ply import read_ply
     from wonderverse.splats.web import read_splat_glb, read_spz
 
-    pruned = SceneStore.open(scene).attrs("outputs")["pruned"]
-    assert pruned["before"] == len(SceneStore.open(scene).array("splats/means"))
-    assert pruned["after"] == pruned["before"] - sum(pruned["removed"].values()) > 0
+    pruned = SceneStore.open(scene).meta("outputs").pruned
+    assert pruned.before == len(SceneStore.open(scene).array("splats/means"))
+    assert pruned.after == pruned.before - sum(pruned.removed.values()) > 0
     ply, spz, glb = read_ply(scene / "splats.ply"), read_spz(scene / "splats.spz"), read_splat_glb(scene / "splats.glb")
-    assert len(ply["means"]) == len(spz["means"]) == len(glb["means"]) == pruned["after"]
+    assert len(ply["means"]) == len(spz["means"]) == len(glb["means"]) == pruned.after
     lo, hi = ply["means"].min(0), ply["means"].max(0)
-    assert np.allclose([lo, hi], [pruned["bounds_after"]["min"], pruned["bounds_after"]["max"]], atol=1e-3)
+    assert np.allclose([lo, hi], [pruned.bounds_after.min, pruned.bounds_after.max], atol=1e-3)
     from flows.report import write_report
 
     text = write_report(scene).read_text()  # the counts and bounds are in the report
-    assert f"{pruned['after']} of {pruned['before']}" in text
+    assert f"{pruned.after} of {pruned.before}" in text
     assert f"{hi[0] - lo[0]:.3g} × {hi[1] - lo[1]:.3g} × {hi[2] - lo[2]:.3g}" in text
 
 
 def test_the_output_frame_is_upright_and_every_file_says_so(scene: Path) -> None:
     store = SceneStore.open(scene)
-    frame = store.attrs("outputs")["frame"]
+    frame = store.meta("outputs").frame
+    camera = (frame.model_extra or {})["camera"]  # the evidence the frame was estimated from
     up_err = angle_deg(_to_truth(store).R @ UP, UP)
-    assert up_err < 2.0, (up_err, frame["source"], frame["camera"])
-    assert frame["source"] == "cameras" and frame["camera"]["mode"] == "x axes"
-    world = frame["world"]
+    assert up_err < 2.0, (up_err, frame.source, camera)
+    assert frame.source == "cameras" and camera["mode"] == "x axes"
+    world = frame.world
     assert "+Z up" in world and "SfM units" in world and "origin" in world
     # SfM's own frame is far from upright here: the outputs had something to correct
-    assert angle_deg(np.asarray(frame["up_in_sfm"]), UP) > 10.0
+    assert angle_deg(np.asarray(frame.up_in_sfm), UP) > 10.0
     for name in ("points.ply", "mesh.ply", "splats.ply", "nerfstudio/points.ply"):
         assert any(world in c for c in PlyData.read(str(scene / name)).comments), name
     for name in ("camera_path.json", "novel_path.json"):
@@ -178,7 +179,7 @@ def test_colmap_dataset_is_what_trainers_read(scene: Path) -> None:
     np.testing.assert_array_equal(iio.imread(scene / "colmap" / "images" / f"{names[0]}.png"), frames[0])
     np.testing.assert_allclose(read_colmap_poses(model).w2c, w2c, atol=1e-9)
     # the global SfM's points, with tracks of measured keypoints that agree with the exported poses
-    assert store.attrs("outputs")["colmap"]["tracks_from"].startswith("the global SfM")
+    assert store.meta("outputs").colmap["tracks_from"].startswith("the global SfM")
     assert len(rec.points3D) > 50 and all(p.track.length() >= 2 for p in rec.points3D.values())
     errors = []
     for p in rec.points3D.values():
@@ -241,12 +242,12 @@ def test_point_cloud_mesh_and_splats_lie_on_the_world(scene: Path) -> None:
     store = SceneStore.open(scene)
     splats = PlyData.read(str(scene / "splats.ply"))["vertex"]  # the INRIA 3DGS layout, every Gaussian kept
     names = [p.name for p in splats.properties]
-    assert splats.count == store.attrs("outputs")["pruned"]["after"]
+    assert splats.count == store.meta("outputs").pruned.after
     assert names[:9] == ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
     assert names[-8:] == ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
     to_truth = _to_truth(store)
     world = _world(store).world
-    extent = store.attrs("outputs")["mesh"]["extent"] * to_truth.s
+    extent = store.meta("outputs").mesh.extent * to_truth.s
     near_reach = MeshParams().max_depth_frac * extent  # the scene keeps the default
     centres = camera_centers(_truth(store)[0])
     for name, xyz in (

@@ -93,9 +93,9 @@ def test_splats_reports_iterations_with_the_loss(run) -> None:
     final = seq[-1][2]
     m = re.fullmatch(r"loss (\d+\.\d+), (\d+) Gaussians", final)
     assert m, final
-    stored = SceneStore.open(run["scene"]).attrs("splats")
-    assert float(m[1]) == pytest.approx(stored["curves"]["total"][-1], abs=1e-4)  # the last loss of the run
-    assert int(m[2]) == stored["metrics"]["n_gaussians"]
+    stored = SceneStore.open(run["scene"]).meta("splats")
+    assert float(m[1]) == pytest.approx(stored.curves["total"][-1], abs=1e-4)  # the last loss of the run
+    assert int(m[2]) == stored.metrics.n_gaussians
     assert all(step == "splats" for step, *_, unit, _, _ in run["rec"].calls if unit == "iterations")
 
 
@@ -105,7 +105,7 @@ def test_outputs_report_views_and_frames(run) -> None:
     rendered, fused = rec.of("views rendered for the mesh"), rec.of("views fused")
     assert rendered and fused
     n_views = rendered[-1][1]
-    assert n_views >= len(SceneStore.open(run["scene"]).attrs("splats")["frames"])  # training cameras and more
+    assert n_views >= len(SceneStore.open(run["scene"]).meta("splats").frames)  # training cameras and more
     for seq in (rendered, fused):
         _counts_up(seq, n_views)
         assert [d for d, _, _ in seq] == list(range(n_views + 1))  # one report a view

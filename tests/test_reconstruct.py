@@ -82,16 +82,16 @@ def test_clips_are_segments_and_a_failing_clip_is_dropped_not_regenerated(scene:
     assert store.children("segments") == ["s000", "s001", "s002"]
     for seg in ("s000", "s001", "s002"):
         assert store.children(f"segments/{seg}/attempts") == ["0"]  # never regenerated
-    summary = {s["segment"]: s for s in store.attrs("check")["segments"]}
-    assert not summary["s000"]["dropped"] and not summary["s001"]["dropped"]
-    assert summary["s002"]["dropped"] and summary["s002"]["reasons"]
+    summary = {s.segment: s for s in store.meta("check").segments}
+    assert not summary["s000"].dropped and not summary["s001"].dropped
+    assert summary["s002"].dropped and summary["s002"].reasons
 
 
 def test_a_clip_with_its_field_of_view_given_keeps_its_k_in_the_check(scene: Path) -> None:
     """`fov_deg` was given, so K is known, not a guess: the check's SfM holds it exactly."""
     store = SceneStore.open(scene)
     K = store.array("segments/s000/K")
-    assert store.attrs("segments/s000")["k_is_guess"] is False
+    assert store.meta("segments/s000").k_is_guess is False
     np.testing.assert_array_equal(store.array("segments/s000/attempts/0/sfm/K"), K)
 
 

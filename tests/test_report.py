@@ -116,8 +116,8 @@ def full_scene(tmp_path_factory) -> Path:
     scene = tmp_path_factory.mktemp("report") / "scene"
     results = execute(scene, cfg)
     assert [r.status for r in results] == ["ran"] * len(STEPS)
-    check = SceneStore.open(scene).attrs("segments/s000/attempts/0/check")
-    assert not check["accepted"], "precondition: the teleport attempt is rejected"
+    check = SceneStore.open(scene).meta("segments/s000/attempts/0/check")
+    assert not check.accepted, "precondition: the teleport attempt is rejected"
     write_report(scene)
     return scene
 
@@ -301,7 +301,7 @@ def test_report_shows_prompt_escaped_timings_metrics_curves_and_files(full_scene
     metrics = section(text, "metrics")
     for group in ("Camera path vs ground truth", "Depth priors vs ground truth", "Normal priors", "Gaussian splats"):
         assert group in metrics
-    psnr = SceneStore.open(full_scene).attrs("splats")["metrics"]["test_psnr"]
+    psnr = SceneStore.open(full_scene).meta("splats").metrics.test_psnr
     assert f"{psnr:.4g}" in metrics and f"{psnr:.2f} dB" in section(text, "summary")
     assert "<img" in section(text, "curves")
     files = section(text, "files")
@@ -317,7 +317,7 @@ def test_scene_section_shows_the_videos_and_the_mesh(full_scene: Path):
     page = Page(scene)
     store = SceneStore.open(full_scene)
     out = store.root.attrs["config"]["steps"]["outputs"]
-    w, h = store.attrs("outputs")["render_size"]
+    w, h = store.meta("outputs").render_size
     videos = page.attrs_of("video")
     assert [v["src"] for v in videos] == list(VIDEOS)
     for v in videos:
@@ -461,7 +461,7 @@ def test_report_renders_in_headless_chromium(full_scene: Path):
     assert set(requests[1:]) <= {(full_scene / v).as_uri() for v in VIDEOS}
     store = SceneStore.open(full_scene)
     out = store.root.attrs["config"]["steps"]["outputs"]
-    w, h = store.attrs("outputs")["render_size"]
+    w, h = store.meta("outputs").render_size
     assert [v["src"] for v in videos] == list(VIDEOS)
     for v in videos:
         assert v["error"] is None, v

@@ -111,7 +111,7 @@ def test_clips_table_lists_each_clip_in_order(scene: Path, clips):
     k = "given (--fov-deg), 60.0° horizontal field of view"
     assert first == f"s000 first.mp4 {clips['mp4'].parent} {KEEP} {W}×{H} px {k} accepted"
     assert second == f"s001 second/ {clips['folder'].parent} {KEEP} {W}×{H} px {k} accepted"
-    reasons = SceneStore.open(scene).attrs("segments/s002/accepted")["reasons"]
+    reasons = SceneStore.open(scene).meta("segments/s002/accepted").reasons
     assert reasons and any("texture" in r for r in reasons)
     assert flat == f"s002 flat/ {clips['flat'].parent} {KEEP} {W}×{H} px {k} dropped by its check " + " ".join(reasons)
     # the segments below name their clip, not a role and a move
@@ -140,7 +140,7 @@ def test_a_reconstruction_has_no_rounds_moves_plan_or_users_words(scene: Path):
 @pytest.mark.e2e
 def test_no_priors_is_said_in_one_line_in_the_summary_and_where_the_previews_would_be(scene: Path):
     store = SceneStore.open(scene)
-    assert store.attrs("priors")["backends"] == ["none", "none"]
+    assert store.meta("priors").backends == ["none", "none"]
     text = (scene / "report.html").read_text()
     line = "no depth model was named, so the splats train on colours alone"
     assert line in text_of(section(text, "summary")) and "--depth-model PATH" in section(text, "summary")
@@ -193,7 +193,7 @@ def test_a_failing_clip_kept_and_where_k_came_from(checked: Path, tmp_path: Path
         store.group(f"segments/{seg}/attempts/0/sfm").attrs.pop("k_source", None)
     text = write_report(scene).read_text()
     kept = text_of(row(section(text, "clips"), "clip-s001"))
-    reasons = store.attrs("segments/s001/accepted")["reasons"]
+    reasons = store.meta("segments/s001/accepted").reasons
     assert reasons and kept.endswith("kept although it failed its check " + " ".join(reasons))
     assert "guessed, 60.0° horizontal field of view" in kept  # no --fov-deg: the 60° guess
     assert "No depth or normal previews: no depth model was named" in text_of(section(text, "segments"))
@@ -212,10 +212,10 @@ def test_the_global_solve_says_where_its_k_came_from(scene: Path, tmp_path: Path
     store = SceneStore.open(copy, mode="r+")
     # what the poses step recorded, with the field of view of the K it solved with (it refines a given K: on
     # these 8-frame 160x112 clips from 60° to 59.6° here and to 46.6° on the CI machine, two-thread SfM)
-    recorded = SceneStore.open(copy).attrs("sfm")
+    recorded = SceneStore.open(copy).meta("sfm")
     fov = float(np.degrees(2 * np.arctan(W / 2 / store.array("sfm/K")[0, 0])))
-    assert summarize(store)["global_k"] == {"k_source": recorded["k_source"], "fov_deg": pytest.approx(fov, abs=0.01)}
-    assert recorded["k_source"] in ("estimated", "given")
+    assert summarize(store)["global_k"] == {"k_source": recorded.k_source, "fov_deg": pytest.approx(fov, abs=0.01)}
+    assert recorded.k_source in ("estimated", "given")
     store.group("sfm").attrs.update({"k_source": "estimated", "K": intrinsics(W, H, 50.0).tolist()})
     assert summarize(store)["global_k"] == {"k_source": "estimated", "fov_deg": 50.0}
     metrics = text_of(section(write_report(copy).read_text(), "metrics"))

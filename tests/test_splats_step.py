@@ -39,11 +39,11 @@ def trained(tmp_path_factory) -> Path:
 
 def test_splats_are_stored_with_the_normalisation_to_the_world(trained: Path):
     store = SceneStore.open(trained)
-    a = store.attrs("splats")
-    n = a["metrics"]["n_gaussians"]
+    a = store.meta("splats")
+    n = a.metrics.n_gaussians
     assert n > 100 and store.array("splats/means").shape == (n, 3)
     assert np.isfinite(store.array("splats/means")).all()
-    assert a["metrics"]["test_views"] and np.isfinite(a["metrics"]["test_psnr"])
+    assert a.metrics.test_views and np.isfinite(a.metrics.test_psnr)
     assert len(a["curves"]["total"]) == 40 and a["curves"]["total"][-1] < a["curves"]["total"][0]
     # the normalisation takes the Gaussians back to the world: they sit where the SfM points are
     from wonderverse.splats.model import normalization_from_dict
@@ -62,7 +62,7 @@ def test_the_step_trains_on_each_frame_s_prior_with_the_priors_step_s_alignment_
 
     store = SceneStore.open(trained)
     views, names = load_views(store)
-    flags = {seg: store.array(f"priors/{seg}/aligned") for seg in store.attrs("sfm")["segments"]}
+    flags = {seg: store.array(f"priors/{seg}/aligned") for seg in store.meta("sfm").segments}
     expect = [bool(flags[name.rsplit("_", 1)[0]][int(name.rsplit("_", 1)[1])]) for name in names]
     assert views.prior_aligned is not None and views.prior_aligned.tolist() == expect
     assert any(expect)  # the tiny scene's priors do align to its SfM points
@@ -103,7 +103,7 @@ def test_sigkill_during_training_resumes_from_its_checkpoint(tmp_path: Path, tra
         stderr=subprocess.DEVNULL,
     )
     deadline = time.monotonic() + 300
-    while SceneStore.open(scene).attrs("splats_checkpoint").get("complete") is not True:
+    while SceneStore.open(scene).cache_key_of("splats_checkpoint") is None:  # not complete yet
         assert child.poll() is None and time.monotonic() < deadline, "training ended before a checkpoint"
         time.sleep(0.1)
     run = psutil.Process(child.pid).children(recursive=True)  # the command's worker process
@@ -111,10 +111,10 @@ def test_sigkill_during_training_resumes_from_its_checkpoint(tmp_path: Path, tra
     child.wait()
     _, alive = psutil.wait_procs(run, timeout=10)
     assert not alive, [p.cmdline() for p in alive]
-    step = SceneStore.open(scene).attrs("splats_checkpoint")["step"]
+    step = SceneStore.open(scene).meta("splats_checkpoint").step
     assert 20 <= step < 200 and not SceneStore.open(scene).exists("splats")
     with caplog.at_level("WARNING", logger="wonderverse.splats"):
         results = execute(scene, cfg, until="splats")
     assert [r.status for r in results][-1] == "ran" and [r.status for r in results][:-1] == ["cached"] * 5
     assert any(f"checkpoint at step {step}" in r.message for r in caplog.records)
-    assert len(SceneStore.open(scene).attrs("splats")["curves"]["total"]) == 200  # history carried over
+    assert len(SceneStore.open(scene).meta("splats").curves["total"]) == 200  # history carried over

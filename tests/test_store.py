@@ -45,7 +45,7 @@ def test_staged_commit_is_invisible_until_done_and_rolls_back_on_error(tmp_path:
         write_array(g, "data", np.arange(12, dtype=np.float32).reshape(3, 4))
         assert not store.exists("a/b")  # nothing visible before the commit
     assert store.is_complete("a/b", key)
-    assert store.attrs("a/b")["note"] == "hi"
+    assert store.group("a/b").attrs["note"] == "hi"  # an undeclared group: its raw JSON
     np.testing.assert_array_equal(store.array("a/b/data"), np.arange(12).reshape(3, 4))
 
     with pytest.raises(RuntimeError), store.staged("a/b", cache_key("x", 2, {})) as g:

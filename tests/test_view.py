@@ -80,18 +80,18 @@ def _our_render(scene_dir: Path, camera: int) -> np.ndarray:
     store = SceneStore.open(scene_dir)
     poses = store.array(SFM.poses)
     poses = poses[np.isfinite(poses).all(axis=(1, 2))]
-    attrs = store.attrs(SPLATS.path)
+    splats = store.meta(SPLATS.path)
     arrays = {name: store.array(getattr(SPLATS, name)) for name in GaussianModel.PARAM_NAMES}
     rgb = next(
         render_views(
             arrays,
-            normalization_from_dict(attrs["normalization"]),
+            normalization_from_dict(splats.normalization),
             poses[camera : camera + 1],
             store.array(SFM.K),
             view.width,
             view.height,
             make_renderer("torch"),
-            background=attrs["metrics"]["background_rgb"],
+            background=splats.metrics.background_rgb,
         )
     ).rgb
     return np.round(np.clip(rgb, 0, 1) * 255).astype(np.uint8)

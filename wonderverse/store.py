@@ -285,9 +285,9 @@ class SceneStore:
         mode = "r" if self.root.store.read_only else "r+"
         return zarr.open_group(self.root.store, path=group_path, mode=mode, use_consolidated=False)
 
-    def attrs(self, group_path: str) -> dict[str, Any]:
-        """The attributes of a group (its digests left out), or {} when it is absent or its metadata is
-        unreadable."""
+    def _attrs(self, group_path: str) -> dict[str, Any]:
+        """The raw attributes of a group (its digests left out), or {} when it is absent or its metadata is
+        unreadable; readers outside the store use `meta` (the schema's model) and `cache_key_of`."""
         a = self._raw_attrs(group_path)
         a.pop(DIGESTS, None)
         return a
@@ -325,7 +325,7 @@ class SceneStore:
 
     def cache_key_of(self, group_path: str) -> str | None:
         """The key of a complete group, else None."""
-        a = self.attrs(group_path)
+        a = self._attrs(group_path)
         return a.get("cache_key") if a.get("complete") is True else None
 
     def is_complete(self, group_path: str, key: str) -> bool:
