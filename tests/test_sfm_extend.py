@@ -184,35 +184,35 @@ def test_poses_step_registers_an_extension_into_the_stored_reconstruction(world:
     store.mark_complete("segments", "k1", order=["s000", "s001"])
     p = poses.params(cfg)
     poses.run(store, p, StepContext("key1"))
-    first = store.attrs("sfm")
-    assert first["solve"] == "full" and first["sfm_names"][0] == "50000000_s000_0000.png"
-    assert first["sfm_names"] == sorted(first["sfm_names"])  # COLMAP numbers images in this order
+    first = store.meta("sfm")
+    assert first.solve == "full" and first.sfm_names[0] == "50000000_s000_0000.png"
+    assert first.sfm_names == sorted(first.sfm_names)  # COLMAP numbers images in this order
     assert store.exists("sfm/colmap_database") and "images.bin" in store.children("sfm/colmap_model")
     before = {k: store.array(f"sfm/{k}") for k in ("poses", "registered", "frame_index", "K")}
 
     _put_segment(store, world, "s003", "left")  # prepended, reversed: every old stitched position shifts
     store.mark_complete("segments", "k2", order=["s003", "s000", "s001"])
     summary = poses.run(store, p, StepContext("key2"))
-    a = store.attrs("sfm")
-    assert a["solve"] == "incremental" and "incremental solve" in summary, a.get("incremental_problems")
-    assert a["segments"] == ["s000", "s001", "s003"] and a["new_frames"] == T - 1 and not a["problems"]
-    assert a["model_to_world"] == first["model_to_world"]
+    a = store.meta("sfm")
+    assert a.solve == "incremental" and "incremental solve" in summary, a.incremental_problems
+    assert a.segments == ["s000", "s001", "s003"] and a.new_frames == T - 1 and not a.problems
+    assert a.model_to_world == first.model_to_world
     after = {k: store.array(f"sfm/{k}") for k in ("poses", "registered", "frame_index", "K")}
     np.testing.assert_array_equal(after["K"], before["K"])
     old_rows = {tuple(fi): k for k, fi in enumerate(after["frame_index"])}  # segment numbers are unchanged
     rows = [old_rows[tuple(fi)] for fi in before["frame_index"]]
     np.testing.assert_array_equal(after["poses"][rows], before["poses"])  # old frames: exactly as before
     assert after["registered"].all() and np.isfinite(after["poses"]).all()
-    assert set(first["sfm_names"]) < set(a["sfm_names"]) and a["sfm_names"] == sorted(a["sfm_names"])
-    assert a["sfm_names"][0] == f"4999{9999 - (T - 1)}_s003_{T - 1:04d}.png"  # prepended, reversed, yet in order
+    assert set(first.sfm_names) < set(a.sfm_names) and a.sfm_names == sorted(a.sfm_names)
+    assert a.sfm_names[0] == f"4999{9999 - (T - 1)}_s003_{T - 1:04d}.png"  # prepended, reversed, yet in order
 
     # new frames that do not register: the step says why and re-solves every frame
     _put_segment(store, world, "s004", "right", np.full((T, H, W, 3), 128, np.uint8))
     store.mark_complete("segments", "k3", order=["s003", "s000", "s001", "s004"])
     poses.run(store, p, StepContext("key3"))
-    a3 = store.attrs("sfm")
-    assert a3["solve"] == "full" and f"only 0 of {T - 1} new frames registered" in a3["incremental_problems"]
-    assert a3["kept_frame"]["shared_frames"] >= 3 * (T - 1)  # mapped into the previous world frame
+    a3 = store.meta("sfm")
+    assert a3.solve == "full" and f"only 0 of {T - 1} new frames registered" in a3.incremental_problems
+    assert a3.kept_frame["shared_frames"] >= 3 * (T - 1)  # mapped into the previous world frame
 
     # a further extension qualifies; anything else (another accepted attempt of s001, other SfM settings)
     # means a full solve
