@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.common import parse_args, report
-from wonderverse.camera import move_path
+from wonderverse.camera import CameraPrior, move_path
 from wonderverse.check import CheckParams, check_trajectory
 from wonderverse.config import build_config
 from wonderverse.schema import CHECK
@@ -88,7 +88,8 @@ def main() -> None:
             i = j * len(KINDS) + KINDS.index(kind)
             video = segment(i, kind, width, height, frames)
             t = time.perf_counter()
-            res = reconstruct(video.frames, sfm, K_prior=video.K, K_known=not video.k_is_guess)  # as the check
+            prior = CameraPrior(video.K, "guessed" if video.k_is_guess else "given")
+            res = reconstruct(video.frames, sfm, prior)  # as the check
             seconds.append(time.perf_counter() - t)
             for mode, cp in modes.items():
                 c = check_trajectory(res.poses, res.registered, cp, res.problems, points=res.points)

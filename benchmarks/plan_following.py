@@ -172,6 +172,7 @@ def planned_path(case: Case, start_w2c: np.ndarray, frames: int, strafe_m_per_de
 
 def render_and_pose(case: Case, ignored: bool, width: int, height: int, frames: int) -> Outcome:
     """Render the case (clean or ignoring its instruction) and pose it with the check's SfM (see module doc)."""
+    from wonderverse.camera import CameraPrior
     from wonderverse.check import check_trajectory
     from wonderverse.config import build_config
     from wonderverse.sfm import reconstruct
@@ -187,7 +188,7 @@ def render_and_pose(case: Case, ignored: bool, width: int, height: int, frames: 
     path = planned_path(case, initial_pose(model), frames, cfg.steps.plan.strafe_m_per_deg)
     video = model.generate(case.prompt, path, seed=(2000 if ignored else 1000) + case.index, reference=None)
     t = time.perf_counter()
-    sfm = reconstruct(video.frames, cfg.steps.check.sfm, K_prior=video.K, K_known=True, K_guessed=False)
+    sfm = reconstruct(video.frames, cfg.steps.check.sfm, CameraPrior(video.K, "given"))
     seconds = time.perf_counter() - t
     rules = check_trajectory(
         sfm.poses, sfm.registered, cfg.steps.check.rules, sfm.problems, points=sfm.points, stopped=sfm.stopped

@@ -26,6 +26,7 @@ from benchmarks.common import parse_args, report
 from benchmarks.detection import segment
 from flows.pipeline import execute
 from tasks.parallel import map_segments
+from wonderverse.camera import CameraPrior
 from wonderverse.check import CheckParams, check_trajectory
 from wonderverse.config import build_config
 from wonderverse.metrics import ate
@@ -51,14 +52,16 @@ def read_clip(path: Path) -> np.ndarray:
 
 
 def judge_clip(frames: np.ndarray, K: np.ndarray | None, sfm: SfmParams):
-    res = reconstruct(frames, sfm, K_prior=K)
+    """SfM and the check of a real clip; its K (the pose file's), when given, seeds a focal the mappers refine."""
+    prior = None if K is None else CameraPrior(K, "given")
+    res = reconstruct(frames, sfm.model_copy(update={"hold_known_intrinsics": False}), prior)
     return res, check_trajectory(res.poses, res.registered, CheckParams(), res.problems, points=res.points)
 
 
 def _timed_check(i: int, width: int, height: int, frames: int) -> float:
     video = segment(i, "clean", width, height, frames)
     t = time.perf_counter()
-    reconstruct(video.frames, SfmParams(max_image_size_px=width, num_threads=1), K_prior=video.K, K_known=True)
+    reconstruct(video.frames, SfmParams(max_image_size_px=width, num_threads=1), CameraPrior(video.K, "given"))
     return time.perf_counter() - t
 
 
@@ -73,7 +76,7 @@ def main() -> None:
     for i in range(n_seg):
         video = segment(500 + i, "clean", w, h, T)
         t = time.perf_counter()
-        res = reconstruct(video.frames, sfm, K_prior=video.K, K_known=True)  # as the check: the renderer's K
+        res = reconstruct(video.frames, sfm, CameraPrior(video.K, "given"))  # as the check: the renderer's K
         seg_s.append(time.perf_counter() - t)
         ok = res.registered.sum() >= 3
         seg_ate.append(ate(res.poses, video.gt.poses)["rmse_frac"] if ok else float("nan"))

@@ -138,7 +138,7 @@ def fox(iterations: int) -> dict | None:
         return None
     from PIL import Image
 
-    from wonderverse.sfm import SfmParams, reconstruct_from_images
+    from wonderverse.sfm import SfmParams, reconstruct
     from wonderverse.splats.data import downscale_views
     from wonderverse.splats.model import init_from_points, normalization_from_cameras
     from wonderverse.splats.params import TrainParams
@@ -147,7 +147,7 @@ def fox(iterations: int) -> dict | None:
 
     paths = sorted(fox_dir.glob("*.jpg"))
     t0 = time.perf_counter()
-    res = reconstruct_from_images(paths, SfmParams(max_image_size_px=320, num_threads=2))
+    res = reconstruct(paths, SfmParams(max_image_size_px=320, num_threads=2))  # the files, read by COLMAP
     ok = res.registered
     frames = np.stack([np.asarray(Image.open(p).convert("RGB").resize((320, 569))) for p in paths])[ok]
     K = res.K.copy()

@@ -11,7 +11,7 @@ import time
 
 import numpy as np
 
-from wonderverse.camera import move_path
+from wonderverse.camera import CameraPrior, move_path
 from wonderverse.check import check_trajectory
 from wonderverse.config import build_config
 from wonderverse.sfm import reconstruct
@@ -33,8 +33,8 @@ def main() -> None:
     cfg = build_config(PROMPT, preset=args.preset)
     for fallback in (False, True):
         t = time.perf_counter()
-        params = cfg.steps.check.sfm.model_copy(update={"prior_focal_fallback": fallback})
-        res = reconstruct(video.frames, params, K_prior=video.K)
+        update = {"prior_focal_fallback": fallback, "hold_known_intrinsics": False}  # the focal refined from K
+        res = reconstruct(video.frames, cfg.steps.check.sfm.model_copy(update=update), CameraPrior(video.K, "given"))
         verdict = check_trajectory(res.poses, res.registered, cfg.steps.check.rules, res.problems, points=res.points)
         print(
             f"fallback={fallback}: mapper {res.mapper or '-'}, gates {res.gates_passed} {res.problems}; "

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from wonderverse.camera import CameraPrior
 from wonderverse.config import CheckStepParams
 from wonderverse.metrics import ate
 from wonderverse.sfm import k_record, reconstruct
@@ -41,11 +42,12 @@ def test_a_guessed_k_on_resized_footage_ends_within_one_percent_of_the_path(data
     assert clip.k_is_guess and clip.K[1, 1] / clip.K[0, 0] == pytest.approx(RESIZED_16_9_TO_3_2, rel=1e-3)
     assert true_aspect == pytest.approx(RESIZED_16_9_TO_3_2, rel=0.02)
 
-    res = reconstruct(clip.frames, CheckStepParams().sfm, K_prior=clip.K, K_guessed=True)
+    guess = CameraPrior(clip.K, "guessed")
+    res = reconstruct(clip.frames, CheckStepParams().sfm, guess)
     assert res.gates_passed and res.registered.sum() >= len(res.registered) - 1, res.problems  # 0f47: 15 of 16
     error = ate(res.poses, ref[: len(res.poses)])["rmse_frac"]
     assert error < 0.01, f"{stem}: {100 * error:.2f} % of the path"
-    record = k_record(res, clip.K, K_known=False)
+    record = k_record(res, guess)
     assert record["k_source"] == "estimated"
     fx_true = fx_frac * width
     assert abs(record["K"][0][0] - fx_true) / fx_true < 0.1, (record["K"][0][0], fx_true)  # the focal, found

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from wonderverse.camera import CameraPrior
 from wonderverse.check import check_trajectory
 from wonderverse.config import CheckStepParams
 from wonderverse.parallax import homography_residuals, measure_parallax, pairs_to_look_at, triangulation_angles
@@ -35,7 +36,7 @@ def test_near_static_clips_are_flagged_for_parallax_before_mapping(data_dir: Pat
     assert clip.k_is_guess and len(clip.frames) == 49
     params = CheckStepParams()
     t = time.perf_counter()
-    res = reconstruct(clip.frames, params.sfm, K_prior=clip.K, K_guessed=True)
+    res = reconstruct(clip.frames, params.sfm, CameraPrior(clip.K, "guessed"))
     check = check_trajectory(res.poses, res.registered, params.rules, res.problems, res.points, stopped=res.stopped)
     seconds = time.perf_counter() - t
     assert res.stopped.startswith("too little parallax to reconstruct: "), res.problems
@@ -63,13 +64,14 @@ def test_clips_with_camera_motion_are_not_flagged_for_parallax(data_dir: Path, n
     assert seen.homography_px > 5 * sfm.parallax_homography_px
 
 
-def test_a_known_k_is_not_looked_at() -> None:
-    """With a known K the mappers hold it and a pure turn is judged on rotation alone (README): no look."""
+def test_a_given_k_is_not_looked_at() -> None:
+    """With a given K the mappers hold it and a pure turn is judged on rotation alone (README): no look; a guessed
+    K or none is looked at."""
     frames = np.random.default_rng(0).integers(0, 255, (4, 64, 96, 3), dtype=np.uint8)
     K = np.array([[80.0, 0, 48], [0, 80.0, 32], [0, 0, 1]])
-    assert reconstruct(frames, K_prior=K, K_known=True).parallax is None
-    with pytest.raises(ValueError, match="both"):
-        reconstruct(frames, K_prior=K, K_known=True, K_guessed=True)
+    assert reconstruct(frames, prior=CameraPrior(K, "given")).parallax is None
+    assert reconstruct(frames, prior=CameraPrior(K, "guessed")).parallax is not None
+    assert reconstruct(frames).parallax is not None
 
 
 def test_triangulation_angle_of_a_symmetric_pair() -> None:

@@ -548,6 +548,7 @@ def test_a_rendered_turn_and_travel_is_judged_as_the_check_judges_it(ignored: bo
     """Right 24° with 1.8 m forward over the forest lake's ground (benchmarks.plan_following case 13), rendered
     clean and ignoring its instruction, posed by the check's SfM and judged with the two-view look: the clean
     one passes (where SfM's own path took the planar twin, on two-view geometry), the ignoring one does not."""
+    from wonderverse.camera import CameraPrior
     from wonderverse.config import build_config
     from wonderverse.sfm import reconstruct
     from wonderverse.video import initial_pose
@@ -559,7 +560,7 @@ def test_a_rendered_turn_and_travel_is_judged_as_the_check_judges_it(ignored: bo
     model = ProceduralVideo(prompt, 13, 320, 208, cfg.scene.video.fov_deg, opts)
     plan = move_path(initial_pose(model), math.radians(-24), 0.0, 1.8, -24 * STRAFE_M_PER_DEG, 17)
     video = model.generate(prompt, plan, seed=2013 if ignored else 1013, reference=None)
-    sfm = reconstruct(video.frames, cfg.steps.check.sfm, K_prior=video.K, K_known=True)
+    sfm = reconstruct(video.frames, cfg.steps.check.sfm, CameraPrior(video.K, "given"))
     p = cfg.steps.check.plan_following
     r = judge_segment(plan, sfm.poses, sfm.registered, video.frames, video.K, p, sfm_gates_passed=sfm.gates_passed)
     assert compare_to_plan(video.gt.poses, plan, p).ok is (not ignored)  # the truth, for reference

@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from wonderverse.sfm import SfmParams, SfmResult, _gate_problems, reconstruct, reconstruct_from_images
+from wonderverse.camera import CameraPrior
+from wonderverse.sfm import SfmParams, SfmResult, _gate_problems, k_record, reconstruct
 
 # inside the shared data folder (the `data_dir` fixture)
 RE10K = "cameractrl_re10k"
@@ -80,7 +81,8 @@ def test_focal_prior_reaches_colmap_and_focal_is_estimated(data_dir: Path, tmp_p
     W = frames.shape[2]
     fx = intr[0, 0] * W  # the clip's horizontal focal in pixels of these frames
     K = np.array([[fx, 0, W / 2], [0, fx, frames.shape[1] / 2], [0, 0, 1.0]])
-    res = reconstruct(frames[:10], SfmParams(mapper="global"), K_prior=K, workdir=tmp_path)
+    refined = SfmParams(mapper="global", hold_known_intrinsics=False)  # the K seeds the focal, the mapper refines it
+    res = reconstruct(frames[:10], refined, CameraPrior(K, "given"), workdir=tmp_path)
     db = pycolmap.Database.open(tmp_path / "database.db")
     cams = db.read_all_cameras()
     db.close()
@@ -124,8 +126,32 @@ def test_invalid_arguments_raise_value_error() -> None:
         reconstruct(np.zeros((32, 32, 3), np.uint8))
     with pytest.raises(ValueError, match="frame 1"):
         reconstruct([np.zeros((32, 32, 3), np.uint8), np.zeros((32, 32), np.uint8)])
-    with pytest.raises(ValueError, match="K_prior"):
-        reconstruct(np.zeros((4, 32, 32, 3), np.uint8), K_prior=np.eye(2))
+    with pytest.raises(ValueError, match="K must be finite"):
+        reconstruct(np.zeros((4, 32, 32, 3), np.uint8), prior=CameraPrior(np.eye(2), "given"))
+    with pytest.raises(ValueError, match="given' or 'guessed"):
+        CameraPrior(np.eye(3), "known")  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="CameraPrior"):
+        reconstruct(np.zeros((4, 32, 32, 3), np.uint8), prior=np.eye(3))  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="names apply to frames given as arrays"):
+        reconstruct(["a.png", "b.png"], names=["a.png", "b.png"])
+
+
+def test_a_camera_prior_is_a_frozen_copy_and_k_record_says_where_k_came_from() -> None:
+    K = np.array([[200.0, 0, 120], [0, 210.0, 80], [0, 0, 1]])
+    prior = CameraPrior(K, "guessed")
+    K[0, 0] = 1.0  # the caller's array changing later does not change the prior
+    assert prior.K[0, 0] == 200.0 and not prior.given and CameraPrior(K, "given").given
+    with pytest.raises(ValueError):
+        prior.K[0, 0] = 5.0  # read-only
+    # nothing mapped (or no reconstruction): the prior's K and source
+    record = k_record(None, prior)
+    assert record["k_source"] == "guessed" and record["K"][0][0] == 200.0
+    assert record["fov_deg"] == pytest.approx(2 * np.degrees(np.arctan(120 / 200)))
+    assert record["pixel_aspect"] == pytest.approx(210 / 200)
+    # an estimated K replaces the prior's
+    res = _fake(np.array([[180.0, 0, 120], [0, 180.0, 80], [0, 0, 1]]), 50, 0.5, np.ones(4, bool))
+    res.k_source = "estimated"
+    assert k_record(res, prior)["k_source"] == "estimated" and k_record(res, prior)["K"][0][0] == 180.0
 
 
 def _pure_rotation_video(data_dir: Path, n: int = 12) -> np.ndarray:
@@ -147,18 +173,19 @@ def _pure_rotation_video(data_dir: Path, n: int = 12) -> np.ndarray:
 
 
 @pytest.mark.e2e
-def test_reconstruct_from_images_reports_k_in_full_size_pixels(data_dir: Path) -> None:
+def test_reconstruct_from_image_files_reports_k_in_full_size_pixels(data_dir: Path) -> None:
     paths = sorted(need(data_dir / FOX / "images").glob("*.jpg"))[:8]
-    res = reconstruct_from_images(paths, SfmParams(max_image_size_px=320, camera_model="PINHOLE"))
+    res = reconstruct(paths, SfmParams(max_image_size_px=320, camera_model="PINHOLE"))
     assert res.registered.all(), res.problems
     # SIFT ran on 320 px copies; keypoints (and so K) are in pixels of the 1080x1920 files.
     assert res.K[0, 0] == pytest.approx(1375.5, rel=0.15)  # transforms.json fl_x
     assert res.K[0, 2] == pytest.approx(540.0, abs=1.0) and res.K[1, 2] == pytest.approx(960.0, abs=1.0)
 
 
-def test_reconstruct_from_images_missing_file_is_a_problem(tmp_path: Path) -> None:
-    res = reconstruct_from_images([tmp_path / "a.png", tmp_path / "b.png"])
-    assert not res.registered.any() and res.problems[0].startswith("cannot read image a.png")
+def test_reconstruct_from_image_files_missing_file_is_a_problem(tmp_path: Path) -> None:
+    res = reconstruct([tmp_path / "a.png", tmp_path / "b.png"])
+    assert res.registered.shape == (2,) and not res.registered.any()
+    assert res.problems[0].startswith("cannot read image a.png")
 
 
 def _fake(K: np.ndarray, n_points: int, reproj: float, registered: np.ndarray) -> SfmResult:
@@ -227,15 +254,16 @@ def _assert_rotation_steps_match(poses: np.ndarray, truth: np.ndarray, atol_rad:
 
 
 def test_low_parallax_turn_is_solved_by_holding_the_camera_at_its_prior() -> None:
-    """With K only a guess, both mappers fail on the turn while refining the focal; the last-resort mapper
-    holds the camera at the prior and recovers the truth."""
+    """With a K prior the mappers refine (not held), both mappers fail on the turn while refining the focal; the
+    last-resort mapper holds the camera at the prior and recovers the truth."""
     from wonderverse.sfm import PRIOR_FOCAL
 
     video, path = _low_parallax_turn()
-    params = SfmParams(max_image_size_px=480, num_threads=1)
+    params = SfmParams(max_image_size_px=480, num_threads=1, hold_known_intrinsics=False)
+    prior = CameraPrior(video.K, "given")
 
-    without = reconstruct(video.frames, params.model_copy(update={"prior_focal_fallback": False}), K_prior=video.K)
-    res = reconstruct(video.frames, params, K_prior=video.K)
+    without = reconstruct(video.frames, params.model_copy(update={"prior_focal_fallback": False}), prior)
+    res = reconstruct(video.frames, params, prior)
     assert not without.gates_passed, "the case no longer needs the fallback: pick a harder one"
     assert res.gates_passed and res.mapper == PRIOR_FOCAL, res.problems
     assert res.registered.all()
@@ -252,12 +280,33 @@ def test_a_known_k_is_held_from_the_first_mapper() -> None:
     assert not video.k_is_guess  # the procedural renderer knows its camera
     params = SfmParams(max_image_size_px=480, num_threads=1, prior_focal_fallback=False)
 
-    res = reconstruct(video.frames, params, K_prior=video.K, K_known=True)
+    res = reconstruct(video.frames, params, CameraPrior(video.K, "given"))
     assert res.gates_passed and res.mapper == "incremental", res.problems
     assert res.registered.all() and "map_global" not in res.timings
     np.testing.assert_allclose(res.K, video.K, rtol=1e-12)
     _assert_rotation_steps_match(res.poses, path, 0.005)
 
     free = params.model_copy(update={"hold_known_intrinsics": False})
-    off = reconstruct(video.frames, free, K_prior=video.K, K_known=True)
+    off = reconstruct(video.frames, free, CameraPrior(video.K, "given"))
     assert not off.gates_passed and "map_global" in off.timings  # the usual order, the focal refined
+
+
+def test_image_files_and_frame_arrays_give_the_same_reconstruction(tmp_path: Path) -> None:
+    """One entry point: the frames as PNG files (linked, never decoded here) map exactly like the arrays, the
+    parallax look included (a guessed K)."""
+    import imageio.v3 as iio
+
+    video, _ = _low_parallax_turn()
+    frames = video.frames[::2]
+    files = []
+    for i, f in enumerate(frames):
+        files.append(tmp_path / f"frame{i:02d}.png")
+        iio.imwrite(files[-1], f)
+    params = SfmParams(max_image_size_px=240, num_threads=1)
+    prior = CameraPrior(video.K, "guessed")
+    from_arrays, from_files = reconstruct(frames, params, prior), reconstruct(files, params, prior)
+    assert from_arrays.n_registered >= 7 and from_arrays.parallax is not None
+    np.testing.assert_array_equal(from_files.poses, from_arrays.poses)
+    np.testing.assert_array_equal(from_files.K, from_arrays.K)
+    assert (from_files.mapper, from_files.k_source) == (from_arrays.mapper, from_arrays.k_source)
+    assert from_files.parallax is not None and from_files.parallax["pairs"] == from_arrays.parallax["pairs"]

@@ -9,13 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from wonderverse.camera import camera_centers, move_path, umeyama
-from wonderverse.sfm import SfmParams, SfmWorkspace, reconstruct, sequential_pairs
+from wonderverse.camera import CameraPrior, camera_centers, move_path, umeyama
+from wonderverse.features import sequential_pairs
+from wonderverse.sfm import SfmParams, SfmWorkspace, reconstruct
 from wonderverse.sfm_extend import extend_reconstruction
 
 W, H, T = 128, 96, 8
 # One thread and a fixed seed: COLMAP is then reproducible, so the measured bounds below hold run to run.
-PARAMS = SfmParams(max_image_size_px=480, num_threads=1, random_seed=0)
+PARAMS = SfmParams(max_image_size_px=480, num_threads=1, random_seed=0, hold_known_intrinsics=False)
 
 
 @pytest.fixture(scope="module")
@@ -49,7 +50,8 @@ def stitched(world: dict, segs: list[str]) -> tuple[list[str], list[np.ndarray],
 @pytest.fixture(scope="module")
 def scene(world: dict) -> dict:
     names, frames, gt = stitched(world, ["s000", "s001"])
-    res = reconstruct(frames, PARAMS, K_prior=world["K"], names=names, keep_workspace=True)
+    prior = CameraPrior(world["K"], "given")  # refined (PARAMS: not held), as the global poses step does
+    res = reconstruct(frames, PARAMS, prior, names=names, keep_workspace=True)
     assert res.gates_passed, res.problems
     return {"names": names, "gt": gt, "res": res}
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Iterable
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 
@@ -42,6 +42,32 @@ def fit_intrinsics(width: int, height: int, K: np.ndarray, max_side_px: int) -> 
     Ks[..., 0, :] *= w / width
     Ks[..., 1, :] *= h / height
     return w, h, Ks
+
+
+@dataclass(frozen=True, eq=False)
+class CameraPrior:
+    """What is known of a video's intrinsics before SfM: K (3,3, pixels of its frames) and where it came from.
+    source "given": the camera's own (the renderer's K, or a clip whose field of view the user gave); "guessed":
+    an assumed field of view (`DEFAULT_FOV_DEG` for a clip nobody described). No prior at all is None where a
+    CameraPrior is expected. K is kept as a float64 copy; ValueError for a K that is not finite (3,3) with
+    positive focal lengths, or another source."""
+
+    K: np.ndarray
+    source: Literal["given", "guessed"]
+
+    def __post_init__(self) -> None:
+        K = np.array(self.K, dtype=np.float64)
+        if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
+            raise ValueError(f"a camera prior's K must be finite (3,3) with positive focal lengths, got {self.K!r}")
+        if self.source not in ("given", "guessed"):
+            raise ValueError(f"a camera prior's source is 'given' or 'guessed', got {self.source!r}")
+        K.flags.writeable = False  # frozen means frozen: the matrix too
+        object.__setattr__(self, "K", K)
+
+    @property
+    def given(self) -> bool:
+        """The camera's own K, not a guess."""
+        return self.source == "given"
 
 
 def se3(R: np.ndarray, t: np.ndarray) -> np.ndarray:

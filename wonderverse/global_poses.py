@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from wonderverse.camera import Sim3
+from wonderverse.camera import CameraPrior, Sim3
 from wonderverse.errors import WonderError
 from wonderverse.progress import ProgressFn
 
@@ -259,7 +259,7 @@ def _prefixed(progress: ProgressFn, prefix: str) -> ProgressFn:
 def solve_global_poses(
     frames: np.ndarray,
     index: Sequence[Key],
-    K: np.ndarray,
+    prior: CameraPrior,
     params: PosesParams,
     *,
     names: Sequence[str],
@@ -268,15 +268,15 @@ def solve_global_poses(
     own: Mapping[str, np.ndarray],
     previous: PreviousSolve | None,
     progress: ProgressFn,
-    K_guessed: bool = False,
     check_mapper: tuple[str, bool] | None = None,
 ) -> GlobalPoses:
     """Global SfM over the stitched video: registered into the previous reconstruction when this solve only
     adds segments to it (old frames keep their exact poses, `can_extend`), else solved from scratch (and again
     while a segment disagrees with `own`, its own SfM); mapped into the previous world frame.
 
-    frames (N,H,W,3) uint8 and index (N keys) in stitched order; K (3,3) the prior intrinsics, K_guessed: a
-    guess (self-calibrated, `wonderverse.sfm.reconstruct`), else refined from; names: the COLMAP image name
+    frames (N,H,W,3) uint8 and index (N keys) in stitched order; prior: the video's intrinsics, a guess
+    (self-calibrated, `wonderverse.sfm.reconstruct`) or given (refined from, never held: over a stitched video
+    refining was right where holding was not, `wonderverse.sfm` module notes); names: the COLMAP image name
     of each frame `select_frames(index, params.frame_stride)` picks; sources: per segment, what its frames
     are; workspace_key: what must not change for a reconstruction to be extended; own: per segment whose
     check passed, its own SfM poses (generation order); previous: the last solve or None; check_mapper: when
@@ -309,15 +309,15 @@ def solve_global_poses(
         order = mappers_after_check(check_mapper)
 
         def solve(seed_offset: int, note: str) -> SfmResult:
-            sfm = p.sfm.model_copy(update={"random_seed": p.sfm.random_seed + seed_offset, **order})
+            seed = p.sfm.random_seed + seed_offset
+            sfm = p.sfm.model_copy(update={"random_seed": seed, "hold_known_intrinsics": False, **order})
             return reconstruct(
                 frames[sel],
                 sfm,
-                K_prior=K,
+                prior,
                 names=list(names),
                 keep_workspace=True,
                 progress=_prefixed(progress, note),
-                K_guessed=K_guessed,
             )
 
         res, more = solve_consistent(
@@ -342,7 +342,7 @@ def solve_global_poses(
         attrs |= {"solve": "full", "kept_frame": kept, "model_to_world": sim.to_dict()}
     if attrs["solve"] == "incremental":
         res.k_source = "estimated"  # the kept camera: the full solve that made the workspace refined it
-    attrs |= k_record(res, K, K_known=not K_guessed)
+    attrs |= k_record(res, prior)
     attrs |= {
         "mapper": res.mapper,
         "reproj_error_px": res.reproj_error_px,

@@ -238,7 +238,7 @@ def measure_parallax(
     gets a relative pose. Returns the ParallaxReport; never raises on bad content (no features: no pairs)."""
     import pycolmap
 
-    from wonderverse.sfm import _extract_with, _match_pairs
+    from wonderverse.features import extract_features, match_pairs
 
     t0 = time.perf_counter()
     w, h = size_wh
@@ -265,9 +265,9 @@ def measure_parallax(
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = "PINHOLE"  # fx and fy as given: the angles need the pixel aspect too
         reader.camera_params = ",".join(repr(float(v)) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2]))
-        _extract_with(db_path, image_dir, names, reader, max_image_size_px, max_num_features, num_threads)
+        extract_features(db_path, image_dir, names, reader, max_image_size_px, max_num_features, num_threads)
         pairs = [(names[a], names[b]) for a, b in pairs_to_look_at(len(names))]
-        _match_pairs(db_path, pairs, random_seed, num_threads, relative_pose=True)
+        match_pairs(db_path, pairs, random_seed, num_threads, relative_pose=True)
         found = read_pairs(db_path, {name: int(i) for name, i in zip(names, idx, strict=True)}, K)
     return ParallaxReport(
         frames=[int(i) for i in idx],

@@ -1,9 +1,11 @@
 """Structure from motion on one video segment with pycolmap (CPU): SIFT, sequential matching, mapping.
 
-`reconstruct(frames, params)` returns camera poses (W2C, OpenCV axes, SfM units and an arbitrary world
-frame), the sparse points, the estimated intrinsics and quality gates in words. It never raises on bad
-video content (textureless, a single frame, frames of different sizes, nothing registered); it returns
-`registered` all False and says why in `problems`. Only invalid argument types or shapes raise ValueError.
+`reconstruct(frames, params, prior)` returns camera poses (W2C, OpenCV axes, SfM units and an arbitrary world
+frame), the sparse points, the estimated intrinsics and quality gates in words; the frames are arrays or the paths
+of image files, the prior a `camera.CameraPrior` (K and whether it was given or guessed) or None. It never raises
+on bad video content (textureless, a single frame, frames of different sizes, unreadable files, nothing
+registered); it returns `registered` all False and says why in `problems`. Only invalid argument types or shapes
+raise ValueError.
 
 pycolmap is imported inside the functions so that importing this module (for `SfmParams`) stays cheap.
 Hazards we avoid (see COLMAP-FACTS.md): loop detection is never enabled (offline it aborts the process),
@@ -17,19 +19,20 @@ the global model fails the gates; that fallback gave clip 0c9b371c its model (AT
 weakest frame saw fewer than `min_points_per_image` points.
 Without a focal prior, global's view-graph calibration also writes its focal estimate into the database,
 which the incremental fallback then starts from.
-A known K (`K_known`: the procedural renderer's, or a clip whose field of view the user gave) is held fixed
-by every mapper, and `auto` then tries incremental first (`auto_order_known_k`): incremental's errors above
+A given K (`CameraPrior(K, "given")`: the procedural renderer's, or a clip whose field of view the user gave) is
+held fixed by every mapper (`hold_known_intrinsics`), and `auto` then tries incremental first
+(`auto_order_known_k`): incremental's errors above
 were focal errors, which a held K removes. Measured on the flows benchmark's 17-frame 240x160 segments
 (true focal 208 px): unheld, global refined it to 298 px on one segment (check poses 6.4 % of the path off);
 held, incremental's worst rotation step was 0.03-0.62 deg off on every fault-free segment, in 4-6 s, while
 held global was 4.8 deg off on the low-parallax turn (unheld, that turn needed the third mapper, 11 s).
 Over a stitched video of several segments the opposite held (names in stitched order, 2 seeds each, the
 flows benchmark's 3- and 4-segment scenes): refined, global was right in 4 of 4 (ATE 0.09-0.11 % of the
-path); held, with incremental first, wrong in 3 of 4 (10-23 %). So the global `poses` step does not pass
-`K_known`. Reproducibility: with `num_threads=1` and a fixed
+path); held, with incremental first, wrong in 3 of 4 (10-23 %). So the global `poses` step refines a given K
+(`global_poses`: `hold_known_intrinsics` off). Reproducibility: with `num_threads=1` and a fixed
 `random_seed` two runs give bit-identical poses; with 2 threads they differ slightly (measured).
 
-A guessed K (`K_guessed`: a clip whose field of view nobody gave, `reconstruct` assumes 60°) is not a
+A guessed K (`CameraPrior(K, "guessed")`: a clip whose field of view nobody gave, assumed 60°) is not a
 prior. Measured on the seven 16-frame 384x256 RealEstate10K clips (ATE after a Sim(3), share of the path;
 their pose files give fx 182-195 px and fy/fx = 32/27: 16:9 footage resized to 3:2, non-square pixels):
 the guess as a refined prior left `3c35` 2.55 % off (focal 199 px), `0f47` 1.76 % and `2f25` 1.35 %,
@@ -51,8 +54,8 @@ Without a known focal, a few frames are looked at for parallax before anything e
 (`wonderverse.parallax`, `min_parallax_deg`): a clip with too little is not mapped (`stopped`), which on
 near-static CogVideoX clips takes 1.5-4 s where the three mappers took 49-234 s.
 
-Frame pairs are those of COLMAP's sequential matcher (`sequential_pairs`), matched as an imported list so
-that the caller's frame order counts, not the order of the image names. `reconstruct(names=...,
+Frame pairs are those of COLMAP's sequential matcher (`features.sequential_pairs`), matched as an imported list
+so that the caller's frame order counts, not the order of the image names. `reconstruct(names=...,
 keep_workspace=True)` hands back the COLMAP database and kept model (`SfmWorkspace`), into which
 `sfm_extend.extend_reconstruction` later registers new frames.
 """
@@ -70,6 +73,8 @@ from typing import TYPE_CHECKING, Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
+from wonderverse.camera import CameraPrior
+from wonderverse.features import extract_features, match_pairs, sequential_pairs
 from wonderverse.progress import ProgressFn, no_progress
 
 if TYPE_CHECKING:
@@ -131,8 +136,9 @@ class SfmParams(BaseModel):
     )
     hold_known_intrinsics: bool = Field(
         True,
-        description="with a known K (the renderer's, or a clip's given field of view; not a guess), every mapper "
-        "keeps it fixed instead of refining it",
+        description="with a given K (the renderer's, or a clip's given field of view; not a guess), every mapper "
+        "keeps it fixed instead of refining it (the check's SfM; the global poses step always refines it: module "
+        "notes)",
     )
     num_threads: int = Field(
         1, ge=1, le=256, description="every COLMAP stage; 1 is bit-reproducible with random_seed, >1 is not"
@@ -262,14 +268,14 @@ class SfmResult:
         return int(self.registered.sum())
 
 
-def k_record(res: SfmResult | None, K_prior: np.ndarray, K_known: bool) -> dict[str, Any]:
+def k_record(res: SfmResult | None, prior: CameraPrior) -> dict[str, Any]:
     """Where the K a reconstruction used came from, for store attributes: {"k_source": "given" | "estimated"
     | "guessed", "K": 3x3 list (pixels), "fov_deg": its horizontal field of view over the frame width
-    2·cx, "pixel_aspect": fy/fx}. The K is the estimated one, or else the prior K_prior (3,3) (also when
-    nothing was mapped, or there was no reconstruction (`res` None): the K given or guessed)."""
-    source = (res.k_source if res is not None else "") or ("given" if K_known else "guessed")
+    2·cx, "pixel_aspect": fy/fx}. The K is the estimated one, or else the prior's (also when nothing was
+    mapped, or there was no reconstruction (`res` None): the K given or guessed)."""
+    source = (res.k_source if res is not None else "") or prior.source
     estimated = source == "estimated" and res is not None and np.all(np.isfinite(res.K))
-    K = res.K if estimated and res is not None else np.asarray(K_prior, dtype=np.float64)
+    K = res.K if estimated and res is not None else prior.K
     fov = float(np.degrees(2.0 * np.arctan(K[0, 2] / K[0, 0])))
     return {"k_source": source, "K": K.tolist(), "fov_deg": fov, "pixel_aspect": float(K[1, 1] / K[0, 0])}
 
@@ -308,15 +314,10 @@ def _validate_frames(frames: np.ndarray | Sequence[np.ndarray]) -> list[np.ndarr
     return out
 
 
-def _validate_K(K_prior: np.ndarray | None, K_known: bool = False, K_guessed: bool = False) -> np.ndarray | None:
-    if K_known and K_guessed:
-        raise ValueError("K_prior cannot be both known (K_known) and a guess (K_guessed)")
-    if K_prior is None:
-        return None
-    K = np.asarray(K_prior, dtype=np.float64)
-    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise ValueError(f"K_prior must be a finite (3,3) matrix with positive focal lengths, got {K_prior!r}")
-    return K
+def _validate_prior(prior: CameraPrior | None) -> CameraPrior | None:
+    if prior is not None and not isinstance(prior, CameraPrior):
+        raise ValueError(f"prior must be a camera.CameraPrior or None, got {type(prior).__name__}")
+    return prior
 
 
 def _input_problems(sizes: list[tuple[int, int]]) -> list[str]:
@@ -516,22 +517,6 @@ def _run_mapper(
     return _largest_model(models)
 
 
-def sequential_pairs(n_frames: int, overlap: int, quadratic: bool) -> list[tuple[int, int]]:
-    """Index pairs (i, j), i < j, that COLMAP's sequential matcher (4.2.1) chooses for frames in this order:
-    each frame with the next `overlap` ones or, when `quadratic`, with those 2^k ahead (k < overlap) instead.
-
-    Generated here rather than by `match_sequential`, which orders frames by image name: our names are stable
-    ids (`s002_0005.png`), and a left extension plays its frames reversed and before the others."""
-    pairs = []
-    for i in range(n_frames):
-        for k in range(overlap):
-            j = i + (1 << k if quadratic else k + 1)
-            if j >= n_frames:
-                break
-            pairs.append((i, j))
-    return pairs
-
-
 def _extract(
     db_path: Path,
     image_dir: Path,
@@ -542,7 +527,7 @@ def _extract(
 ) -> None:
     """SIFT on `names` (files in `image_dir`) into the database, all with one camera; `peak_threshold`
     None is COLMAP's."""
-    _extract_with(
+    extract_features(
         db_path,
         image_dir,
         names,
@@ -554,69 +539,10 @@ def _extract(
     )
 
 
-def _extract_with(
-    db_path: Path,
-    image_dir: Path,
-    names: list[str],
-    reader: pycolmap.ImageReaderOptions,
-    max_image_size_px: int,
-    max_num_features: int,
-    num_threads: int,
-    peak_threshold: float | None = None,
-) -> None:
-    """`_extract` with its settings spelled out (the parallax look uses fewer features)."""
-    import pycolmap
-
-    extraction = pycolmap.FeatureExtractionOptions()
-    extraction.num_threads = num_threads
-    extraction.use_gpu = False
-    extraction.max_image_size = max_image_size_px
-    extraction.sift.max_num_features = max_num_features
-    if peak_threshold is not None:
-        extraction.sift.peak_threshold = peak_threshold
-    pycolmap.extract_features(
-        db_path,
-        image_dir,
-        image_names=names,
-        camera_mode=pycolmap.CameraMode.SINGLE,
-        reader_options=reader,
-        extraction_options=extraction,
-        device=pycolmap.Device.cpu,
-    )
-
-
 def _match(db_path: Path, pairs: list[tuple[str, str]], params: SfmParams) -> pycolmap.TwoViewGeometryOptions:
     """Match and verify the given image-name pairs (never loop detection: offline it aborts the process);
     returns the verification options used."""
-    return _match_pairs(db_path, pairs, params.random_seed, params.num_threads)
-
-
-def _match_pairs(
-    db_path: Path, pairs: list[tuple[str, str]], random_seed: int, num_threads: int, relative_pose: bool = False
-) -> pycolmap.TwoViewGeometryOptions:
-    """`_match` with its settings spelled out; `relative_pose` also stores each pair's relative pose."""
-    import pycolmap
-
-    matching = pycolmap.FeatureMatchingOptions()
-    matching.num_threads = num_threads
-    matching.use_gpu = False
-    verification = pycolmap.TwoViewGeometryOptions()
-    verification.ransac.random_seed = random_seed
-    verification.compute_relative_pose = relative_pose
-    if not pairs:
-        return verification
-    pair_file = db_path.with_name("pairs.txt")
-    pair_file.write_text("".join(f"{a} {b}\n" for a, b in pairs))
-    pairing = pycolmap.ImportedPairingOptions()
-    pairing.match_list_path = pair_file
-    pycolmap.match_image_pairs(
-        db_path,
-        matching_options=matching,
-        pairing_options=pairing,
-        verification_options=verification,
-        device=pycolmap.Device.cpu,
-    )
-    return verification
+    return match_pairs(db_path, pairs, params.random_seed, params.num_threads)
 
 
 ASPECT_TOL = 1e-3  # pixel aspects this close to 1 are square
@@ -689,13 +615,13 @@ def _calibration_options(
     return calibration
 
 
-def _looks_for_parallax(K_prior: np.ndarray | None, K_known: bool, K_guessed: bool, params: SfmParams) -> bool:
+def _looks_for_parallax(prior: CameraPrior | None, params: SfmParams) -> bool:
     """The parallax look runs when the focal is not known: no K at all, or a guessed one."""
-    return params.min_parallax_deg is not None and not K_known and (K_prior is None or K_guessed)
+    return params.min_parallax_deg is not None and (prior is None or not prior.given)
 
 
 def _parallax_stop(
-    image_files: list[Path], size_wh: tuple[int, int], K_prior: np.ndarray | None, params: SfmParams, work: Path
+    image_files: list[Path], size_wh: tuple[int, int], prior: CameraPrior | None, params: SfmParams, work: Path
 ) -> tuple[str, dict[str, Any]]:
     """(why there is too little parallax to map, or ""; the look's attrs) over the frames' files."""
     from wonderverse.parallax import measure_parallax
@@ -703,7 +629,7 @@ def _parallax_stop(
     report = measure_parallax(
         image_files,
         size_wh,
-        K_prior,
+        None if prior is None else prior.K,
         params.parallax_frames,
         params.max_image_size_px,
         min(params.parallax_max_features, params.max_num_features),
@@ -720,13 +646,11 @@ def _reconstruct_dir(
     names: list[str],
     size_wh: tuple[int, int],
     params: SfmParams,
-    K_prior: np.ndarray | None,
+    prior: CameraPrior | None,
     work: Path,
     timings: dict[str, float],
     keep_workspace: bool = False,
-    K_known: bool = False,
     progress: ProgressFn = no_progress,
-    K_guessed: bool = False,
 ) -> SfmResult:
     """SIFT + sequential matching + mapping over `names` in `image_dir` (all of size `size_wh`, in sequence
     order); with `keep_workspace` the result carries the database and the kept model. Reports stages 1-3
@@ -736,19 +660,21 @@ def _reconstruct_dir(
     pycolmap.set_random_seed(params.random_seed)
     db_path = work / "database.db"
     db_path.unlink(missing_ok=True)  # a reused workdir must not append to an old database
-    aspect = _pixel_aspect(K_prior, params)
-    K_sfm = None if K_prior is None else np.diag([aspect, 1.0, 1.0]) @ K_prior  # in the mapped (stretched) pixels
+    K = None if prior is None else prior.K  # in the frames' pixels
+    guessed = prior is not None and not prior.given
+    aspect = _pixel_aspect(K, params)
+    K_sfm = None if K is None else np.diag([aspect, 1.0, 1.0]) @ K  # in the mapped (stretched) pixels
     size_sfm = (round(size_wh[0] * aspect), size_wh[1])
     # A guessed focal is not a prior: it only starts the view graph's self-calibration (module notes).
-    trusted = K_prior is not None and not (K_guessed and params.guessed_focal == "calibrate")
+    trusted = K is not None and not (guessed and params.guessed_focal == "calibrate")
     reader = pycolmap.ImageReaderOptions()
     reader.camera_model = params.camera_model
     if trusted and aspect == 1.0:
         # The prior both fixes the initial focal and marks it as trusted (has_prior_focal_length).
-        reader.camera_params = _camera_params_string(K_prior, params.camera_model)
+        reader.camera_params = _camera_params_string(K, params.camera_model)
     t = time.perf_counter()
     progress(1, len(STAGES), f"{STAGES[1]} ({len(names)} frames)")
-    uncalibrated = K_prior is None or K_guessed
+    uncalibrated = K is None or guessed
     _extract(db_path, image_dir, names, params, reader, params.uncalibrated_peak_threshold if uncalibrated else None)
     if aspect != 1.0:
         _stretch_x(db_path, image_dir, names, aspect, size_sfm[0])
@@ -766,8 +692,7 @@ def _reconstruct_dir(
     if n_verified == 0:
         return empty_result(len(names), ["COLMAP registered no frames", *feature_problems], timings)
 
-    hold = K_prior is not None and K_known and params.hold_known_intrinsics  # module notes
-    prior_source = "given" if K_known or not K_guessed else "guessed"
+    hold = prior is not None and prior.given and params.hold_known_intrinsics  # module notes
 
     def run(kind: str) -> tuple[SfmResult, Any] | None:
         t0 = time.perf_counter()
@@ -782,7 +707,7 @@ def _reconstruct_dir(
 
     auto = params.auto_order_known_k if hold else params.auto_order
     kinds = list(auto) if params.mapper == "auto" else [params.mapper]
-    if K_prior is not None and params.prior_focal_fallback and not (hold and "incremental" in kinds):
+    if K is not None and params.prior_focal_fallback and not (hold and "incremental" in kinds):
         kinds.append(PRIOR_FOCAL)  # with the camera held, "incremental" already is this
     tried: list[tuple[str, tuple[SfmResult, Any] | None]] = []
     for k, kind in enumerate(kinds):
@@ -805,7 +730,8 @@ def _reconstruct_dir(
         ] + ([p for p in feature_problems if best.n_registered < len(names)])
     if keep_workspace:
         best.workspace = SfmWorkspace.pack(db_path, best_rec, work / "kept")
-    best.k_source = prior_source if hold or best.mapper == PRIOR_FOCAL else "estimated"
+    kept_prior = prior is not None and (hold or best.mapper == PRIOR_FOCAL)
+    best.k_source = prior.source if kept_prior and prior is not None else "estimated"
     best.timings = timings
     return best
 
@@ -833,33 +759,89 @@ def _checked_names(names: Sequence[str] | None, n_frames: int) -> list[str]:
     return out
 
 
+@dataclass
+class _Images:
+    """What SfM reads: one image name per frame, and either the frames to write as PNG files (`arrays`) or the
+    caller's files to link (`files`); sizes (W,H) per frame; problems: files that cannot be read."""
+
+    names: list[str]
+    sizes: list[tuple[int, int]]
+    arrays: list[np.ndarray] | None = None
+    files: list[Path] | None = None
+    problems: list[str] = field(default_factory=list)
+
+    def place(self, image_dir: Path, indices: Sequence[int]) -> None:
+        """The frames at `indices` into `image_dir`: written losslessly (SIFT sees exactly the frames), or
+        linked (the files are not decoded here; a reused workdir may hold a stretched copy or an old link)."""
+        if self.arrays is not None:
+            write_png_frames(image_dir, [self.names[i] for i in indices], [self.arrays[i] for i in indices])
+            return
+        assert self.files is not None
+        for i in indices:
+            link = image_dir / self.names[i]
+            if link.is_symlink() or link.exists():
+                link.unlink()
+            link.symlink_to(self.files[i].resolve())
+
+
+def _is_paths(frames: Any) -> bool:
+    return (
+        isinstance(frames, Sequence)
+        and not isinstance(frames, str | bytes | np.ndarray)
+        and len(frames) > 0
+        and all(isinstance(f, str | Path) for f in frames)
+    )
+
+
+def _images(frames: np.ndarray | Sequence[np.ndarray] | Sequence[Path | str], names: Sequence[str] | None) -> _Images:
+    """The frames as SfM's images (ValueError for wrong types, shapes or names)."""
+    if not _is_paths(frames):
+        arrays = _validate_frames(frames)  # type: ignore[arg-type]
+        sizes = [(int(f.shape[1]), int(f.shape[0])) for f in arrays]
+        return _Images(_checked_names(names, len(arrays)), sizes, arrays=arrays)
+    if names is not None:
+        raise ValueError("names apply to frames given as arrays; image files are named by their position")
+    from PIL import Image
+
+    files = [Path(f) for f in frames]
+    sizes: list[tuple[int, int]] = []
+    for f in files:
+        try:
+            with Image.open(f) as im:
+                sizes.append(im.size)
+        except OSError as e:
+            return _Images([], [], files=files, problems=[f"cannot read image {f.name}: {e}"])
+    return _Images([f"{i:06d}{f.suffix.lower()}" for i, f in enumerate(files)], sizes, files=files)
+
+
 def reconstruct(
-    frames: np.ndarray | Sequence[np.ndarray],
+    frames: np.ndarray | Sequence[np.ndarray] | Sequence[Path | str],
     params: SfmParams | None = None,
-    K_prior: np.ndarray | None = None,
+    prior: CameraPrior | None = None,
+    *,
     workdir: Path | None = None,
     names: Sequence[str] | None = None,
     keep_workspace: bool = False,
-    K_known: bool = False,
     progress: ProgressFn | None = None,
-    K_guessed: bool = False,
 ) -> SfmResult:
-    """Reconstruct one segment: (T,H,W,3) uint8 frames (or a list of (H,W,3) uint8), in sequence order ->
-    SfmResult.
+    """Reconstruct one segment, frames in sequence order -> SfmResult. frames: (T,H,W,3) uint8, a list of
+    (H,W,3) uint8, or the paths of image files (frame i = frames[i]; not decoded into memory: COLMAP reads them,
+    downscaled to `max_image_size_px` for SIFT, and K is in full-size pixels).
 
-    K_prior (3,3, pixels of these frames) seeds the shared camera's focal length; without it the
-    incremental mapper starts from COLMAP's 1.2·max(W,H) and the global one calibrates the view graph.
-    Its pixel aspect fy/fx is held while mapping (`keep_pixel_aspect`), the focal refined.
-    K_known: K_prior is the camera's calibration, not a guess; with `params.hold_known_intrinsics` (default)
-    no mapper refines it, and `auto` follows `auto_order_known_k`.
-    K_guessed: K_prior is a guess (an assumed field of view): with `guessed_focal="calibrate"` its focal only
-    starts the view graph's self-calibration, and is held as it was only by the last-resort mapper.
-    Without a known focal (no K_prior, or a guessed one) a few frames are first looked at for parallax
+    prior: the camera's intrinsics as far as known (`camera.CameraPrior`, K in pixels of these frames), or None.
+    Its pixel aspect fy/fx is held while mapping (`keep_pixel_aspect`), the focal refined. A given K is the
+    camera's calibration: with `params.hold_known_intrinsics` (default) no mapper refines it, and `auto` follows
+    `auto_order_known_k`; with it off, the K seeds the shared camera's focal, which the mappers refine. A guessed
+    K (an assumed field of view), with `guessed_focal="calibrate"`, only starts the view graph's
+    self-calibration, and is held as it was only by the last-resort mapper. Without a prior the incremental
+    mapper starts from COLMAP's 1.2·max(W,H) and the global one calibrates the view graph.
+    Without a given K (no prior, or a guessed one) a few frames are first looked at for parallax
     (`wonderverse.parallax`); with too little, nothing is mapped and `stopped` says why.
     workdir keeps the images, database and models there (for debugging); otherwise a temp dir is used.
-    names: one unique `.png` file name per frame, used for the images in COLMAP (default: the frame's
-    position); give stable ids when the workspace is to be extended later, sorting in sequence order:
-    COLMAP numbers images by sorted name and the global mapper depends on that (`global_poses.image_names`).
+    names (frames given as arrays only): one unique `.png` file name per frame, used for the images in COLMAP
+    (default: the frame's position); give stable ids when the workspace is to be extended later, sorting in
+    sequence order: COLMAP numbers images by sorted name and the global mapper depends on that
+    (`global_poses.image_names`).
     keep_workspace: return the database and kept model in `result.workspace` (for
     `sfm_extend.extend_reconstruction`).
     progress(stage, len(STAGES), what it is doing): each of `STAGES` as it starts, then done.
@@ -868,14 +850,13 @@ def reconstruct(
 
     report = progress or no_progress
     params = params or SfmParams()
-    frame_list = _validate_frames(frames)
-    K = _validate_K(K_prior, K_known, K_guessed)
-    names = _checked_names(names, len(frame_list))
+    prior = _validate_prior(prior)
+    images = _images(frames, names)
     t_start = time.perf_counter()
-    sizes = [(int(f.shape[1]), int(f.shape[0])) for f in frame_list]
-    problems = _input_problems(sizes)
+    problems = images.problems or _input_problems(images.sizes)
     if problems:
-        return empty_result(len(frame_list), problems)
+        return empty_result(len(images.files) if images.files is not None else len(images.names), problems)
+    names = images.names
     with tempfile.TemporaryDirectory(prefix="wv-sfm-") as tmp:
         work = Path(workdir) if workdir is not None else Path(tmp)
         image_dir = work / "images"
@@ -883,75 +864,21 @@ def reconstruct(
         timings: dict[str, float] = {}
         t = time.perf_counter()
         report(0, len(STAGES), STAGES[0])
-        look = _looks_for_parallax(K, K_known, K_guessed, params)
+        look = _looks_for_parallax(prior, params)
         first = [int(i) for i in subset(len(names), params.parallax_frames)] if look else []
-        write_png_frames(image_dir, [names[i] for i in first], [frame_list[i] for i in first])
+        images.place(image_dir, first)  # the look starts on these while the rest wait
         seen = None
         if look:
-            stop, seen = _parallax_stop([image_dir / n for n in names], sizes[0], K, params, work)
+            stop, seen = _parallax_stop([image_dir / n for n in names], images.sizes[0], prior, params, work)
             timings["parallax"] = seen["seconds"]
             if stop:
-                return _stopped(len(names), stop, seen, K, K_known, K_guessed, timings, t_start)
-        rest = [i for i in range(len(names)) if i not in set(first)]
-        write_png_frames(image_dir, [names[i] for i in rest], [frame_list[i] for i in rest])
+                return _stopped(len(names), stop, seen, prior, timings, t_start)
+        images.place(image_dir, [i for i in range(len(names)) if i not in set(first)])
         timings["write"] = time.perf_counter() - t - timings.get("parallax", 0.0)
-        res = _reconstruct_dir(
-            image_dir, names, sizes[0], params, K, work, timings, keep_workspace, K_known, report, K_guessed
-        )
+        res = _reconstruct_dir(image_dir, names, images.sizes[0], params, prior, work, timings, keep_workspace, report)
         res.parallax = seen
     res.timings["total"] = time.perf_counter() - t_start
     report(len(STAGES), len(STAGES), f"{res.n_registered}/{len(names)} frames registered")
-    return res
-
-
-def reconstruct_from_images(
-    paths: Sequence[Path | str],
-    params: SfmParams | None = None,
-    K_prior: np.ndarray | None = None,
-    workdir: Path | None = None,
-    K_known: bool = False,
-    K_guessed: bool = False,
-) -> SfmResult:
-    """Like `reconstruct`, over image files in the given order (frame i = paths[i]); files are not decoded
-    into memory, COLMAP reads them (downscaled to `max_image_size_px` for SIFT, K in full-size pixels)."""
-    from PIL import Image
-
-    params = params or SfmParams()
-    K = _validate_K(K_prior, K_known, K_guessed)
-    t_start = time.perf_counter()
-    paths = [Path(p) for p in paths]
-    sizes: list[tuple[int, int]] = []
-    for p in paths:
-        try:
-            with Image.open(p) as im:
-                sizes.append(im.size)
-        except OSError as e:
-            return empty_result(len(paths), [f"cannot read image {p.name}: {e}"])
-    problems = _input_problems(sizes)
-    if problems:
-        return empty_result(len(paths), problems)
-    with tempfile.TemporaryDirectory(prefix="wv-sfm-") as tmp:
-        work = Path(workdir) if workdir is not None else Path(tmp)
-        image_dir = work / "images"
-        image_dir.mkdir(parents=True, exist_ok=True)
-        names = [f"{i:06d}{p.suffix.lower()}" for i, p in enumerate(paths)]
-        for name, p in zip(names, paths, strict=True):
-            link = image_dir / name
-            if link.is_symlink() or link.exists():
-                link.unlink()  # a reused workdir may hold a stretched copy (`_stretch_x`) or an old link
-            link.symlink_to(p.resolve())
-        timings: dict[str, float] = {}
-        seen = None
-        if _looks_for_parallax(K, K_known, K_guessed, params):
-            stop, seen = _parallax_stop([image_dir / n for n in names], sizes[0], K, params, work)
-            timings["parallax"] = seen["seconds"]
-            if stop:
-                return _stopped(len(names), stop, seen, K, K_known, K_guessed, timings, t_start)
-        res = _reconstruct_dir(
-            image_dir, names, sizes[0], params, K, work, timings, False, K_known, no_progress, K_guessed
-        )
-        res.parallax = seen
-    res.timings["total"] = time.perf_counter() - t_start
     return res
 
 
@@ -959,15 +886,13 @@ def _stopped(
     n_frames: int,
     reason: str,
     seen: dict[str, Any],
-    K: np.ndarray | None,
-    K_known: bool,
-    K_guessed: bool,
+    prior: CameraPrior | None,
     timings: dict[str, float],
     t_start: float,
 ) -> SfmResult:
     """The result of a reconstruction stopped before mapping for `reason` (too little parallax)."""
     res = empty_result(n_frames, [reason], timings)
     res.stopped, res.parallax = reason, seen
-    res.k_source = "" if K is None else ("given" if K_known or not K_guessed else "guessed")
+    res.k_source = "" if prior is None else prior.source
     res.timings["total"] = time.perf_counter() - t_start
     return res

@@ -23,6 +23,7 @@ from typing import Any
 
 import numpy as np
 
+from wonderverse.features import sequential_pairs
 from wonderverse.progress import ProgressFn, no_progress
 from wonderverse.sfm import (
     STAGES,
@@ -37,7 +38,6 @@ from wonderverse.sfm import (
     _match,
     _result_from_model,
     _validate_frames,
-    sequential_pairs,
     write_png_frames,
 )
 

@@ -12,15 +12,22 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
 from wonderverse.video.procedural_options import ProceduralOptions
 from wonderverse.video.world import MATERIALS, Pattern, World
 
-if TYPE_CHECKING:  # defects.py imports this module
-    from wonderverse.video.defects import SurfaceLook
+
+class PlainSurfaces(Protocol):
+    """Which surface hits render texture-poor (`defects.SurfaceLook` is one; declared here so that this module,
+    which `defects` builds on, needs nothing of it)."""
+
+    def plain_weight(self, tex: np.ndarray, part: np.ndarray) -> np.ndarray | None:
+        """(n,) float32 in [0,1], 1 = flat albedo, for texture-space points tex (3,n) and part ids (n,); None
+        when no hit is plain."""
+
 
 # int32 multipliers of the lattice hash (odd, large, unrelated)
 _HX, _HY, _HZ, _HMIX = (
@@ -230,7 +237,7 @@ def surface_colour(
     dist: np.ndarray,
     footprint: np.ndarray,
     tri: np.ndarray,
-    look: SurfaceLook | None = None,
+    look: PlainSurfaces | None = None,
     detail: np.ndarray | None = None,
 ) -> np.ndarray:
     """RGB (3,n) float32 of surface hits: palette x solid texture x pattern, lit by sky and sun, hazed.
