@@ -20,7 +20,7 @@ import numpy as np
 
 from tasks.base import Step, StepContext
 from tasks.progress import advance
-from tasks.segments import accepted_attempt, attempt_path, intrinsics, segment_meta, stitched, stitched_order
+from tasks.segments import accepted_attempt, attempt_path, camera_prior, segment_meta, stitched, stitched_order
 from wonderverse.config import PosesParams, RunConfig
 from wonderverse.errors import WonderError
 from wonderverse.schema import SEGMENT, SFM, SFM_MODEL
@@ -126,6 +126,7 @@ def _write_workspace(g: Any, ws: SfmWorkspace) -> None:
 
 
 def run(store: SceneStore, p: PosesParams, ctx: StepContext) -> str:
+    from wonderverse.camera import CameraPrior
     from wonderverse.global_poses import select_frames, solve_global_poses
     from wonderverse.sfm import k_record
 
@@ -134,7 +135,8 @@ def run(store: SceneStore, p: PosesParams, ctx: StepContext) -> str:
         raise WonderError("no accepted frames to pose (every segment was dropped)")
     segs = sorted({s for s, _ in index})
     K = store.array(SEGMENT.at(seg=index[0][0]).K)
-    guessed = not all(intrinsics(store, s)[1] for s in segs)  # a guess anywhere: self-calibrate
+    guessed = not all(camera_prior(store, s).given for s in segs)  # a guess anywhere: self-calibrate
+    prior = CameraPrior(K, "guessed" if guessed else "given")
     n = len(frames)
     frame_index = np.array([(segs.index(s), i) for s, i in index], dtype=np.int32)
     points = np.zeros((0, 3))
@@ -145,12 +147,12 @@ def run(store: SceneStore, p: PosesParams, ctx: StepContext) -> str:
         paths = {s: store.array(SEGMENT.at(seg=s).path) for s in segs}
         poses = np.stack([paths[s][i] for s, i in index])
         registered = np.ones(n, bool)
-        attrs |= k_record(None, K, K_known=not guessed)
+        attrs |= k_record(None, prior)
     else:
         solved = solve_global_poses(
             frames,
             index,
-            K,
+            prior,
             p,
             names=image_names(store, [index[k] for k in select_frames(index, p.frame_stride)]),
             sources=_sources(store, segs),
@@ -158,7 +160,6 @@ def run(store: SceneStore, p: PosesParams, ctx: StepContext) -> str:
             own=_own_poses(store, segs),
             previous=_previous(store),
             progress=lambda done, total, note: advance(done, total, UNIT, note, eta=False),  # stages: no pace
-            K_guessed=guessed,
             check_mapper=_check_mapper(store, segs) if guessed else None,  # a known K was held there, not here
         )
         poses, registered, points, colors = solved.poses, solved.registered, solved.points, solved.colors

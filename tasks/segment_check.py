@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 
 from tasks.attempts import add_attempt, video_model
-from tasks.segments import attempt_ids, intrinsics
+from tasks.segments import attempt_ids, camera_prior
 from wonderverse.config import CheckStepParams, Model, VideoSource
 from wonderverse.errors import WonderError
 from wonderverse.schema import ATTEMPT, SEGMENT
@@ -48,11 +48,11 @@ def _judge(store: SceneStore, p: CheckStepParams, seg: str, k: int, key: str) ->
     ap = ATTEMPT.at(seg=seg, attempt=k)
     if store.is_complete(ap.check, key):
         return store.meta(ap.check)
-    K, known = intrinsics(store, seg)
+    prior = camera_prior(store, seg)
     frames = store.array(ap.frames)
-    sfm = reconstruct(frames, p.sfm, K_prior=K, K_known=known, K_guessed=not known)
+    sfm = reconstruct(frames, p.sfm, prior)
     result = check_trajectory(sfm.poses, sfm.registered, p.rules, sfm.problems, points=sfm.points, stopped=sfm.stopped)
-    verdict = _with_plan_verdict(result.to_attrs(), store.array(SEGMENT.at(seg=seg).path), sfm, p, frames, K)
+    verdict = _with_plan_verdict(result.to_attrs(), store.array(SEGMENT.at(seg=seg).path), sfm, p, frames, prior.K)
     with store.staged(
         ap.sfm,
         key,
@@ -63,7 +63,7 @@ def _judge(store: SceneStore, p: CheckStepParams, seg: str, k: int, key: str) ->
         problems=sfm.problems,
         stopped=sfm.stopped,
         parallax=sfm.parallax,
-        **k_record(sfm, K, known),
+        **k_record(sfm, prior),
     ) as g:
         write_array(g, ap.sfm.poses, sfm.poses)
         write_array(g, ap.sfm.registered, sfm.registered)

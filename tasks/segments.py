@@ -6,6 +6,7 @@ from collections.abc import Callable
 
 import numpy as np
 
+from wonderverse.camera import CameraPrior
 from wonderverse.schema import ATTEMPT, ATTEMPTS, SEGMENT, SEGMENTS, SFM, GroupPath
 from wonderverse.schema.attrs import SegmentAttrs
 from wonderverse.store import SceneStore
@@ -50,10 +51,11 @@ def frames(store: SceneStore, seg: str, attempt: int | None = None) -> np.ndarra
     return store.array(attempt_path(store, seg, attempt).frames)
 
 
-def intrinsics(store: SceneStore, seg: str) -> tuple[np.ndarray, bool]:
-    """A segment's K (3,3) and whether it is known (the renderer's, or a clip's given field of view) rather
-    than guessed; stores written before the flag existed count as guessed."""
-    return store.array(SEGMENT.at(seg=seg).K), not segment_meta(store, seg).k_is_guess
+def camera_prior(store: SceneStore, seg: str) -> CameraPrior:
+    """A segment's K (3,3) and where it came from: given (the renderer's, or a clip's given field of view) or
+    guessed; stores written before the flag existed count as guessed."""
+    source = "guessed" if segment_meta(store, seg).k_is_guess else "given"
+    return CameraPrior(store.array(SEGMENT.at(seg=seg).K), source)
 
 
 def stitched(store: SceneStore) -> tuple[np.ndarray, list[tuple[str, int]]]:
