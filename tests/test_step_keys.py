@@ -85,8 +85,26 @@ def _with(data: dict, path: tuple[str, ...], value: Any) -> dict:
     return {**data, path[0]: _with(data[path[0]], path[1:], value)}
 
 
+def _tags(cfg: BaseModel, block: tuple[str, ...]) -> list[Any]:
+    """The `kind`s a tagged block (a union of models told apart by `kind`: `steps.splats.train.strategy`) can be."""
+    parent: Any = cfg
+    for name in block[:-1]:
+        parent = getattr(parent, name)
+    members = get_args(type(parent).model_fields[block[-1]].annotation)
+    models = [m for m in members if isinstance(m, type) and issubclass(m, BaseModel) and "kind" in m.model_fields]
+    return [t for m in models for t in _literals(m.model_fields["kind"].annotation)]
+
+
 def perturbed(cfg: RunConfig, path: tuple[str, ...], value: Any, annotation: Any) -> RunConfig | None:
     data = cfg.model_dump(mode="json")
+    if path[-1] == "kind":  # another kind is another model, with its own defaults
+        for tag in _tags(cfg, path[:-1]):
+            if tag == value:
+                continue
+            try:
+                return RunConfig.model_validate(_with(data, path[:-1], {"kind": tag}))
+            except ValidationError:
+                continue
     if path[-2:] == ("video", "backend"):  # another backend comes with its own options
         data = _with(data, (*path[:-1], "options"), {})
     for v in candidates(value, annotation):
