@@ -31,6 +31,7 @@ from flows.pipeline import execute
 from flows.report import report_state, write_report
 from tasks import STEPS
 from tasks.segments import attempt_ids, segment_ids
+from wonderverse.camera import Sim3
 from wonderverse.config import build_config
 from wonderverse.errors import WonderError
 from wonderverse.media import write_mp4
@@ -383,8 +384,15 @@ def test_partial_scene_report_says_what_is_missing(partial_scene: Path, tmp_path
     (scene / "exports" / "colmap" / "cameras.txt").write_text("# camera\n")
     (scene / "mesh.glb").write_bytes(b"glTF" + bytes(96))
     (tmp_path / "secret.txt").write_text("no")
-    files = ["mesh.glb", {"path": "exports/colmap", "description": "COLMAP model"}, "../secret.txt", "absent.ply"]
-    with store.staged("outputs", "k", files=files):
+    files = [
+        {"path": "mesh.glb", "bytes": 100},
+        {"path": "exports/colmap", "bytes": 9, "description": "COLMAP model"},
+        {"path": "../secret.txt", "bytes": 2},
+        {"path": "absent.ply", "bytes": 0},
+    ]
+    frame = {"world_from_sfm": Sim3.identity().to_dict(), "up_in_sfm": [0.0, 0.0, 1.0], "world": "the sfm/ frame"}
+    mesh = {"triangles": 0, "vertices": 0}
+    with store.staged("outputs", "k", files=files, frame=frame, mesh=mesh, render_size=[96, 64]):
         pass
     text = write_report(scene).read_text()
     assert_self_contained(text, scene)

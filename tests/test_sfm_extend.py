@@ -219,9 +219,9 @@ def test_poses_step_registers_an_extension_into_the_stored_reconstruction(world:
     # a further extension qualifies; anything else (another accepted attempt of s001, other SfM settings)
     # means a full solve
     p = cfg.steps.poses
-    names = [*a3["sfm_names"], "50020001_s005_0001.png"]
+    names = [*a3.sfm_names, "50020001_s005_0001.png"]
     name_seg = {n: n.split("_")[1] for n in names}
-    sources = poses._sources(store, a3["segments"]) | {"s005": {"key": "x", "attempt": 0}}
+    sources = poses._sources(store, a3.segments) | {"s005": {"key": "x", "attempt": 0}}
     previous, key = poses._previous(store), poses._workspace_key(p)
     assert can_extend(previous, key, names, name_seg, sources)
     changed = sources | {"s001": {**sources["s001"], "attempt": 1}}

@@ -44,11 +44,11 @@ def test_splats_are_stored_with_the_normalisation_to_the_world(trained: Path):
     assert n > 100 and store.array("splats/means").shape == (n, 3)
     assert np.isfinite(store.array("splats/means")).all()
     assert a.metrics.test_views and np.isfinite(a.metrics.test_psnr)
-    assert len(a["curves"]["total"]) == 40 and a["curves"]["total"][-1] < a["curves"]["total"][0]
+    assert len(a.curves["total"]) == 40 and a.curves["total"][-1] < a.curves["total"][0]
     # the normalisation takes the Gaussians back to the world: they sit where the SfM points are
     from wonderverse.splats.model import normalization_from_dict
 
-    xyz = normalization_from_dict(a["normalization"]).apply_inverse(store.array("splats/means"))
+    xyz = normalization_from_dict(a.normalization).apply_inverse(store.array("splats/means"))
     pts = store.array("sfm/points3d")
     assert np.linalg.norm(np.median(xyz, 0) - np.median(pts, 0)) < 0.5 * np.ptp(pts, 0).max()
     assert not (trained / "splats.ply").exists()  # exported by the outputs step, in the outputs' frame
