@@ -15,6 +15,8 @@ from wonderverse.metrics import ate
 from wonderverse.sfm import k_record, reconstruct
 from wonderverse.video.files import RESIZED_16_9_TO_3_2, read_clip
 
+pytestmark = pytest.mark.e2e  # whole real clips through SfM (~20 s each on 2 cores)
+
 # 3c35: 2.55 % off with the guess as a refined square-pixel prior; 0f47: the worst over seeds (0.70-1.04 %)
 CLIPS = ["3c35b868a8ec3433", "0f47577ab3441480"]
 

@@ -26,6 +26,7 @@ def _clip(data_dir: Path, name: str):
     return read_clip(path)
 
 
+@pytest.mark.e2e
 @pytest.mark.parametrize(
     "name", ["cogvideox2b_gallery_4.mp4", "gradio_example_kitten.mp4", "cogvideox2b_gallery_1.mp4"]
 )
@@ -48,6 +49,7 @@ def test_near_static_clips_are_flagged_for_parallax_before_mapping(data_dir: Pat
     assert res.parallax is not None and res.parallax["pairs_matched"] >= 8
 
 
+@pytest.mark.e2e
 @pytest.mark.parametrize("name", ["gradio_example_train_running.mp4", "cogvideox2b_gallery_2.mp4"])
 def test_clips_with_camera_motion_are_not_flagged_for_parallax(data_dir: Path, name: str, tmp_path: Path) -> None:
     """The look's verdict is what stops SfM; on a pan past a train (the closest case measured: 4.5°) and

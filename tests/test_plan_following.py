@@ -543,6 +543,7 @@ def test_judge_segment_without_frames_or_plan() -> None:
     assert r.ok is True and r.two_view is None
 
 
+@pytest.mark.e2e
 @pytest.mark.parametrize("ignored", [False, True])
 def test_a_rendered_turn_and_travel_is_judged_as_the_check_judges_it(ignored: bool) -> None:
     """Right 24° with 1.8 m forward over the forest lake's ground (benchmarks.plan_following case 13), rendered

@@ -256,6 +256,7 @@ def test_batch_runs_every_spec_and_survives_an_invalid_one(tmp_path: Path):
     assert status["plan"] and not status["generate_segments"]
 
 
+@pytest.mark.e2e
 def test_serve_refuses_without_a_server(tmp_path: Path):
     specs = tmp_path / "specs"
     write_tiny_spec(specs, "one")
@@ -326,6 +327,7 @@ print(json.dumps({"result": f(), **calls, "transient": kinds}))
 """
 
 
+@pytest.mark.e2e
 def test_step_tasks_retry_transient_failures_only(tmp_path: Path):
     """A step that loses its connection twice succeeds on its third try; a bug fails at once."""
     r = subprocess.run(

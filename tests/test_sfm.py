@@ -253,6 +253,7 @@ def _assert_rotation_steps_match(poses: np.ndarray, truth: np.ndarray, atol_rad:
     np.testing.assert_allclose(steps, [geodesic_angle(a[:3, :3], b[:3, :3]) for a, b in pairwise(truth)], atol=atol_rad)
 
 
+@pytest.mark.e2e
 def test_low_parallax_turn_is_solved_by_holding_the_camera_at_its_prior() -> None:
     """With a K prior the mappers refine (not held), both mappers fail on the turn while refining the focal; the
     last-resort mapper holds the camera at the prior and recovers the truth."""
@@ -273,6 +274,7 @@ def test_low_parallax_turn_is_solved_by_holding_the_camera_at_its_prior() -> Non
     assert reconstruct(video.frames, params).mapper != PRIOR_FOCAL
 
 
+@pytest.mark.e2e
 def test_a_known_k_is_held_from_the_first_mapper() -> None:
     """The renderer's K is known (not a guess): no mapper refines it, incremental goes first and solves the
     turn at once; with the hold switched off the same call fails the gates, as with a guessed K."""
@@ -291,6 +293,7 @@ def test_a_known_k_is_held_from_the_first_mapper() -> None:
     assert not off.gates_passed and "map_global" in off.timings  # the usual order, the focal refined
 
 
+@pytest.mark.e2e
 def test_image_files_and_frame_arrays_give_the_same_reconstruction(tmp_path: Path) -> None:
     """One entry point: the frames as PNG files (linked, never decoded here) map exactly like the arrays, the
     parallax look included (a guessed K)."""
