@@ -80,3 +80,49 @@ def test_the_guard_stays_out_of_e2e_tests() -> None:
 
     r = CliRunner().invoke(app, ["--help"])
     assert r.exit_code == 0 and "generate" in r.output, r.output
+
+
+_INNER_CONFTEST = """
+import sys
+sys.path[:0] = [{root!r}, {tests!r}]
+exec(compile(open({conftest!r}).read(), {conftest!r}, "exec"))
+"""
+
+_INNER_TESTS = """
+import pytest
+from conftest import tiny_config
+from flows.pipeline import execute
+
+
+@pytest.fixture(scope="module")
+def planned(tmp_path_factory):
+    return execute(tmp_path_factory.mktemp("s"), tiny_config(), until="plan")
+
+
+def test_unmarked_over_a_module_scoped_scene(planned):
+    pass
+
+
+@pytest.mark.e2e
+def test_marked(tmp_path):
+    assert [r.status for r in execute(tmp_path, tiny_config(), until="plan")] == ["ran"]
+"""
+
+
+@pytest.mark.e2e
+def test_a_module_scoped_fixture_that_runs_a_pipeline_fails_the_unmarked_test_using_it(tmp_path: Path) -> None:
+    """The whole hook in a pytest session of its own: the fixture is set up inside the unmarked test, so it errors
+    there naming the marker, while the marked test runs its pipeline."""
+    tests = Path(__file__).resolve().parent
+    inner = _INNER_CONFTEST.format(root=str(tests.parent), tests=str(tests), conftest=str(tests / "conftest.py"))
+    (tmp_path / "conftest.py").write_text(inner)
+    (tmp_path / "test_inner.py").write_text(_INNER_TESTS)
+    r = subprocess.run(
+        [sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", "-W", "ignore", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        cwd=tmp_path,
+        timeout=300,
+    )
+    assert "1 passed, 1 error" in r.stdout, r.stdout[-3000:]
+    assert "test_unmarked_over_a_module_scoped_scene runs a pipeline (flows.pipeline) but is not marked e2e" in r.stdout
