@@ -103,7 +103,8 @@ def test_fused_mesh_lies_on_the_true_surface_and_covers_it(fused: TriMesh):
     m = chamfer_fscore(pred, gt_points(), [voxel, 2 * voxel])
     assert m["accuracy"] < 0.35 * voxel  # on the surface to a third of a voxel
     assert m["precision"][1] > 0.98
-    assert m["recall"][1] > 0.9  # the plane under the box is never seen: a few percent missing
+    # the plane under the box is never seen: a few percent missing (2.3 % measured on 2026-12-04; margin 2x)
+    assert m["recall"][1] > 0.95
     # triangles wind counter-clockwise seen from the cameras: the normals of the ground and box top point up
     v, t = fused.vertices, fused.triangles
     normal_z = np.cross(v[t[:, 1]] - v[t[:, 0]], v[t[:, 2]] - v[t[:, 0]])[:, 2]
@@ -159,7 +160,8 @@ def test_depths_beyond_the_near_reach_go_to_a_coarser_volume():
     coarse = fuse_tsdf(views(), EXTENT, PARAMS.model_copy(update={"max_depth_frac": 0.5, "far_voxel_scale": 4.0}))
     assert 0 < len(coarse.triangles) < 0.5 * len(fine.triangles)
     m = chamfer_fscore(sample_mesh_points(coarse.vertices, coarse.triangles, 20_000), gt_points(), [0.1])
-    assert m["accuracy"] < 4 * EXTENT * PARAMS.voxel_frac and m["fscore"][0] > 0.9
+    # measured on 2026-12-04 (commit 088e394): accuracy 0.51 fine voxels, F 0.967; margins 2x (on the F's miss)
+    assert m["accuracy"] < 1.0 * EXTENT * PARAMS.voxel_frac and m["fscore"][0] > 0.93
     with pytest.raises(ValueError, match="far_depth_frac"):
         MeshParams(max_depth_frac=0.5, far_depth_frac=0.4)
 
