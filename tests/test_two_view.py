@@ -65,14 +65,16 @@ def test_turn_and_travel_over_the_ground_is_read_right(turn_and_travel) -> None:
     last = max(looked)
     assert tv.travel_known[last]
     _, c_last = _relative(truth, last)
+    # measured on 2026-12-04 (commit 088e394): rotation 0.26° (0.44° without travel), direction 2.8°, length 0.055;
+    # the bounds leave a margin of 2x
     for j in looked:
         R_true, c_true = _relative(truth, j)
         R_est, c_est = _relative(tv.poses, j)
-        # short pairs without measured travel: E's rotation soaks up some of the travel (1.3° at frame 2)
-        assert math.degrees(float(geodesic_angle(R_est, R_true))) < (0.5 if tv.travel_known[j] else 1.5), j
+        # short pairs without measured travel: E's rotation soaks up some of the travel
+        assert math.degrees(float(geodesic_angle(R_est, R_true))) < (0.5 if tv.travel_known[j] else 0.9), j
         if tv.travel_known[j]:  # the direction of travel, and its length as a share of the longest
-            assert _angle(c_est, c_true) < 10.0, j
-            assert np.linalg.norm(c_est) == pytest.approx(np.linalg.norm(c_true) / np.linalg.norm(c_last), abs=0.15)
+            assert _angle(c_est, c_true) < 6.0, j
+            assert np.linalg.norm(c_est) == pytest.approx(np.linalg.norm(c_true) / np.linalg.norm(c_last), abs=0.11)
     attrs = tv.to_attrs()
     assert attrs["frames"] == [int(i) for i in np.flatnonzero(tv.registered)]
     assert all(v is None or not (isinstance(v, float) and math.isnan(v)) for p in attrs["pairs"] for v in p.values())
@@ -87,10 +89,11 @@ def test_pure_rotation_has_no_travel_and_the_right_turn() -> None:
     assert not tv.travel_known[1:].any()
     for p in used:
         R_true, _ = _relative(video.gt.poses, p.j)
-        assert math.degrees(float(geodesic_angle(_relative(tv.poses, p.j)[0], R_true))) < 0.5
+        # measured 0.012° on 2026-12-04 (commit 088e394); margin 4x
+        assert math.degrees(float(geodesic_angle(_relative(tv.poses, p.j)[0], R_true))) < 0.05
         assert not p.travel and math.isnan(p.baseline)
     last = used[-1].j
-    assert used[-1].rotation_deg == pytest.approx(25.0 * last / (T - 1), abs=1.0)
+    assert used[-1].rotation_deg == pytest.approx(25.0 * last / (T - 1), abs=0.05)  # measured 0.004° off
 
 
 def test_textureless_frames_register_only_the_first() -> None:
