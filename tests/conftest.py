@@ -138,6 +138,7 @@ def lock_held_elsewhere(scene: Path) -> Iterator[subprocess.Popen]:
 # e2e tier and says so (@pytest.mark.e2e, or `pytestmark = pytest.mark.e2e` for a module). While a test without the
 # marker runs, its fixtures included (a module-scoped fixture that builds a scene is set up inside the first test
 # that uses it), those entry points fail it, so the fast tier cannot grow slow unnoticed. E2e tests run untouched.
+# SfM over a whole real or rendered clip (tens of seconds each) is marked e2e too, by hand: no entry point shows it.
 
 E2E = "e2e"
 
@@ -227,17 +228,18 @@ def _entry_points_refused(nodeid: str) -> Iterator[None]:
     import tasks
 
     patched: list[tuple[Any, str, Any]] = []
-    for owner, name, what in _guards():
-        original = vars(owner)[name] if isinstance(owner, type) else getattr(owner, name)
-        patched.append((owner, name, original))
-        setattr(owner, name, _guarded(original, what))
-    patched.append((subprocess.Popen, "__init__", subprocess.Popen.__dict__["__init__"]))
-    subprocess.Popen.__init__ = _guarded_popen_init(subprocess.Popen.__dict__["__init__"])  # type: ignore[method-assign]
     step_runs = [(step, step.run) for step in tasks.STEPS]
-    for step, run in step_runs:
-        object.__setattr__(step, "run", _guarded(run, f"the {step.name} step"))
-    _unmarked_test = nodeid
     try:
+        for owner, name, what in _guards():
+            original = vars(owner)[name] if isinstance(owner, type) else getattr(owner, name)
+            patched.append((owner, name, original))
+            setattr(owner, name, _guarded(original, what))
+        popen_init = vars(subprocess.Popen)["__init__"]
+        patched.append((subprocess.Popen, "__init__", popen_init))
+        subprocess.Popen.__init__ = _guarded_popen_init(popen_init)  # type: ignore[method-assign]
+        for step, run in step_runs:
+            object.__setattr__(step, "run", _guarded(run, f"the {step.name} step"))
+        _unmarked_test = nodeid
         yield
     finally:
         _unmarked_test = None
