@@ -17,7 +17,7 @@ from conftest import run_cli, tiny_config
 
 from flows.extend import extension_config
 from flows.pipeline import execute, run_pipeline
-from tasks import STEPS, step_keys
+from tasks import STEPS, attempts, step_keys
 from tasks import generate_segments as gs
 from tasks.plan import load_plan
 from wonderverse.camera import camera_centers
@@ -370,7 +370,7 @@ def test_a_guide_of_the_wrong_size_names_the_segment(tmp_path: Path) -> None:
     with pytest.raises(
         WonderError, match=r"^segment s001: guide frames is 80x56, 9 frames but the video is 160x112"
     ) as e:
-        gs._render(source, model, "s001", 0, "left", "", path, None, small)
+        attempts._render(source, model, "s001", 0, "left", "", path, None, small)
     assert "\n" not in str(e.value)
     with pytest.raises(WonderError, match=r"guide frames is 80x56"):  # the backend refuses it on its own too
         model.generate("", path, 0, None, guide=small)

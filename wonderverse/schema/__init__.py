@@ -6,7 +6,7 @@ chunking. Code reaches the store through these declarations only, so no group pa
 
     SFM.poses                                   -> "sfm/poses"          (an ArrayPath: a str)
     ATTEMPT.at(seg="s001", attempt=2).frames    -> "segments/s001/attempts/2/frames"
-    store.array(SFM.poses); store.attrs(SEGMENT.at(seg=seg)); write(group, ATTEMPT.frames, frames)
+    store.array(SFM.poses); store.meta(SEGMENT.at(seg=seg)).role; write_array(group, ATTEMPT.frames, frames)
 
 `GroupPath` and `ArrayPath` are `str`s, so every `SceneStore` method takes them as they are. A group's attributes
 are a pydantic model (`wonderverse.schema.attrs`): validated when written, typed when read
