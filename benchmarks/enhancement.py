@@ -251,8 +251,9 @@ def mesh_scores(
     from scipy.spatial import cKDTree
 
     from benchmarks.mesh import visible_gt_points
-    from wonderverse.mesh import TsdfFusion, clean_mesh
+    from wonderverse.mesh import clean_mesh
     from wonderverse.metrics import chamfer_fscore, sample_mesh_points
+    from wonderverse.tsdf import TsdfFusion
 
     views = data["views"]
     h, w = views.frames.shape[1:3]

@@ -142,8 +142,9 @@ def render(scene: dict[str, Any], extra: int, width: int, height: int, K: np.nda
 
 def evaluate(name: str, params: MeshParams, views: list, extent: float, to_world: Any, gt: Any) -> dict[str, Any]:
     """Fuse + clean with `params`; metrics against the GT points (thresholds in `gt`)."""
-    from wonderverse.mesh import TsdfFusion, clean_mesh
+    from wonderverse.mesh import clean_mesh
     from wonderverse.metrics import chamfer_fscore, sample_mesh_points
+    from wonderverse.tsdf import TsdfFusion
 
     t0 = time.perf_counter()
     fusion = TsdfFusion(extent, params)

@@ -1,6 +1,7 @@
 """How each product of the outputs step is made from an `OutputScene`: one function per product, each calling the
-library's entry point for it (`wonderverse.products`) and returning the files written and the figures recorded in
-its group `outputs/<product>` (the records of the products it comes after are in `scene.records`)."""
+library's entry point for it (`wonderverse.products`) and returning what is kept in its group `outputs/<product>`
+(`Made`: the files written, its figures, its arrays). The records of the products it comes after are in
+`scene.records`; the mesh's maker is `tasks.output_mesh`."""
 
 from __future__ import annotations
 
@@ -10,16 +11,14 @@ from typing import Any
 
 import numpy as np
 
-from tasks.output_scene import OutputScene
+from tasks.output_scene import Made, OutputScene
 from tasks.progress import callback
-from wonderverse.products import Written
 from wonderverse.schema import SFM
 
-Made = tuple[list[Written], dict[str, Any]]
 MIN_GROUND_POINTS = 30  # fewer SfM points than this: the ground is sought among the splats' opaque centres
 
 
-def make_frame(scene: OutputScene, prompt: str) -> Made:
+def make_frame(scene: OutputScene) -> Made:
     """The output world frame: the `sfm/` frame turned so that +Z is up (`estimate_gravity` from the cameras and the
     ground), origin on the ground below the cameras' centroid; poses from the conditioning path are already in the
     video backend's +Z-up world, which is kept as it is."""
@@ -42,22 +41,10 @@ def make_frame(scene: OutputScene, prompt: str) -> Made:
     g = gravity.world_from_input
     world = world_statement(gravity, source)
     frame = {"world_from_sfm": g.to_dict(), "up_in_sfm": gravity.up.tolist(), "world": world} | gravity.evidence
-    return [], {"frame": frame}
+    return Made(record={"frame": frame})
 
 
-def make_mesh(scene: OutputScene, prompt: str) -> Made:
-    from wonderverse.products.mesh import export_mesh
-
-    cams, views = scene.fusion
-    files, rec = export_mesh(
-        views, cams, scene.Kr, scene.p.mesh, scene.to_world, scene.world, scene.out, callback("views fused")
-    )
-    return files, {
-        "mesh": {"triangles": rec.triangles, "vertices": rec.vertices, "extent": rec.extent, "look": rec.look}
-    }
-
-
-def make_splat_files(scene: OutputScene, prompt: str) -> Made:
+def make_splat_files(scene: OutputScene) -> Made:
     """The Gaussians, pruned of floaters, absurd and invisible ones (viewers frame and render what is left)."""
     from wonderverse.products.splat_files import export_splats
     from wonderverse.splats.ply import to_world
@@ -69,28 +56,28 @@ def make_splat_files(scene: OutputScene, prompt: str) -> Made:
     files, pruned = export_splats(
         gaussians, scene.w2c, scene.K, scene.size, points, extent, scene.p.prune, scene.world, scene.out
     )
-    return files, {"pruned": pruned}
+    return Made(files, {"pruned": pruned})
 
 
-def make_points(scene: OutputScene, prompt: str) -> Made:
+def make_points(scene: OutputScene) -> Made:
     from wonderverse.products.splat_files import export_points
 
-    return export_points(scene.cloud, scene.world, scene.out), {"points": len(scene.cloud.points)}
+    return Made(export_points(scene.cloud, scene.world, scene.out), {"points": len(scene.cloud.points)})
 
 
-def make_colmap(scene: OutputScene, prompt: str) -> Made:
+def make_colmap(scene: OutputScene) -> Made:
     """A COLMAP dataset with the global SfM's tracks (or, without an SfM model, the point cloud's projections)."""
     from wonderverse.products.datasets import FROM_MODEL, FROM_PROJECTIONS, export_colmap, projected_tracks
 
     if not scene.p.colmap:
-        return [], {}
+        return Made()
     tracks = _model_tracks(scene)
     tracks_from = FROM_MODEL
     if tracks is None:
         tracks_from = FROM_PROJECTIONS
         tracks = projected_tracks(scene.cloud, scene.w2c, scene.K, scene.size, scene.training_depths, scene.Kr)
     files = export_colmap(scene.frames, scene.K, scene.w2c, scene.names, tracks, tracks_from, scene.world, scene.out)
-    return files, {"colmap": {"tracks_from": tracks_from}}
+    return Made(files, {"colmap": {"tracks_from": tracks_from}})
 
 
 def _model_tracks(scene: OutputScene) -> Any:
@@ -111,14 +98,14 @@ def _model_tracks(scene: OutputScene) -> Any:
         return model_tracks(Path(d), scene.names, scene.size, lambda p: g.apply(model_to_world.apply(p)))
 
 
-def make_nerfstudio(scene: OutputScene, prompt: str) -> Made:
+def make_nerfstudio(scene: OutputScene) -> Made:
     from wonderverse.products.datasets import export_nerfstudio
 
     if not scene.p.nerfstudio:
-        return [], {}
+        return Made()
     args = (scene.frames, scene.K, scene.w2c, scene.names, scene.training_depths, scene.cloud, scene.world, scene.out)
     files, stats = export_nerfstudio(*args)
-    return files, {"nerfstudio": stats}
+    return Made(files, {"nerfstudio": stats})
 
 
 def _video_paths(scene: OutputScene) -> dict[str, np.ndarray]:
@@ -128,17 +115,17 @@ def _video_paths(scene: OutputScene) -> dict[str, np.ndarray]:
     return video_paths(scene.w2c, p.video_frames, p.novel_offset_frac, scene.records["mesh"].mesh.look)
 
 
-def make_camera_paths(scene: OutputScene, prompt: str) -> Made:
+def make_camera_paths(scene: OutputScene) -> Made:
     from wonderverse.products.camera_paths import export_camera_paths
 
     p = scene.p
     ns = scene.w2c if p.nerfstudio else None
-    return export_camera_paths(
-        _video_paths(scene), scene.Kr, scene.render_size, p.video_fps, scene.world, scene.out, ns
-    ), {}
+    return Made(
+        export_camera_paths(_video_paths(scene), scene.Kr, scene.render_size, p.video_fps, scene.world, scene.out, ns)
+    )
 
 
-def make_videos(scene: OutputScene, prompt: str) -> Made:
+def make_videos(scene: OutputScene) -> Made:
     from wonderverse.products.videos import export_video
 
     paths, files = _video_paths(scene), []
@@ -147,20 +134,23 @@ def make_videos(scene: OutputScene, prompt: str) -> Made:
         ("novel", "novel-view frames", "novel-view video off the training path (H.264)"),
     ):
         rgb = _rgb(scene.render(paths[name], scene.norm, unit))
+        scene.video_frames[name] = rgb
         files.append(export_video(rgb, scene.p.video_fps, scene.out / f"{name}.mp4", what))
-    return files, {}
+    return Made(files)
 
 
-def make_quality(scene: OutputScene, prompt: str) -> Made:
-    """No-reference quality of novel views: the scored frames of the novel path, rendered alone."""
+def make_quality(scene: OutputScene) -> Made:
+    """No-reference quality of novel views: the scored frames of the novel video (rendered alone when the video was
+    not made in this run)."""
     from wonderverse.products.videos import quality_picks
     from wonderverse.quality import score_views
 
     novel = _video_paths(scene)["novel"]
     picks = quality_picks(len(novel), scene.p.quality_frames)
-    rgb = _rgb(scene.render(novel[picks], scene.norm, "views scored"))
+    made = scene.video_frames.get("novel")
+    rgb = made[picks] if made is not None else _rgb(scene.render(novel[picks], scene.norm, "views scored"))
     metrics = callback("quality metrics", eta=False)  # unequal: NIQE is quick, a CLIP model loads first
-    return [], {"quality": score_views(list(rgb), prompt, scene.p.quality, metrics)}
+    return Made(record={"quality": score_views(list(rgb), scene.prompt, scene.p.quality, metrics)})
 
 
 def _rgb(views: list[Any]) -> np.ndarray:

@@ -15,6 +15,7 @@ from tasks.progress import callback
 from tasks.segments import attempt_path, posed_stitched
 from tasks.splats import stored_sky
 from wonderverse.config import ExecutionParams, OutputsParams
+from wonderverse.products import Written
 from wonderverse.schema import SFM, SPLATS
 from wonderverse.schema.attrs import OutputProductAttrs
 from wonderverse.store import SceneStore
@@ -22,6 +23,16 @@ from wonderverse.store import SceneStore
 if TYPE_CHECKING:
     from wonderverse.camera import Sim3
     from wonderverse.mesh import PointCloud
+
+
+@dataclass(frozen=True)
+class Made:
+    """What a product made: the files it wrote beside the store, its figures (fields of `OutputProductAttrs`) and
+    the arrays its group keeps."""
+
+    files: list[Written] = field(default_factory=list)
+    record: dict[str, Any] = field(default_factory=dict)
+    arrays: dict[str, np.ndarray] = field(default_factory=dict)
 
 
 def posed_frames(store: SceneStore) -> tuple[np.ndarray, np.ndarray, list[str]]:
@@ -49,10 +60,14 @@ class OutputScene:
     K: np.ndarray
     render_size: tuple[int, int]
     Kr: np.ndarray
+    prompt: str = ""  # what the novel views are scored against (CLIP-S)
+    settings: dict[str, str] = field(default_factory=dict)  # product -> digest of the settings it reads
     records: dict[str, OutputProductAttrs] = field(default_factory=dict)
+    video_frames: dict[str, np.ndarray] = field(default_factory=dict)  # videos rendered in this run, by name
+    _rendered: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict, repr=False)  # camera id -> view
 
     @classmethod
-    def load(cls, store: SceneStore, p: OutputsParams, execution: ExecutionParams) -> OutputScene:
+    def load(cls, store: SceneStore, p: OutputsParams, execution: ExecutionParams, prompt: str) -> OutputScene:
         from wonderverse.camera import fit_intrinsics
         from wonderverse.splats.model import GaussianModel, normalization_from_dict
 
@@ -62,7 +77,8 @@ class OutputScene:
         w, h, Kr = fit_intrinsics(width, height, K, p.render_max_side_px)
         norm = normalization_from_dict(store.meta(SPLATS.path).normalization)
         arrays = {name: store.array(getattr(SPLATS, name)) for name in GaussianModel.PARAM_NAMES}
-        return cls(store, p, execution, arrays, norm, stored_sky(store), frames, w2c_sfm, names, K, (w, h), Kr)
+        sky = stored_sky(store)
+        return cls(store, p, execution, arrays, norm, sky, frames, w2c_sfm, names, K, (w, h), Kr, prompt=prompt)
 
     @property
     def out(self) -> Path:
@@ -110,23 +126,23 @@ class OutputScene:
         )
         return list(views)
 
-    @cached_property
-    def fusion(self) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
-        """The cameras fused into the mesh (the training cameras with `mesh.extra_views_per_gap` between each
-        pair, `sfm/` frame) and their renders: colour as uint8 and depth (all held until the extent is known)."""
-        from wonderverse.mesh import fusion_cameras
+    def views(self, w2c_sfm: np.ndarray, unit: str) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Renders from cameras W2C (N,4,4) of the `sfm/` frame, each once per run: colour as uint8 and depth (camera
+        z in `sfm/` units, +inf where nothing is)."""
+        from wonderverse.products.mesh import camera_ids
 
-        cams = fusion_cameras(self.w2c_sfm, self.p.mesh.extra_views_per_gap)
-        rendered = self.render(cams, self.norm_sfm, "views rendered for the mesh")
-        return cams, [(np.round(v.rgb * 255).astype(np.uint8), v.depth) for v in rendered]
+        ids = camera_ids(w2c_sfm)
+        todo = [k for k, i in enumerate(ids) if i not in self._rendered]
+        if todo:
+            rendered = self.render(w2c_sfm[todo], self.norm_sfm, unit)
+            for k, v in zip(todo, rendered, strict=True):
+                self._rendered[ids[k]] = (np.round(v.rgb * 255).astype(np.uint8), v.depth)
+        return [self._rendered[i] for i in ids]
 
     @cached_property
     def training_depths(self) -> list[np.ndarray]:
-        """Rendered depth (camera z, at `Kr`) from every training camera: the fusion's when it was rendered."""
-        if "fusion" in self.__dict__:
-            extra = self.p.mesh.extra_views_per_gap + 1  # views[i * extra] was rendered from training camera i
-            return [self.fusion[1][i * extra][1] for i in range(len(self.w2c_sfm))]
-        return [v.depth for v in self.render(self.w2c_sfm, self.norm_sfm, "views rendered for depth")]
+        """Rendered depth (camera z, at `Kr`) from every training camera (those the mesh rendered are reused)."""
+        return [d for _, d in self.views(self.w2c_sfm, "views rendered for depth")]
 
     @cached_property
     def cloud(self) -> PointCloud:

@@ -27,10 +27,11 @@ from typing import TYPE_CHECKING, Any
 
 from tasks import output_products as make
 from tasks.base import Step, StepContext
-from tasks.output_scene import OutputScene
+from tasks.output_mesh import make_mesh
+from tasks.output_scene import Made, OutputScene
 from wonderverse.config import Model, OutputsParams, RunConfig
 from wonderverse.schema import OUTPUT_PRODUCT, OUTPUTS, SPLATS
-from wonderverse.store import SceneStore, cache_key
+from wonderverse.store import SceneStore, cache_key, write_array
 
 if TYPE_CHECKING:
     from wonderverse.camera import Sim3
@@ -55,7 +56,7 @@ class Product:
     name: str
     version: int
     reads: Callable[[Params], dict[str, Any]]
-    make: Callable[[OutputScene, str], make.Made]
+    make: Callable[[OutputScene], Made]
     after: tuple[str, ...] = ()
 
 
@@ -74,7 +75,7 @@ PRODUCTS: tuple[Product, ...] = (
             "mesh": p.outputs.mesh.model_dump(exclude={"points_min_opacity"}),
             "size": p.outputs.render_max_side_px,
         },
-        make.make_mesh,
+        make_mesh,
         ("frame",),
     ),
     Product("splat_files", 1, lambda p: {"prune": p.outputs.prune}, make.make_splat_files, ("frame", "mesh")),
@@ -120,6 +121,13 @@ PRODUCTS: tuple[Product, ...] = (
 )
 
 
+def settings_digests(p: Params) -> dict[str, str]:
+    """Per product, a digest of the settings it reads (what a product that goes on from its stored state checks)."""
+    return {
+        product.name: cache_key(f"outputs.{product.name}", product.version, product.reads(p)) for product in PRODUCTS
+    }
+
+
 def product_keys(p: Params, splats_key: str) -> dict[str, str]:
     """Every product's key: sha256 of its name, version and the settings it reads, the splats' key and the keys of
     the products it comes after (in `PRODUCTS` order, so those are known)."""
@@ -143,21 +151,23 @@ def output_frame(store: SceneStore) -> Sim3:
 
 
 def run(store: SceneStore, params: Params, ctx: StepContext) -> str:
-    scene = OutputScene.load(store, params.outputs, ctx.execution)
+    scene = OutputScene.load(store, params.outputs, ctx.execution, params.prompt)
+    scene.settings = settings_digests(params)
     keys = product_keys(params, store.cache_key_of(SPLATS.path) or "")
     made = []
     for product in PRODUCTS:
         group = OUTPUT_PRODUCT.at(product=product.name)
         if not store.is_complete(group, keys[product.name]):
-            files, record = product.make(scene, params.prompt)
-            listed = [{"path": f.path.name, "bytes": f.size, "description": f.description} for f in files]
-            with store.staged(group, keys[product.name], files=listed, **record):
-                pass
+            m = product.make(scene)
+            listed = [{"path": f.path.name, "bytes": f.size, "description": f.description} for f in m.files]
+            with store.staged(group, keys[product.name], files=listed, **m.record) as g:
+                for name, data in m.arrays.items():
+                    write_array(g, getattr(group, name), data)
             made.append(product.name)
         scene.records[product.name] = store.meta(group)
     r = scene.records
     files = [f for product in PRODUCTS for f in r[product.name].files]
-    mesh = r["mesh"].mesh.model_copy(update={"points": r["points"].points})
+    mesh = r["mesh"].mesh.model_copy(update={"points": r["points"].points, "fused": [], "view_depths": []})
     store.mark_complete(
         OUTPUTS.path,
         ctx.key,

@@ -7,6 +7,7 @@ with the prior kind and the alignment reasons."""
 
 from __future__ import annotations
 
+import hashlib
 from typing import Any
 
 import numpy as np
@@ -22,7 +23,7 @@ from wonderverse.schema import PRIORS, PRIORS_RAW, PRIORS_RAW_SEGMENT, PRIORS_SE
 from wonderverse.schema.attrs import PriorsSegmentAttrs
 from wonderverse.store import SceneStore, cache_key, write_array
 
-VERSION = 1
+VERSION = 2  # 2: keyed by the segment's own poses, not the step's key (extensions leave old segments alone)
 NO_PRIORS = "no depth or normal prior (no depth model named): the splats train on colours alone"
 Params = PriorsStepParams  # the step reads its own settings only
 
@@ -43,18 +44,37 @@ def segment_poses(store: SceneStore, seg: str, n_frames: int) -> np.ndarray:
     return out
 
 
-def priors_segment(seg: str, scene_dir: str, settings: PriorsStepParams, step_key: str) -> PriorsSegmentAttrs:
+def segment_key(store: SceneStore, seg: str, settings: PriorsStepParams, poses: np.ndarray, K: np.ndarray) -> str:
+    """A segment's priors are keyed by its accepted attempt (its segment's and check's keys), the settings, and its
+    frames' global poses and K: an extension that keeps them (the poses step registers new frames only) leaves the
+    segment's priors as they are, though the SfM points the alignment used may have grown since."""
+    accepted = store.cache_key_of(SEGMENT.at(seg=seg).accepted) or store.cache_key_of(SEGMENT.at(seg=seg)) or ""
+    where = hashlib.sha256(np.ascontiguousarray(poses).tobytes() + np.ascontiguousarray(K).tobytes()).hexdigest()
+    return cache_key("priors_segment", VERSION, {"seg": seg, "settings": settings, "poses_sha256": where}, [accepted])
+
+
+def _stored(store: SceneStore, seg: str, settings: PriorsStepParams) -> PriorsSegmentAttrs | None:
+    """A segment's priors when they are stored under the key they would have now, else None."""
+    ap = attempt_path(store, seg)
+    n = store.shape(ap.frames)[0]
+    K = store.array(SFM.K) if store.exists(SFM.path) else store.array(SEGMENT.at(seg=seg).K)
+    key = segment_key(store, seg, settings, segment_poses(store, seg, n), K)
+    return store.meta(PRIORS_SEGMENT.at(seg=seg)) if store.is_complete(PRIORS_SEGMENT.at(seg=seg), key) else None
+
+
+def priors_segment(seg: str, scene_dir: str, settings: PriorsStepParams) -> PriorsSegmentAttrs:
     from wonderverse.priors import align_frames, make_normal_model
 
     store = SceneStore.open(scene_dir, mode="r+")
     ap = attempt_path(store, seg)
-    key = cache_key("priors_segment", VERSION, {"seg": seg, "attempt": ap}, [step_key])
+    frames = store.array(ap.frames)
+    K = store.array(SFM.K) if store.exists(SFM.path) else store.array(SEGMENT.at(seg=seg).K)
+    poses = segment_poses(store, seg, len(frames))
+    key = segment_key(store, seg, settings, poses, K)
     group = PRIORS_SEGMENT.at(seg=seg)
     if store.is_complete(group, key):
         return store.meta(group)
     p = settings.models
-    frames = store.array(ap.frames)
-    K = store.array(SFM.K) if store.exists(SFM.path) else store.array(SEGMENT.at(seg=seg).K)
     gt = ground_truth(store, ap)
     if "oracle" in (p.depth_backend, p.normal_backend) and gt is None:
         raise WonderError(f"segment {seg}: the oracle prior needs procedural ground truth; use depth_anything")
@@ -64,7 +84,6 @@ def priors_segment(seg: str, scene_dir: str, settings: PriorsStepParams, step_ke
     if p.depth_backend != "none":
         pred = raw_depth(store, seg, ap, p, frames, gt)
         points = store.array(SFM.points3d) if store.exists(SFM.points3d) else np.zeros((0, 3))
-        poses = segment_poses(store, seg, len(frames))
         aligned = align_frames(pred.depth, pred.kind, poses, points, K, p.align, settings.sky_beyond_ref)
         depth = aligned.depth
         summary |= {"kind": pred.kind, "aligned_frames": int(aligned.ok.sum()), "reasons": aligned.reasons[:20]}
@@ -84,17 +103,19 @@ def run(store: SceneStore, p: PriorsStepParams, ctx: StepContext) -> str:
     segs = [s for s in segment_ids(store) if accepted_attempt(store, s) is not None]
     if not p.models.any:  # no prior to compute: the splats train on colours alone
         segs = []
-    out = map_segments(
+    done = {s: m for s in segs if (m := _stored(store, s, p)) is not None}  # read here: no worker starts for them
+    todo = [s for s in segs if s not in done]
+    fresh = map_segments(
         priors_segment,
-        segs,
+        todo,
         str(store.scene_dir),
         p,
-        ctx.key,
         workers=ctx.execution.segment_workers,
         address=ctx.execution.dask_address,
         step="priors",
         progress=callback("segments with priors"),
     )
+    out = [done[s] if s in done else fresh[todo.index(s)] for s in segs]
     for parent, child in ((PRIORS, PRIORS_SEGMENT), (PRIORS_RAW, PRIORS_RAW_SEGMENT)):
         for stale in set(store.children(parent.path)) - set(segs):
             store.remove(child.at(seg=stale))
@@ -104,12 +125,15 @@ def run(store: SceneStore, p: PriorsStepParams, ctx: StepContext) -> str:
             pass
         return NO_PRIORS
     store.mark_complete(PRIORS.path, ctx.key, backends=backends)
+    note = f" ({len(done)} unchanged)" if done else ""
     aligned = sum(s.aligned_frames for s in out)
     total = sum(s.frames for s in out)
     # the share the sky rule took is worth seeing: far terrain no SfM point reaches can be taken too
     sky = sum((s.sky_share or 0.0) * s.frames for s in out) / max(total, 1)
     kind = out[0].kind if out else "-"
-    return f"{len(segs)} segments, {aligned}/{total} frames aligned to SfM ({kind}), {100 * sky:.1f} % of pixels sky"
+    return (
+        f"{len(segs)} segments{note}, {aligned}/{total} frames aligned to SfM ({kind}), {100 * sky:.1f} % of pixels sky"
+    )
 
 
 # 4: the step contract

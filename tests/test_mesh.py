@@ -17,9 +17,7 @@ from wonderverse.mesh import (
     MeshParams,
     PointCloud,
     TriMesh,
-    TsdfFusion,
     clean_mesh,
-    fuse_tsdf,
     fusion_cameras,
     gaussian_points,
     glb_bytes,
@@ -30,6 +28,7 @@ from wonderverse.mesh import (
     write_points_ply,
 )
 from wonderverse.metrics import chamfer_fscore, sample_mesh_points
+from wonderverse.tsdf import TsdfFusion, fuse_tsdf, mesh_from_views
 
 W, H = 80, 60
 K = intrinsics(W, H, 60.0)
@@ -93,7 +92,7 @@ def views(boxes: list[tuple[np.ndarray, np.ndarray]] | None = None, n: int = 8):
 
 @pytest.fixture(scope="module")
 def fused() -> TriMesh:
-    return fuse_tsdf(views(), EXTENT, PARAMS)
+    return fuse_tsdf(views(), EXTENT, PARAMS).extract()
 
 
 def test_fused_mesh_lies_on_the_true_surface_and_covers_it(fused: TriMesh):
@@ -150,14 +149,16 @@ def test_sky_pixels_add_nothing_and_carve_nothing(fused: TriMesh):
     assert far_from_pixel(again) == far_from_pixel(fused)
     # depths beyond far_depth_frac * extent are background: with the far volume off, far cameras see nothing
     near_only = MeshParams(voxel_frac=1 / 128, max_depth_frac=0.5, far_depth_frac=0.5)  # 2 m; the ring: 2.5-4 m
-    assert len(fuse_tsdf(views(), EXTENT, near_only).triangles) == 0
+    assert len(fuse_tsdf(views(), EXTENT, near_only).extract().triangles) == 0
 
 
 def test_depths_beyond_the_near_reach_go_to_a_coarser_volume():
     """The ring sees the scene at 2.5-4 m, beyond a 2 m near reach: the far volume (4x the voxel) still meshes
     the plane and the box, within its coarser voxel of the truth, with fewer triangles than the fine volume."""
-    fine = fuse_tsdf(views(), EXTENT, PARAMS)
-    coarse = fuse_tsdf(views(), EXTENT, PARAMS.model_copy(update={"max_depth_frac": 0.5, "far_voxel_scale": 4.0}))
+    fine = fuse_tsdf(views(), EXTENT, PARAMS).extract()
+    coarse = fuse_tsdf(
+        views(), EXTENT, PARAMS.model_copy(update={"max_depth_frac": 0.5, "far_voxel_scale": 4.0})
+    ).extract()
     assert 0 < len(coarse.triangles) < 0.5 * len(fine.triangles)
     m = chamfer_fscore(sample_mesh_points(coarse.vertices, coarse.triangles, 20_000), gt_points(), [0.1])
     # measured on 2026-12-04 (commit 088e394): accuracy 0.51 fine voxels, F 0.967; margins 2x (on the F's miss)
@@ -166,8 +167,29 @@ def test_depths_beyond_the_near_reach_go_to_a_coarser_volume():
         MeshParams(max_depth_frac=0.5, far_depth_frac=0.4)
 
 
+def test_a_stored_fusion_fused_into_again_gives_the_mesh_of_one_fusion_in_one_order():
+    """An extension fuses its new views into the stored volume (`TsdfFusion.state` / `from_state`): the mesh is the
+    one fusing every view at once gives, vertex for vertex, and the same volume always gives the same bytes."""
+    all_views = list(views())
+    once = fuse_tsdf(all_views, EXTENT, PARAMS)
+    first = fuse_tsdf(all_views[:4], EXTENT, PARAMS)
+    resumed = fuse_tsdf(all_views[4:], EXTENT, fusion=TsdfFusion.from_state(first.state(), EXTENT, PARAMS))
+    a, b = once.extract(), resumed.extract()
+    assert len(a.triangles) > 1000
+    np.testing.assert_array_equal(a.vertices, b.vertices)
+    np.testing.assert_array_equal(a.triangles, b.triangles)
+    np.testing.assert_array_equal(a.colors, b.colors)
+    again = TsdfFusion.from_state(resumed.state(), EXTENT, PARAMS).extract()
+    assert again.vertices.tobytes() == b.vertices.tobytes() and again.triangles.tobytes() == b.triangles.tobytes()
+    assert np.all(np.diff(a.vertices[:, 0]) >= 0)  # the canonical order: sorted by position
+    with pytest.raises(ValueError, match="volumes"):  # a stored state of other settings is refused
+        TsdfFusion.from_state(
+            first.state(), EXTENT, PARAMS.model_copy(update={"far_depth_frac": PARAMS.max_depth_frac})
+        )
+
+
 def test_clean_mesh_drops_a_floating_blob_and_decimates():
-    raw = fuse_tsdf(views([BOX, FLOATER]), EXTENT, PARAMS)
+    raw = fuse_tsdf(views([BOX, FLOATER]), EXTENT, PARAMS).extract()
     floating = raw.vertices[:, 2] > 0.8
     assert floating.sum() > 10  # the floater was reconstructed, as its own component
     for params in (MeshParams(min_component_frac=0.05), MeshParams(keep_largest=1, min_component_frac=0.0)):
@@ -437,8 +459,6 @@ def test_sample_mesh_points_uniform_by_area_and_seeded():
 
 
 def test_mesh_from_views_fuses_at_the_scene_extent_of_those_views():
-    from wonderverse.mesh import mesh_from_views
-
     cams = ring_cameras(6)
     views = [(np.round(rgb * 255).astype(np.uint8), depth) for depth, rgb in (raycast(c, []) for c in cams)]
     mesh, extent = mesh_from_views(views, cams, K, MeshParams(voxel_frac=1 / 64, min_component_frac=0.0))

@@ -1,4 +1,4 @@
-"""Meshes and point clouds from a trained scene: TSDF fusion (Open3D), clean-up, PLY/GLB/points export.
+"""Meshes and point clouds from a trained scene: clean-up, PLY/GLB/points export (TSDF fusion: `wonderverse.tsdf`).
 
 Inputs are plain arrays in the world frame: rgb (H,W,3) uint8 or float in [0,1]; depth (H,W) camera-space z
 in world units, where +inf, NaN or <= 0 means "nothing here" (sky, background) and is never integrated, so
@@ -15,15 +15,12 @@ times the voxel, since their depth is coarser anyway.
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence, Sized
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
-
-from wonderverse.progress import ProgressFn, no_progress
 
 if TYPE_CHECKING:
     from wonderverse.camera import Sim3
@@ -108,104 +105,6 @@ def fusion_cameras(w2c: np.ndarray, extra_per_gap: int) -> np.ndarray:
     return interpolate_poses(keys, np.arange(len(keys), dtype=np.float64), times, ease=False)
 
 
-class TsdfFusion:
-    """Accumulates depth + colour views in Open3D ScalableTSDFVolumes (sparse voxel blocks, so only the seen
-    space costs memory): a fine one for depths up to `max_depth` and, beyond it up to `far_depth`, a coarse
-    one; `extract` runs marching cubes on both. Voxel sizes and truncations follow the extent."""
-
-    def __init__(self, extent: float, params: MeshParams | None = None) -> None:
-        import open3d as o3d
-
-        if not (extent > 0 and np.isfinite(extent)):
-            raise ValueError(f"scene extent must be a positive finite length, got {extent}")
-        self.params = params or MeshParams()
-        self.extent = float(extent)
-        self.voxel = self.params.voxel_frac * self.extent
-        self.trunc = self.params.trunc_voxels * self.voxel
-        self.max_depth = self.params.max_depth_frac * self.extent
-        self.far_depth = self.params.reach_frac * self.extent
-        self.views = 0
-        self.pixels = 0
-
-        def volume(voxel: float) -> Any:
-            return o3d.pipelines.integration.ScalableTSDFVolume(
-                voxel_length=voxel,
-                sdf_trunc=self.params.trunc_voxels * voxel,
-                color_type=o3d.pipelines.integration.TSDFVolumeColorType.RGB8,
-            )
-
-        self._volume = volume(self.voxel)
-        far = self.far_depth > self.max_depth
-        self._far_volume = volume(self.voxel * self.params.far_voxel_scale) if far else None
-
-    def integrate(self, rgb: np.ndarray, depth: np.ndarray, K: np.ndarray, w2c: np.ndarray) -> int:
-        """Fuse one view; returns the number of depth pixels used (0: the view was skipped)."""
-        import open3d as o3d
-
-        depth = np.asarray(depth, np.float32)
-        h, w = depth.shape
-        if np.shape(rgb)[:2] != (h, w):
-            raise ValueError(f"rgb {np.shape(rgb)} and depth {depth.shape} differ in size")
-        if not np.isfinite(w2c).all():
-            return 0
-        with np.errstate(invalid="ignore"):
-            ok = np.isfinite(depth) & (depth > 0)
-            near = ok & (depth <= self.max_depth)
-            far = ok & ~near & (depth <= self.far_depth)
-        n = int(near.sum() + far.sum())
-        if n == 0:
-            return 0
-        rgb = np.asarray(rgb)
-        c = rgb if rgb.dtype == np.uint8 else np.round(np.clip(rgb, 0.0, 1.0) * 255.0).astype(np.uint8)
-        K = np.asarray(K, np.float64)
-        # Open3D puts pixel centres at integers, ours are at +0.5: shift the principal point by half a pixel
-        intr = o3d.camera.PinholeCameraIntrinsic(w, h, K[0, 0], K[1, 1], K[0, 2] - 0.5, K[1, 2] - 0.5)
-        for volume, mask in ((self._volume, near), (self._far_volume, far)):
-            if volume is None or not mask.any():
-                continue
-            # Open3D reads depth 0 as "no measurement": the pixel then neither adds surface nor carves space
-            image = o3d.geometry.RGBDImage.create_from_color_and_depth(
-                o3d.geometry.Image(np.ascontiguousarray(c[..., :3])),
-                o3d.geometry.Image(np.ascontiguousarray(np.where(mask, depth, 0.0), np.float32)),
-                depth_scale=1.0,
-                depth_trunc=float(np.inf),
-                convert_rgb_to_intensity=False,
-            )
-            volume.integrate(image, intr, np.asarray(w2c, np.float64))
-        self.views += 1
-        self.pixels += n
-        return n
-
-    def extract(self) -> TriMesh:
-        """Marching cubes over the fused volumes: the raw mesh, both volumes' triangles in one (empty arrays
-        when nothing was fused)."""
-        parts = [_from_o3d(v.extract_triangle_mesh()) for v in (self._volume, self._far_volume) if v is not None]
-        offsets = np.cumsum([0] + [len(m.vertices) for m in parts])
-        return TriMesh(
-            vertices=np.concatenate([m.vertices for m in parts]),
-            triangles=np.concatenate([m.triangles + o for m, o in zip(parts, offsets, strict=False)]).astype(np.int32),
-            colors=np.concatenate([m.colors for m in parts]),
-        )
-
-
-def fuse_tsdf(
-    views: Iterable[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]],
-    extent: float,
-    params: MeshParams | None = None,
-    progress: ProgressFn | None = None,
-) -> TriMesh:
-    """Fuse (rgb, depth, K, w2c) views (conventions in the module docstring) and extract the raw mesh.
-    progress(views fused, number of views, "") after each view, when `views` has a length (a list)."""
-    fusion = TsdfFusion(extent, params)
-    n = len(views) if isinstance(views, Sized) else 0
-    report = progress if progress is not None and n else no_progress
-    report(0, n, "")
-    for i, (rgb, depth, K, w2c) in enumerate(views):
-        fusion.integrate(rgb, depth, K, w2c)
-        report(i + 1, n, "")
-    return fusion.extract()
-
-
 def _to_o3d(mesh: TriMesh) -> Any:
     import open3d as o3d
 
@@ -226,23 +125,6 @@ def _from_o3d(m: Any) -> TriMesh:
         triangles=np.asarray(m.triangles, np.int32).reshape(-1, 3).copy(),
         colors=np.clip(c, 0.0, 1.0) if len(c) == len(v) else np.full((len(v), 3), 0.5),
     )
-
-
-def mesh_from_views(
-    views: Sequence[tuple[np.ndarray, np.ndarray]],
-    w2c: np.ndarray,
-    K: np.ndarray,
-    params: MeshParams | None = None,
-    progress: ProgressFn | None = None,
-) -> tuple[TriMesh, float]:
-    """The cleaned mesh (`fuse_tsdf`, then `clean_mesh`) of views (rgb (H,W,3), depth (H,W) world z, +inf
-    where nothing is) seen from W2C cameras (N,4,4) with intrinsics K (3,3), and the extent its lengths
-    followed: `camera.scene_extent` of those cameras and depths. Returns (mesh, extent)."""
-    from wonderverse.camera import scene_extent
-
-    extent = scene_extent(w2c, [d for _, d in views])
-    fused = [(rgb, d, K, c) for (rgb, d), c in zip(views, w2c, strict=True)]
-    return clean_mesh(fuse_tsdf(fused, extent, params, progress=progress), params), extent
 
 
 def clean_mesh(mesh: TriMesh, params: MeshParams | None = None) -> TriMesh:

@@ -487,6 +487,10 @@ class SceneStore:
                 self._mark_damaged({owner: [what]})
             raise DamagedData(owner or path.rsplit("/", 1)[0], what) from None
 
+    def shape(self, path: str) -> tuple[int, ...]:
+        """The shape of an array, from its metadata alone (nothing is read or verified)."""
+        return tuple(zarr.open_array(self.root.store, path=path, mode="r").shape)
+
     def _owner(self, path: str) -> tuple[str | None, str, Any]:
         """The commit `path` belongs to (its nearest ancestor group with a cache key), `path` relative to it and the
         digests that commit recorded (None when committed before digests existed); (None, path, None) when there

@@ -342,6 +342,12 @@ OUTPUT_PRODUCT = Group(
     "step outputs: one product (frame, mesh, splat_files, points, colmap, nerfstudio, camera_paths, videos, quality), "
     "keyed by the settings it reads (tasks.outputs.PRODUCTS)",
     "outputs",
+    arrays={
+        "volume_near": Array(
+            "uint8", ("N",), "blob", "mesh: the fine TSDF volume (Open3D .npz), what extensions fuse into"
+        ),
+        "volume_far": Array("uint8", ("N",), "blob", "mesh: the coarse TSDF volume (Open3D .npz)"),
+    },
     attrs=A.OutputProductAttrs,
 )
 

@@ -293,8 +293,11 @@ class MeshFigures(Attrs):
     triangles: int
     vertices: int
     extent: float | None = Field(None, description="the scene extent the mesh's lengths followed (input units)")
-    look: float | None = Field(None, description="median rendered depth of the fused views")
+    look: float | None = Field(None, description="median of the fused views' median rendered depths")
     points: int | None = Field(None, description="points in points.ply")
+    fused: list[str] = Field(default_factory=list, description="the cameras its fusion holds (pose digests)")
+    view_depths: list[float | None] = Field(default_factory=list, description="each fused view's median depth")
+    settings: str = Field("", description="digest of the settings the fusion was made with")
 
 
 class Bounds(Attrs):
