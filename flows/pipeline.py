@@ -10,6 +10,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager, nullcontext
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any, Literal
 
@@ -18,7 +19,8 @@ from tasks import STEPS, Step, StepResult, progress, step_keys, steps_until
 from tasks.base import StepContext
 from wonderverse.config import RunConfig
 from wonderverse.errors import WonderError, shown
-from wonderverse.schema import ROOT, SEGMENT
+from wonderverse.schema import ROOT, SEGMENT, SEGMENTS
+from wonderverse.schema.attrs import RunRecord
 from wonderverse.store import STORE_NAME, SceneStore, scene_lock
 
 Call = Callable[[Step, str, Any, StepContext], str]
@@ -29,6 +31,7 @@ OnCached = Callable[[Step, str], None]
 # the scene's segments were last generated under, written when the segments step starts, so it holds even after a
 # run that failed later (what `refuse_replacing_segments` compares with, and whose extensions a re-run continues).
 SEGMENTS_STEP = "generate_segments"
+MAX_RUNS = 500  # runs kept in a scene's history
 
 
 class StepFailed(WonderError):
@@ -100,7 +103,24 @@ def _execute(
         reporter.finished(result)
         results.append(result)
     store.update_attrs(ROOT.path, config=cfg.model_dump(mode="json"))  # the run completed: the scene's config now
+    _record_run(store, cfg, results)
     return results
+
+
+def _record_run(store: SceneStore, cfg: RunConfig, results: list[StepResult]) -> None:
+    """Add the run to the scene's history (`RootAttrs.runs`: what the report's growth plot shows), if it ran
+    anything."""
+    ran = {r.step: r.seconds for r in results if r.status == "ran"}
+    if not ran:
+        return
+    root = store.meta(ROOT.path, complete=False)
+    record = RunRecord(
+        finished=datetime.now(UTC).isoformat(timespec="seconds"),
+        extensions=len(cfg.scene.extensions.added),
+        segments=len(store.children(SEGMENTS.path)),
+        seconds=ran,
+    )
+    store.update_attrs(ROOT.path, runs=[*root.runs, record][-MAX_RUNS:])
 
 
 def _prefect_call(step: Step, scene_dir: str, params: Any, ctx: StepContext) -> str:

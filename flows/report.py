@@ -404,6 +404,20 @@ def _clip_segments(store: SceneStore, p: ReportParams, clips: list[ClipInfo]) ->
     return out
 
 
+def _growth(store: SceneStore) -> Picture | None:
+    """The seconds of every run since the scene was made, stacked by step, when it has been extended (how each
+    extension's cost grew with the world); None before."""
+    from wonderverse.plots import growth_plot
+
+    root = root_meta(store)
+    runs = root.runs if root is not None else []
+    if not any(r.extensions for r in runs):
+        return None
+    labels = [f"+{r.extensions}" if r.extensions else "made" for r in runs]
+    png = growth_plot([r.seconds for r in runs], labels, "seconds of each run (+k: after the k-th extension), by step")
+    return Picture(png, f"{len(runs)} runs: the scene as made, then every run after an extension, by step")
+
+
 def _timings(store: SceneStore, clips: bool = False) -> list[StepTiming]:
     status = {s.name: s.status for s in step_statuses(store)}
     out = []
@@ -789,6 +803,7 @@ def gather(store: SceneStore, params: ReportParams | None = None) -> ReportConte
         scene_notes=scene_notes,
         planned_paths=_planned_paths(store, segments),
         timings=timings,
+        growth=_growth(store),
         metrics=metrics,
         curves=curves,
         curves_note=f"{len(skipped)} iterations skipped (non-finite loss or gradients)." if skipped else "",

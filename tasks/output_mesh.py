@@ -38,7 +38,7 @@ def make_mesh(scene: OutputScene) -> Made:
     depths += [median_depth(d) for _, d in views]
     look = float(np.median([d for d in depths if d is not None])) if any(d is not None for d in depths) else None
     figures_now = {"triangles": len(mesh.triangles), "vertices": len(mesh.vertices), "extent": fusion.extent}
-    figures_now |= {"look": look, "fused": fused, "view_depths": depths, "settings": scene.settings["mesh"]}
+    figures_now |= {"look": look, "fused": fused, "view_depths": depths}
     state = fusion.state()
     arrays = {f"volume_{name}": np.frombuffer(data, np.uint8) for name, data in state.items()}
     return Made(files, {"mesh": figures_now}, arrays)
@@ -53,8 +53,8 @@ def _stored_fusion(scene: OutputScene, cameras: list[str]) -> tuple[Any, Any] | 
 
     group = OUTPUT_PRODUCT.at(product="mesh")
     meta = scene.store.meta(group)
-    figures = meta.mesh if meta is not None else None
-    if figures is None or figures.settings != scene.settings["mesh"] or not reusable(figures.fused, cameras):
+    figures = meta.mesh if meta is not None and meta.settings == scene.settings["mesh"] else None
+    if figures is None or not reusable(figures.fused, cameras):
         return None
     names = [n for n in VOLUMES if scene.store.exists(getattr(group, f"volume_{n}"))]
     state = {n: scene.store.array(getattr(group, f"volume_{n}")).tobytes() for n in names}

@@ -14,6 +14,7 @@ import numpy as np
 from tasks.output_scene import Made, OutputScene
 from tasks.progress import callback
 from wonderverse.schema import SFM
+from wonderverse.schema.attrs import OutputProductAttrs
 
 MIN_GROUND_POINTS = 30  # fewer SfM points than this: the ground is sought among the splats' opaque centres
 
@@ -66,7 +67,8 @@ def make_points(scene: OutputScene) -> Made:
 
 
 def make_colmap(scene: OutputScene) -> Made:
-    """A COLMAP dataset with the global SfM's tracks (or, without an SfM model, the point cloud's projections)."""
+    """A COLMAP dataset with the global SfM's tracks (or, without an SfM model, the point cloud's projections); the
+    images of frames an earlier export wrote as they are now stay."""
     from wonderverse.products.datasets import FROM_MODEL, FROM_PROJECTIONS, export_colmap, projected_tracks
 
     if not scene.p.colmap:
@@ -76,8 +78,10 @@ def make_colmap(scene: OutputScene) -> Made:
     if tracks is None:
         tracks_from = FROM_PROJECTIONS
         tracks = projected_tracks(scene.cloud, scene.w2c, scene.K, scene.size, scene.training_depths, scene.Kr)
-    files = export_colmap(scene.frames, scene.K, scene.w2c, scene.names, tracks, tracks_from, scene.world, scene.out)
-    return Made(files, {"colmap": {"tracks_from": tracks_from}})
+    keep, _ = _kept(scene, "colmap")
+    args = (scene.frames, scene.K, scene.w2c, scene.names, tracks, tracks_from, scene.world, scene.out)
+    files = export_colmap(*args, keep=keep)
+    return Made(files, {"colmap": {"tracks_from": tracks_from}, "frames": scene.frame_digests})
 
 
 def _model_tracks(scene: OutputScene) -> Any:
@@ -99,13 +103,42 @@ def _model_tracks(scene: OutputScene) -> Any:
 
 
 def make_nerfstudio(scene: OutputScene) -> Made:
+    """A nerfstudio dataset; the images and depths of frames an earlier export wrote as they are now stay (their
+    depths rendered from the splats of then), unless the new frames' depths need another scale of lengths."""
+    from wonderverse.exports import depth_png_scale
     from wonderverse.products.datasets import export_nerfstudio
 
     if not scene.p.nerfstudio:
         return Made()
-    args = (scene.frames, scene.K, scene.w2c, scene.names, scene.training_depths, scene.cloud, scene.world, scene.out)
-    files, stats = export_nerfstudio(*args)
-    return Made(files, {"nerfstudio": stats})
+    keep, before = _kept(scene, "nerfstudio")
+    todo = [k for k, name in enumerate(scene.names) if name not in keep]
+    new = [d for _, d in scene.views(scene.w2c_sfm[todo], "views rendered for depth")]
+    old = before.nerfstudio if before is not None and before.nerfstudio else {}
+    if keep and depth_png_scale(new) != old.get("scale_from_world"):
+        keep, todo = set(), list(range(len(scene.names)))
+        new = [d for _, d in scene.views(scene.w2c_sfm, "views rendered for depth")]
+    depths: list[np.ndarray | None] = [None] * len(scene.names)
+    for k, d in zip(todo, new, strict=True):
+        depths[k] = d
+    scale = old.get("scale_from_world") if keep else None
+    args = (scene.frames, scene.K, scene.w2c, scene.names, depths, scene.cloud, scene.world, scene.out)
+    files, stats = export_nerfstudio(*args, keep=keep, scale=scale)
+    per_frame = {n: c for n, c in (old.get("per_frame") or {}).items() if n in keep} | stats["per_frame"]
+    stats |= {"per_frame": per_frame, "depth_pixels": sum(c[0] for c in per_frame.values())}
+    stats["depth_clipped"] = sum(c[1] for c in per_frame.values())
+    return Made(files, {"nerfstudio": stats, "frames": scene.frame_digests})
+
+
+def _kept(scene: OutputScene, product: str) -> tuple[set[str], OutputProductAttrs | None]:
+    """The frames whose files an earlier export of `product` with these settings wrote as they are now (same
+    pixels, same pose), and that export's record; none when there was no such export."""
+    from wonderverse.schema import OUTPUT_PRODUCT
+
+    before = scene.store.meta(OUTPUT_PRODUCT.at(product=product))
+    if before is None or before.settings != scene.settings[product]:
+        return set(), None
+    now = scene.frame_digests
+    return {name for name, digest in before.frames.items() if now.get(name) == digest}, before
 
 
 def _video_paths(scene: OutputScene) -> dict[str, np.ndarray]:

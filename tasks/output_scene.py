@@ -140,6 +140,16 @@ class OutputScene:
         return [self._rendered[i] for i in ids]
 
     @cached_property
+    def frame_digests(self) -> dict[str, str]:
+        """Per frame name, a digest of its pixels and its pose (`sfm/` frame): what a file written of it holds."""
+        import hashlib
+
+        return {
+            name: hashlib.sha1(frame.tobytes() + np.ascontiguousarray(pose).tobytes()).hexdigest()[:16]
+            for name, frame, pose in zip(self.names, self.frames, self.w2c_sfm, strict=True)
+        }
+
+    @cached_property
     def training_depths(self) -> list[np.ndarray]:
         """Rendered depth (camera z, at `Kr`) from every training camera (those the mesh rendered are reused)."""
         return [d for _, d in self.views(self.w2c_sfm, "views rendered for depth")]

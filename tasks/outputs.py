@@ -160,7 +160,8 @@ def run(store: SceneStore, params: Params, ctx: StepContext) -> str:
         if not store.is_complete(group, keys[product.name]):
             m = product.make(scene)
             listed = [{"path": f.path.name, "bytes": f.size, "description": f.description} for f in m.files]
-            with store.staged(group, keys[product.name], files=listed, **m.record) as g:
+            settings = scene.settings[product.name]
+            with store.staged(group, keys[product.name], files=listed, settings=settings, **m.record) as g:
                 for name, data in m.arrays.items():
                     write_array(g, getattr(group, name), data)
             made.append(product.name)

@@ -13,6 +13,7 @@ so re-reading gives the poses back to rounding (far below 1e-9).
 from __future__ import annotations
 
 import json
+from collections.abc import Collection
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -171,6 +172,7 @@ def write_colmap_dataset(
     w2c: np.ndarray,
     names: list[str],
     tracks: ColmapTracks | None = None,
+    keep_images: Collection[str] = (),
 ) -> Path:
     """A COLMAP dataset as trainers read it (gsplat's examples, INRIA 3DGS, nerfstudio's COLMAP parser):
     `out_dir/images/<name>.png` (the frames) and `out_dir/sparse/0/` written by pycolmap's
@@ -182,7 +184,8 @@ def write_colmap_dataset(
     with the observations of `tracks` (xy in the frame's pixels) as their 2-D points. Points3D: `tracks`'
     points with their colours and errors, each with the track of its observations in the written images;
     points seen by fewer than two of them are left out (COLMAP's own models hold none). frames: (N,H,W,3)
-    uint8; names: file stems, unique, without whitespace.
+    uint8; names: file stems, unique, without whitespace; keep_images: names whose image file is already there
+    and holds the frame (an extended scene's earlier frames): not written again.
     """
     import pycolmap
     from PIL import Image
@@ -212,7 +215,8 @@ def write_colmap_dataset(
     seen_by: dict[int, list[tuple[int, int]]] = {}
     for i in ids:
         k = int(i) - 1
-        Image.fromarray(frames[k]).save(out_dir / "images" / f"{names[k]}.png")
+        if names[k] not in keep_images:
+            Image.fromarray(frames[k]).save(out_dir / "images" / f"{names[k]}.png")
         xy, idx = (np.zeros((0, 2)), np.zeros(0, np.int64)) if tracks is None else tracks.observations[k]
         points2d = pycolmap.Point2DList([pycolmap.Point2D(np.asarray(p, np.float64)) for p in xy])
         for m, j in enumerate(np.asarray(idx, np.int64)):
@@ -279,9 +283,11 @@ def write_nerfstudio(
     depths: list[np.ndarray] | None = None,
     points: PointCloud | None = None,
     world: str | None = None,
+    keep: Collection[str] = (),
+    scale: float | None = None,
 ) -> tuple[Path, dict[str, Any]]:
     """A nerfstudio dataset in `out_dir`; returns (the transforms.json path, {"scale_from_world",
-    "depth_pixels", "depth_clipped"}).
+    "depth_pixels", "depth_clipped", "per_frame": {name: [depth pixels, clipped]}} of the depth files written).
 
     transforms.json: camera_model "OPENCV" with k1 = k2 = p1 = p2 = 0, w, h, and fl_x, fl_y, cx, cy (top level
     when K is shared (3,3), else in each frame); frames: [{file_path: "images/<name>.png", transform_matrix,
@@ -298,7 +304,9 @@ def write_nerfstudio(
     depths: per frame (any size: nerfstudio resizes it to the image, nearest) camera z in world units, +inf or
     NaN where nothing is; PNG 0 where nothing is, or where the depth is still beyond 65.535 (depth_clipped).
     frames: (N,H,W,3) uint8; names: file stems (default frame_00000, ...); frames without a finite pose are
-    left out (no file written).
+    left out (no file written). keep: names whose image and depth files are already there, written at `scale` (an
+    extended scene's earlier frames): not written again (their depths may be None). scale: the lengths' factor to
+    use (None: `depth_png_scale` of the depths).
     """
     from PIL import Image
 
@@ -326,19 +334,24 @@ def write_nerfstudio(
     meta: dict = {"camera_model": "OPENCV", "w": int(w), "h": int(h), "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0}
     if shared:
         meta.update(intr(Ks[0]))
-    scale = 1.0 if depths is None else depth_png_scale(depths)
-    stats: dict[str, Any] = {"scale_from_world": scale, "depth_pixels": 0, "depth_clipped": 0}
+    if scale is None:
+        scale = 1.0 if depths is None else depth_png_scale([d for d in depths if d is not None])
+    stats: dict[str, Any] = {"scale_from_world": scale, "depth_pixels": 0, "depth_clipped": 0, "per_frame": {}}
     entries = []
     c2w_gl = invert_se3(w2c[valid]) @ OPENCV_TO_OPENGL
     c2w_gl[:, :3, 3] *= scale
     for i, T in zip(np.flatnonzero(valid), c2w_gl, strict=True):
         rel = f"images/{names[i]}.png"
-        Image.fromarray(frames[i]).save(out_dir / rel)
+        kept = names[i] in keep
+        if not kept:
+            Image.fromarray(frames[i]).save(out_dir / rel)
         entry: dict = {"file_path": rel, "transform_matrix": T.tolist()}
         if depths is not None:
-            png, clipped = _depth_png(np.asarray(depths[i], np.float64) * scale)
             entry["depth_file_path"] = f"depths/{names[i]}.png"
+        if depths is not None and not kept:
+            png, clipped = _depth_png(np.asarray(depths[i], np.float64) * scale)
             Image.fromarray(png).save(out_dir / entry["depth_file_path"])
+            stats["per_frame"][names[i]] = [int(np.count_nonzero(png)), clipped]
             stats["depth_pixels"] += int(np.count_nonzero(png))
             stats["depth_clipped"] += clipped
         if not shared:

@@ -148,3 +148,28 @@ def trajectory_topview_plot(
 ) -> bytes:
     """PNG bytes of `trajectory_topview_figure`."""
     return _png(trajectory_topview_figure(poses_list, labels, title, plane)[0])
+
+
+STEP_ORDER = ("plan", "generate_segments", "check", "poses", "priors", "splats", "outputs")
+
+
+def growth_plot(runs: Sequence[dict[str, float]], labels: Sequence[str], title: str = "") -> bytes:
+    """PNG bytes: the seconds of each run (one dict of step -> seconds each), a bar per run stacked by step, the
+    runs labelled on the x axis."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8, 3.6))
+    ax = fig.subplots()
+    x = np.arange(len(runs))
+    bottom = np.zeros(len(runs))
+    for step in [s for s in STEP_ORDER if any(s in r for r in runs)]:
+        h = np.array([r.get(step, 0.0) for r in runs])
+        ax.bar(x, h, bottom=bottom, label=step)
+        bottom += h
+    ax.set_xticks(x, list(labels), fontsize=8, rotation=45 if len(runs) > 12 else 0)
+    ax.set_ylabel("seconds")
+    ax.set_title(title or "seconds of each run, by step")
+    ax.legend(fontsize=8, ncols=4)
+    ax.grid(axis="y", alpha=0.3)
+    fig.tight_layout()
+    return _png(fig)

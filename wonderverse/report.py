@@ -214,6 +214,7 @@ class ReportContent:
     scene_notes: list[str] = field(default_factory=list)
     planned_paths: Picture | None = None
     timings: list[StepTiming] = field(default_factory=list)
+    growth: Picture | None = None
     metrics: dict[str, dict[str, Value]] = field(default_factory=dict)
     curves: dict[str, list[float]] = field(default_factory=dict)
     curves_note: str = ""
@@ -761,7 +762,11 @@ def render_html(content: ReportContent, params: ReportParams | None = None) -> s
             (_figure(c.overview.data, c.overview.caption) if c.overview else _empty("No segment rendered yet."))
             + (_figure(c.trajectory.data, c.trajectory.caption) if c.trajectory else ""),
         ),
-        ("steps", "Steps and timings", _timings_html(c.timings)),
+        (
+            "steps",
+            "Steps and timings",
+            _timings_html(c.timings) + (_figure(c.growth.data, c.growth.caption) if c.growth else ""),
+        ),
         ("segments", "Segments and their attempts" if c.clips is None else "Clips and their checks", segments),
         ("curves", "Training curves", curves_html),
         ("metrics", "Metrics", _metrics_html(c.metrics)),

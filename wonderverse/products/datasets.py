@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import shutil
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from pathlib import Path
 from typing import Any
 
@@ -47,38 +47,48 @@ def projected_tracks(
 
 def export_colmap(
     frames: np.ndarray, K: np.ndarray, w2c: np.ndarray, names: list[str], tracks: ColmapTracks, tracks_from: str,
-    world: str, out: Path,
+    world: str, out: Path, keep: Collection[str] = (),
 ) -> list[Written]:  # fmt: skip
-    """out/colmap/: images/ and sparse/0/ (binary model with `tracks`), and a README.txt saying what it holds."""
-    folder = _fresh(out / "colmap")
-    write_colmap_dataset(folder, frames, K, w2c, names, tracks)
+    """out/colmap/: images/ and sparse/0/ (binary model with `tracks`), and a README.txt saying what it holds.
+    `keep`: frames whose image file is there from an earlier export of the same frame (not written again)."""
+    folder = _refresh(out / "colmap", names, keep)
+    write_colmap_dataset(folder, frames, K, w2c, names, tracks, keep_images=keep)
     (folder / "README.txt").write_text(_colmap_readme(world, tracks_from))
     return [Written(folder, f"COLMAP dataset (images/, sparse/0/ binary model with tracks from {tracks_from})")]
 
 
 def export_nerfstudio(
-    frames: np.ndarray, K: np.ndarray, w2c: np.ndarray, names: list[str], depths: list[np.ndarray],
-    cloud: PointCloud, world: str, out: Path,
+    frames: np.ndarray, K: np.ndarray, w2c: np.ndarray, names: list[str], depths: list[np.ndarray | None],
+    cloud: PointCloud, world: str, out: Path, keep: Collection[str] = (), scale: float | None = None,
 ) -> tuple[list[Written], dict[str, Any]]:  # fmt: skip
     """out/nerfstudio/: transforms.json, images, 16-bit depth PNGs and points.ply (its camera_paths/ are the
-    camera-path product's and are kept). Returns the files and {depth_pixels, depth_clipped, ...}."""
-    folder = _fresh(out / "nerfstudio", keep="camera_paths")
-    path, stats = write_nerfstudio(folder, frames, K, w2c, names, depths, cloud, world)
+    camera-path product's and are kept). `keep`: frames whose image and depth files are there from an earlier
+    export at `scale` (not written again; their depths may be None). Returns the files and {depth_pixels,
+    depth_clipped, per_frame, scale_from_world} of what was written."""
+    folder = _refresh(out / "nerfstudio", names, keep, spare="camera_paths")
+    path, stats = write_nerfstudio(folder, frames, K, w2c, names, depths, cloud, world, keep=keep, scale=scale)
     what = "nerfstudio dataset (transforms.json, images, 16-bit depth PNGs, points.ply, camera paths)"
     return [Written(path.parent, what)], stats
 
 
-def _fresh(folder: Path, keep: str | None = None) -> Path:
-    """`folder` emptied before it is written (but for its entry `keep`): files of an earlier run (frames since
-    dropped, an older layout) must not stay beside the new ones. The folder is the product's own."""
-    if folder.is_dir() and not folder.is_symlink():
-        for child in folder.iterdir():
-            if child.name == keep:
-                continue
-            if child.is_dir() and not child.is_symlink():
-                shutil.rmtree(child)
-            else:
-                child.unlink()
+def _refresh(folder: Path, names: list[str], keep: Collection[str], spare: str | None = None) -> Path:
+    """`folder` (the product's own) made ready to be written: files of an earlier run must not stay beside the new
+    ones (frames since dropped, an older layout), so everything goes but its entry `spare` and, in its images/ and
+    depths/, the files of the frames in `keep`."""
+    if folder.is_symlink() or not folder.is_dir():
+        return folder
+    kept = {f"{name}.png" for name in keep} & {f"{name}.png" for name in names}
+    for child in folder.iterdir():
+        if child.name == spare:
+            continue
+        if child.name in ("images", "depths") and child.is_dir() and not child.is_symlink():
+            for f in child.iterdir():
+                if f.name not in kept:
+                    f.unlink()
+        elif child.is_dir() and not child.is_symlink():
+            shutil.rmtree(child)
+        else:
+            child.unlink()
     return folder
 
 

@@ -43,6 +43,15 @@ class FileEntry(Attrs):
     description: str = Field("", description="what it holds, and the conventions it follows")
 
 
+class RunRecord(Attrs):
+    """One run that completed: when, how far the scene had grown, and the seconds of the steps it ran."""
+
+    finished: str = Field(description="when it finished (ISO 8601, UTC)")
+    extensions: int = Field(0, description="the user's extensions the scene had (`extend`)")
+    segments: int = Field(0, description="segments the scene had")
+    seconds: dict[str, float] = Field(default_factory=dict, description="seconds of each step it ran")
+
+
 class RootAttrs(Attrs):
     """The scene (the root group)."""
 
@@ -54,6 +63,9 @@ class RootAttrs(Attrs):
     )
     segments_config: dict[str, Any] | None = Field(
         None, description="the RunConfig the segments were last generated under (what a re-run must not discard)"
+    )
+    runs: list[RunRecord] = Field(
+        default_factory=list, description="the runs that completed, oldest first (at most 500)"
     )
 
 
@@ -297,7 +309,6 @@ class MeshFigures(Attrs):
     points: int | None = Field(None, description="points in points.ply")
     fused: list[str] = Field(default_factory=list, description="the cameras its fusion holds (pose digests)")
     view_depths: list[float | None] = Field(default_factory=list, description="each fused view's median depth")
-    settings: str = Field("", description="digest of the settings the fusion was made with")
 
 
 class Bounds(Attrs):
@@ -331,6 +342,10 @@ class OutputProductAttrs(Attrs):
     """One product of the outputs step: its files, and its figures (only the product's own field is set)."""
 
     files: list[FileEntry] = Field(default_factory=list)
+    settings: str = Field("", description="digest of the settings it was made with (what going on from it needs)")
+    frames: dict[str, str] = Field(
+        default_factory=dict, description="datasets: per frame, a digest of the pixels and pose its files hold"
+    )
     frame: OutputFrame | None = None
     mesh: MeshFigures | None = None
     pruned: PruneRecord | None = Field(None, description="the splat files: what pruning removed")

@@ -1,0 +1,247 @@
+"""A world that grows: what each extension costs as one procedural world grows, and whether its quality holds.
+
+- One world (preview preset, procedural, the default prompt: an initial segment with one left and one right
+  extension) is grown by N extensions (`--quick`: 6, else 12) with `extend`, the user's words alternating left and
+  right. Each extension runs in a fresh process (its peak RSS is its own, read from the OS when it exits).
+- Per extension: seconds per step, peak RSS (MB), the scene folder's size (MB: the store and the files beside it),
+  Gaussians, held-out PSNR (the splats step's), the global poses' ATE against the procedural world's true path (a
+  share of its length) and whether the whole stitched path passes the check's jump test (no seam where the world
+  was grown: `wonderverse.check.check_trajectory` over the global poses, the scene's own rules).
+- Then the final world is built from scratch (one `generate` with every extension's words) in a fresh process, and,
+  with `--dask`, once more on a real Dask cluster the benchmark starts (`dask scheduler` and two `dask worker`
+  processes on 127.0.0.1): the speedup of the steps that run segments on Dask (check, priors).
+- A plot of the seconds of every extension, stacked by step, is written to `--out` (default: a temporary folder);
+  the grown scene's report shows the same (`report.html`, "Steps and timings").
+
+Usage: `python -m benchmarks.scale [--quick] [--extensions N] [--dask] [--out DIR]`.
+Last line (JSON): `extensions`; `growth` (seconds of the last extension / of the first); `extend_ratio` (seconds
+of the last extension / of building the final world from scratch); `rss_growth` (peak RSS of the last extension /
+of the first) with `frames_growth` (stitched frames after the last / after the first) to compare it with;
+`ate_frac_first`, `ate_frac_last`; `psnr_first`, `psnr_last` (dB); `seams` (extensions whose stitched path failed the
+jump test); `scratch_seconds`; `last_extension_seconds`; with `--dask`: `dask_speedup` (segment-parallel steps'
+seconds in one process / on the cluster).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from benchmarks.common import report
+from benchmarks.flows import pose_error
+from wonderverse.config import RunConfig, build_config
+from wonderverse.schema import SFM, SPLATS
+from wonderverse.store import SceneStore
+
+PROMPT = "a small house decorated for Christmas"
+WORDS = (
+    "a frozen lake on the left",
+    "pine trees on the right",
+    "a wooden cabin on the left",
+    "a snowy hill on the right",
+    "a stone wall on the left",
+    "a row of lanterns on the right",
+)
+PARALLEL_STEPS = ("check", "priors")  # per-segment work on Dask (map_segments)
+
+
+def config(extensions: tuple[str, ...] = (), dask_address: str | None = None) -> RunConfig:
+    """The preview preset on the procedural world, its initial segment with one left and one right extension,
+    and `extensions` (the user's words) added; one SfM thread, so that runs repeat."""
+    execution: dict[str, Any] = {"dask_address": dask_address} if dask_address else {}
+    return build_config(
+        PROMPT,
+        preset="preview",
+        overrides={
+            "scene": {"extensions": {"added": list(extensions)}},
+            "steps": {"poses": {"sfm": {"num_threads": 1}}, "check": {"sfm": {"num_threads": 1}}},
+            "execution": execution,
+        },
+    )
+
+
+def _child(args: list[str]) -> dict[str, Any]:
+    """Run `python -m benchmarks.scale --child ARGS` in a fresh process: its JSON result, with its wall seconds and
+    its peak RSS (MB, from the OS when it exits)."""
+    t = time.perf_counter()
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "benchmarks.scale", "--child", *args], stdout=subprocess.PIPE, text=True
+    )
+    out = proc.stdout.read() if proc.stdout else ""
+    _, status, usage = os.wait4(proc.pid, 0)
+    if status != 0:
+        raise RuntimeError(f"child {args} failed (status {status})")
+    result = json.loads(out.strip().splitlines()[-1])
+    return result | {"wall_s": time.perf_counter() - t, "peak_mb": usage.ru_maxrss / 1024}
+
+
+def child_main(what: str, scene: str, payload: str) -> None:
+    """In the child: `generate` (payload: JSON of the words) or `extend` (payload: the words); prints the seconds
+    of every step that ran, as JSON."""
+    from flows.extend import extend
+    from flows.pipeline import execute
+
+    if what == "extend":
+        results = extend(scene, payload, engine="local")
+    else:
+        words, address = json.loads(payload)
+        results = execute(scene, config(tuple(words), address))
+    print(json.dumps({"steps": {r.step: r.seconds for r in results if r.status == "ran"}}), flush=True)
+
+
+def measure(scene: Path) -> dict[str, Any]:
+    """Figures of the scene as it stands: its size, frames, Gaussians, held-out PSNR, pose ATE and seams."""
+    from wonderverse.check import check_trajectory
+
+    store = SceneStore.open(scene)
+    splats = store.meta(SPLATS.path)
+    poses, registered = store.array(SFM.poses), store.array(SFM.registered)
+    rules = config().steps.check.rules
+    seams = check_trajectory(poses, registered & np.isfinite(poses).all(axis=(1, 2)), rules)
+    size = sum(f.stat().st_size for f in scene.rglob("*") if f.is_file())
+    return {
+        "frames": len(poses),
+        "store_mb": size / 2**20,
+        "gaussians": splats.metrics.n_gaussians,
+        "psnr": splats.metrics.test_psnr,
+        "ate_frac": pose_error(scene),
+        "seam": not seams.accepted,
+        "seam_reasons": seams.reasons,
+    }
+
+
+@contextmanager
+def dask_cluster(folder: Path, workers: int = 2) -> Iterator[str]:
+    """A real Dask cluster for the block: `dask scheduler` and `workers` `dask worker` processes (one thread each)
+    on 127.0.0.1; yields the scheduler's address."""
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    address = f"tcp://127.0.0.1:{port}"
+    dask = [sys.executable, "-m", "distributed.cli.dask_scheduler"]
+    log = open(folder / "dask.log", "w")  # noqa: SIM115 - closed below, after the processes
+    procs = [subprocess.Popen([*dask, "--host", "127.0.0.1", "--port", str(port), "--dashboard-address", ":0"],
+                              stdout=log, stderr=subprocess.STDOUT, start_new_session=True)]  # fmt: skip
+    worker = [sys.executable, "-m", "distributed.cli.dask_worker", address, "--nthreads", "1", "--host", "127.0.0.1"]
+    try:
+        time.sleep(3)
+        procs += [
+            subprocess.Popen(
+                [*worker, "--dashboard-address", ":0"],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                start_new_session=True,
+                cwd=Path(__file__).resolve().parents[1],
+            )
+            for _ in range(workers)
+        ]
+        from dask.distributed import Client
+
+        with Client(address, timeout=60) as client:
+            client.wait_for_workers(workers, timeout=120)
+        yield address
+    finally:
+        for p in procs:
+            os.killpg(p.pid, signal.SIGTERM)
+        for p in procs:
+            p.wait(30)
+        log.close()
+
+
+def plot(rows: list[dict[str, Any]], path: Path) -> Path:
+    """Seconds of every extension, stacked by step (PNG; the report's growth plot)."""
+    from wonderverse.plots import growth_plot
+
+    title = "What each extension costs as the world grows (preview, procedural)"
+    path.write_bytes(growth_plot([r["steps"] for r in rows], [str(r["extension"]) for r in rows], title))
+    return path
+
+
+def main() -> None:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--quick", action="store_true", help="6 extensions instead of 12")
+    p.add_argument("--extensions", type=int, default=None)
+    p.add_argument("--dask", action="store_true", help="also build the final world on a real Dask cluster")
+    p.add_argument("--out", type=Path, default=None, help="folder for the plot and the rows (default: temporary)")
+    p.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
+    a = p.parse_args()
+    if a.child:
+        child_main(*a.child)
+        return
+    n = a.extensions or (6 if a.quick else 12)
+    words = tuple(WORDS[i % len(WORDS)] for i in range(n))
+    tmp = Path(tempfile.mkdtemp(prefix="wv-scale-"))
+    out = a.out or tmp
+    out.mkdir(parents=True, exist_ok=True)
+    scene = tmp / "grown"
+    start = _child(["generate", str(scene), json.dumps([[], None])])
+    rows = []
+    for k, w in enumerate(words, 1):
+        r = _child(["extend", str(scene), w])
+        rows.append(
+            {"extension": k, "seconds": r["wall_s"], "steps": r["steps"], "peak_mb": r["peak_mb"]} | measure(scene)
+        )
+        print(f"extension {k}: {r['wall_s']:.1f} s, {rows[-1]['frames']} frames", file=sys.stderr, flush=True)
+    scratch = _child(["generate", str(tmp / "scratch"), json.dumps([list(words), None])])
+    head: dict[str, Any] = {}
+    if a.dask:
+        with dask_cluster(tmp) as address:
+            on_dask = _child(["generate", str(tmp / "scratch_dask"), json.dumps([list(words), address])])
+        local = sum(scratch["steps"].get(s, 0.0) for s in PARALLEL_STEPS)
+        head["dask_speedup"] = round(local / max(sum(on_dask["steps"].get(s, 0.0) for s in PARALLEL_STEPS), 1e-9), 3)
+    plot(rows, out / "scale.png")
+    (out / "scale_rows.json").write_text(json.dumps({"start": start, "rows": rows, "scratch": scratch}, indent=1))
+    first, last = rows[0], rows[-1]
+    table = [
+        {
+            "extension": r["extension"],
+            "seconds": r["seconds"],
+            **{
+                s: r["steps"].get(s, 0.0)
+                for s in ("generate_segments", "check", "poses", "priors", "splats", "outputs")
+            },
+            "peak MB": r["peak_mb"],
+            "store MB": r["store_mb"],
+            "frames": r["frames"],
+            "Gaussians": r["gaussians"],
+            "PSNR": r["psnr"],
+            "ATE %": 100 * r["ate_frac"],
+            "seam": r["seam"],
+        }
+        for r in rows
+    ]
+    head = {
+        "extensions": n,
+        "growth": round(last["seconds"] / first["seconds"], 3),
+        "extend_ratio": round(last["seconds"] / scratch["wall_s"], 3),
+        "rss_growth": round(last["peak_mb"] / first["peak_mb"], 3),
+        "frames_growth": round(last["frames"] / first["frames"], 3),
+        "ate_frac_first": round(first["ate_frac"], 5),
+        "ate_frac_last": round(last["ate_frac"], 5),
+        "psnr_first": round(first["psnr"], 3),
+        "psnr_last": round(last["psnr"], 3),
+        "seams": sum(r["seam"] for r in rows),
+        "scratch_seconds": round(scratch["wall_s"], 1),
+        "last_extension_seconds": round(last["seconds"], 1),
+    } | head
+    report(f"benchmarks.scale: {n} extensions of one world (plot: {out / 'scale.png'})", table, head)
+    if a.out is None:
+        shutil.rmtree(tmp / "scratch", ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
