@@ -14,7 +14,7 @@ from pathlib import Path
 
 from flows.engine import Engine
 from tasks import StepResult
-from wonderverse.config import RunConfig, plain_words
+from wonderverse.config import RunConfig, plain_words, validate_config
 from wonderverse.errors import WonderError
 from wonderverse.store import SceneStore
 
@@ -39,21 +39,27 @@ def with_extensions(cfg: RunConfig, added: tuple[str, ...]) -> RunConfig:
     """`cfg` whose scene has the extensions `added` (the user's words, oldest first)."""
     ext = cfg.scene.extensions
     scene = cfg.scene.model_copy(update={"extensions": ext.model_copy(update={"added": tuple(added)})})
-    return RunConfig.model_validate({**cfg.model_dump(), "scene": scene.model_dump()})
+    return validate_config({**cfg.model_dump(), "scene": scene.model_dump()})
 
 
 def extension_config(scene_dir: Path | str, words: str) -> RunConfig:
-    """The configuration of the scene in `scene_dir` with one more extension, `words`; WonderError when there is no
-    scene, no completed run, or the words are unusable."""
+    """The configuration of the scene in `scene_dir` with one more extension, `words` (or, when the last extension
+    of a run that stopped before completing had these words, that configuration: the run resumes); WonderError when
+    there is no scene, no completed run, or the words are unusable."""
     from flows.pipeline import segments_config, stored_config
 
     cfg = stored_config(scene_dir)
     if cfg is None:
         SceneStore.open(scene_dir)  # no scene at all: its own one-line error
         raise WonderError(f"{scene_dir} holds no completed run; run `wonderverse generate` first")
+    done = cfg.scene.extensions.added
     made = segments_config(scene_dir)  # an extension whose run failed after its segment was made is kept
     cfg = with_extensions(cfg, made.scene.extensions.added) if made is not None else cfg
-    return extended_config(cfg, words)
+    pending = cfg.scene.extensions.added[len(done) :]
+    more = extended_config(cfg, words)
+    if pending and more.scene.extensions.added[-1] == pending[-1]:
+        return cfg  # the same words again after that run stopped: it resumes, nothing is added twice
+    return more
 
 
 def extend(scene_dir: Path | str, words: str, engine: Engine = "auto") -> list[StepResult]:

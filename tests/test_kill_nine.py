@@ -175,3 +175,36 @@ def test_a_run_killed_at_random_moments_resumes_to_byte_identical_outputs(tmp_pa
             same = (scene / name).read_bytes() == truth[name]
             assert same, f"{name} differs after a kill at {delay:.1f} s of {duration:.1f} s (step lines: {done})"
     assert len(states) >= 2, states  # the kills came at different points of the run
+
+
+@pytest.mark.e2e
+def test_an_extension_killed_while_it_fuses_its_new_views_resumes_to_byte_identical_outputs(tmp_path: Path):
+    """The mesh of an extended scene goes on from the stored fusion (`tasks.output_mesh`): a kill while the new
+    views are fused leaves that fusion as it was, and the re-run gives the files an uninterrupted extension gives."""
+    import shutil
+
+    spec = tiny_spec(tmp_path)
+    made = tmp_path / "made"
+    r = run_cli("generate", "--config", str(spec), "--out", str(made), "--engine", "local", timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    words = "a frozen lake on the left"
+    reference, killed = tmp_path / "reference", tmp_path / "killed"
+    shutil.copytree(made, reference)
+    shutil.copytree(made, killed)
+    r = run_cli("extend", str(reference), words, "--engine", "local", timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "views rendered for the mesh (new cameras)" in r.stderr  # the fusion went on from the stored one
+    truth = {name: (reference / name).read_bytes() for name in (*OUTPUTS, "mesh.glb")}
+    marker = uuid.uuid4().hex
+    proc, lines = start("extend", str(killed), words, "--engine", "local", env={MARKER: marker})
+    deadline = time.monotonic() + 600
+    while not any("views rendered for the mesh (new cameras)" in ln for ln in lines):  # the fusion has begun
+        assert proc.poll() is None and time.monotonic() < deadline, "".join(lines)[-3000:]
+        time.sleep(0.005)
+    kill_everything(proc)
+    assert not marked(marker), described(marked(marker))
+    assert not any("] outputs: ran" in ln for ln in lines), "the kill came after the run finished"
+    r = run_cli("extend", str(killed), words, "--engine", "local", timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    for name, data in truth.items():
+        assert (killed / name).read_bytes() == data, f"{name} differs after a kill during the fusion"

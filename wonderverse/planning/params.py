@@ -7,9 +7,12 @@ from __future__ import annotations
 
 from typing import Literal
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from wonderverse.planning.moves import Direction, PlanParseError, parse_move
+
+
+MAX_SEGMENTS = 64  # what one scene holds: its store, its poses' solve and its training stay within one machine
 
 
 class Model(BaseModel):
@@ -30,6 +33,20 @@ class ExtensionSpec(Model):
     added: tuple[str, ...] = Field(
         (), description="extensions added later (`wonderverse extend`), the user's words, oldest first"
     )
+
+    @property
+    def segments(self) -> int:
+        """Segments the scene has: the initial one, one per direction per round, one per later extension."""
+        return 1 + self.rounds * len(self.directions) + len(self.added)
+
+    @model_validator(mode="after")
+    def _within_the_cap(self) -> ExtensionSpec:
+        if self.segments > MAX_SEGMENTS:
+            raise ValueError(
+                f"a scene holds at most {MAX_SEGMENTS} segments and this one would have {self.segments}; "
+                "start a new scene for more"
+            )
+        return self
 
 
 class PlannerSpec(Model):
