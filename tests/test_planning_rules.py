@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import pytest
-from hypothesis import given, settings
+from hypothesis import assume, given, settings
 from hypothesis import strategies as st
 from pydantic import ValidationError
 
@@ -22,6 +22,7 @@ from wonderverse.planning import (
     plan_scene,
     stitched_order,
 )
+from wonderverse.planning.params import MAX_SEGMENTS
 
 PARAMS = PlanParams()
 
@@ -158,6 +159,7 @@ SIGN |= {"forward": ("forward_m", 1), "back": ("forward_m", -1)}
     initial=st.sampled_from(["right 30, up 0, forward 2", "up 45, left 90, forward 0", "down 30, right 0, back 1"]),
 )
 def test_rule_plans_never_repeat_views(rounds: int, directions: list[str], fov_deg: float, initial: str) -> None:
+    assume(1 + rounds * len(directions) <= MAX_SEGMENTS)  # a scene holds at most 64 segments
     spec = ExtensionSpec(rounds=rounds, directions=tuple(directions))
     params = PlanParams(initial_move=initial)
     plan = plan_scene("x", spec, params, fov_deg=fov_deg)
