@@ -11,10 +11,13 @@ from __future__ import annotations
 
 import logging
 import threading
+import uuid
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from concurrent.futures import Future, wait
 from contextlib import ExitStack, contextmanager, suppress
 from typing import Any, TypeVar
+
+from dask.utils import funcname
 
 from tasks.fan_out import as_step, fan_out
 from wonderverse.progress import ProgressFn
@@ -49,6 +52,12 @@ def _open_client(address: str | None, n_workers: int, closing: ExitStack) -> Any
     client = Client(cluster)
     closing.callback(client.close)
     return client
+
+
+def _send(client: Any, step: str | None, fn: Callable[..., Any], *args: Any) -> Any:
+    """`fn(*args)` submitted to the cluster as work of `step`, under a task key named after `fn` (as Dask names
+    a plain submit), so the dashboard and task stream show `check_segment-…`, not the wrapper's name."""
+    return client.submit(as_step, step, fn, *args, key=f"{funcname(fn)}-{uuid.uuid4().hex}", pure=False)
 
 
 class _Deferred:
@@ -130,7 +139,7 @@ class SegmentPool:
         first asked for, unless `gather` sends it to the cluster first. A scheduler given by address takes it."""
         if self.in_process or (only_if_started and self.address is None and self._started is None):
             return _Deferred(fn, args)
-        return self.client().submit(as_step, self.step, fn, *args, pure=False)
+        return _send(self.client(), self.step, fn, *args)
 
     def gather(
         self, step: str, items: Sequence[Any], futures: dict[Any, Any], progress: ProgressFn | None = None
@@ -142,9 +151,7 @@ class SegmentPool:
             for item in items:
                 f = futures[item]
                 if isinstance(f, _Deferred) and not f.started:
-                    futures[item] = self.client(progress, len(items)).submit(
-                        as_step, self.step, f.fn, *f.args, pure=False
-                    )
+                    futures[item] = _send(self.client(progress, len(items)), self.step, f.fn, *f.args)
         on_cluster = any(not isinstance(futures[item], _Deferred) for item in items)
         return fan_out(step, items, lambda item: futures[item].result(), len(items) if on_cluster else 1, progress)
 
@@ -172,10 +179,8 @@ class SegmentPool:
         if self.in_process or (self.address is None and len(items) == 1 and not self.ready):
             return fan_out(step, items, lambda item: fn(item, *args), progress=progress)
         client = self.client(progress, len(items))
-        run = (as_step, self.step or step, fn)
-        return fan_out(
-            step, items, lambda item: client.submit(*run, item, *args, pure=False).result(), len(items), progress
-        )
+        on = self.step or step
+        return fan_out(step, items, lambda item: _send(client, on, fn, item, *args).result(), len(items), progress)
 
     def close(self) -> None:
         """Shut the cluster down (once its start-up, if still going on, has finished)."""
