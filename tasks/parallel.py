@@ -17,8 +17,6 @@ from concurrent.futures import Future, wait
 from contextlib import ExitStack, contextmanager, suppress
 from typing import Any, TypeVar
 
-from dask.utils import funcname
-
 from tasks.fan_out import as_step, fan_out
 from wonderverse.progress import ProgressFn
 
@@ -57,6 +55,8 @@ def _open_client(address: str | None, n_workers: int, closing: ExitStack) -> Any
 def _send(client: Any, step: str | None, fn: Callable[..., Any], *args: Any) -> Any:
     """`fn(*args)` submitted to the cluster as work of `step`, under a task key named after `fn` (as Dask names
     a plain submit), so the dashboard and task stream show `check_segment-…`, not the wrapper's name."""
+    from dask.utils import funcname  # dask loads only when there is a cluster
+
     return client.submit(as_step, step, fn, *args, key=f"{funcname(fn)}-{uuid.uuid4().hex}", pure=False)
 
 

@@ -255,3 +255,23 @@ def pytest_runtest_protocol(item: pytest.Item, nextitem: pytest.Item | None) -> 
         return (yield)
     with _entry_points_refused(item.nodeid):
         return (yield)
+
+
+# --- Order -------------------------------------------------------------------------------------------------------
+# With `-n 2 --dist loadfile` each file goes whole to the next free worker in collection order, so a long file
+# collected late runs alone at the end while the other worker idles. The longest files (by `--durations`) go first,
+# then the other e2e files, then the fast tier, which fills in the gaps at the end.
+LONGEST_FIRST = ("test_quickstart", "test_adversarial", "test_kill_nine", "test_reconstruct_cli", "test_run_control")
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    def rank(item: pytest.Item) -> tuple[int, int]:
+        module = item.path.stem
+        if module in LONGEST_FIRST:
+            return (0, LONGEST_FIRST.index(module))
+        return (1, 0) if item.get_closest_marker(E2E) is not None else (2, 0)
+
+    firsts: dict[Path, tuple[int, int]] = {}
+    for item in items:  # a file's rank is its best test's: a file stays together
+        firsts[item.path] = min(firsts.get(item.path, (9, 0)), rank(item))
+    items.sort(key=lambda item: firsts[item.path])  # stable: collection order within a rank

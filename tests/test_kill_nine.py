@@ -16,6 +16,7 @@ import sys
 import threading
 import time
 import uuid
+from dataclasses import dataclass
 from pathlib import Path
 
 import psutil
@@ -37,6 +38,22 @@ def tiny_spec(folder: Path) -> Path:
         yaml.safe_dump({"preset": "preview", "scene": tiny_config().scene.model_dump(mode="json"), "steps": steps})
     )
     return f
+
+
+@dataclass(frozen=True)
+class Made:
+    spec: Path
+    scene: Path  # made by one uninterrupted `generate`
+
+
+@pytest.fixture(scope="module")
+def made(tmp_path_factory: pytest.TempPathFactory) -> Made:
+    """The tiny scene made once, uninterrupted: the reference of the kills and the base of the extension."""
+    folder = tmp_path_factory.mktemp("made")
+    spec = tiny_spec(folder)
+    r = run_cli("generate", "--config", str(spec), "--out", str(folder / "scene"), "--engine", "local", timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    return Made(spec, folder / "scene")
 
 
 def start(*args: str, env: dict[str, str]) -> tuple[subprocess.Popen, list[str]]:
@@ -144,53 +161,50 @@ def kill_everything(proc: subprocess.Popen) -> None:
 
 
 @pytest.mark.e2e
-def test_a_run_killed_at_random_moments_resumes_to_byte_identical_outputs(tmp_path: Path):
-    spec = tiny_spec(tmp_path)
-    reference = tmp_path / "reference"
-    t0 = time.monotonic()
-    r = run_cli("generate", "--config", str(spec), "--out", str(reference), "--engine", "local", timeout=600)
-    duration = time.monotonic() - t0
-    assert r.returncode == 0, r.stderr[-3000:]
-    truth = {name: (reference / name).read_bytes() for name in OUTPUTS}
+def test_a_run_killed_at_random_moments_resumes_to_byte_identical_outputs(made: Made, tmp_path: Path):
+    truth = {name: (made.scene / name).read_bytes() for name in OUTPUTS}
     assert all(truth.values())
 
-    rng = random.Random(21)  # one moment at random in each third of the run: early, middle, late
-    moments = [(k + rng.random()) / 3 * 0.92 * duration for k in range(3)]
+    # One moment at random in each part of the run, early, middle and late: a random delay after the step that
+    # begins it has said so (by the run's own progress, not the clock: the machine's load changes how long it takes).
+    rng = random.Random(21)
+    moments = [("generate_segments", 3.0), ("priors", 3.0), ("outputs", 1.0)]
     states = set()
-    for i, delay in enumerate(moments):
+    for i, (step, most) in enumerate(moments):
         marker = uuid.uuid4().hex
         scene = tmp_path / f"killed-{i}"
-        args = ("generate", "--config", str(spec), "--out", str(scene), "--engine", "local")
+        args = ("generate", "--config", str(made.spec), "--out", str(scene), "--engine", "local")
         proc, lines = start(*args, env={MARKER: marker})
+        deadline = time.monotonic() + 600
+        while not any(re.match(rf"\[\d+/\d+\] {step}: ", ln) for ln in lines):
+            assert proc.poll() is None and time.monotonic() < deadline, "".join(lines)[-3000:]
+            time.sleep(0.005)
+        delay = rng.random() * most
         time.sleep(delay)
-        assert proc.poll() is None, f"the run finished before {delay:.1f} s:\n{''.join(lines)}"
+        assert proc.poll() is None, f"the run finished {delay:.1f} s after {step} began:\n{''.join(lines)}"
         kill_everything(proc)
         time.sleep(0.5)
         assert not marked(marker), described(marked(marker))
         done = [m.group(1) for ln in lines if (m := re.match(r"\[\d+/\d+\] (\w+): (ran|cached)", ln))]
         states.add(tuple(done))
         r = run_cli(*args, timeout=600)
-        assert r.returncode == 0, f"resume after a kill at {delay:.1f} s (after {done}): {r.stderr[-3000:]}"
+        when = f"{delay:.1f} s into {step} (after {done})"
+        assert r.returncode == 0, f"resume after a kill {when}: {r.stderr[-3000:]}"
         for name in OUTPUTS:
-            same = (scene / name).read_bytes() == truth[name]
-            assert same, f"{name} differs after a kill at {delay:.1f} s of {duration:.1f} s (step lines: {done})"
-    assert len(states) >= 2, states  # the kills came at different points of the run
+            assert (scene / name).read_bytes() == truth[name], f"{name} differs after a kill {when}"
+    assert len(states) == 3, states  # the kills came at three different points of the run
 
 
 @pytest.mark.e2e
-def test_an_extension_killed_while_it_fuses_its_new_views_resumes_to_byte_identical_outputs(tmp_path: Path):
+def test_an_extension_killed_while_it_fuses_its_new_views_resumes_to_byte_identical_outputs(made: Made, tmp_path: Path):
     """The mesh of an extended scene goes on from the stored fusion (`tasks.output_mesh`): a kill while the new
     views are fused leaves that fusion as it was, and the re-run gives the files an uninterrupted extension gives."""
     import shutil
 
-    spec = tiny_spec(tmp_path)
-    made = tmp_path / "made"
-    r = run_cli("generate", "--config", str(spec), "--out", str(made), "--engine", "local", timeout=600)
-    assert r.returncode == 0, r.stderr[-3000:]
     words = "a frozen lake on the left"
     reference, killed = tmp_path / "reference", tmp_path / "killed"
-    shutil.copytree(made, reference)
-    shutil.copytree(made, killed)
+    shutil.copytree(made.scene, reference)
+    shutil.copytree(made.scene, killed)
     r = run_cli("extend", str(reference), words, "--engine", "local", timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
     assert "views rendered for the mesh (new cameras)" in r.stderr  # the fusion went on from the stored one
