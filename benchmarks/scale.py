@@ -195,7 +195,8 @@ def main() -> None:
         rows.append(
             {"extension": k, "seconds": r["wall_s"], "steps": r["steps"], "peak_mb": r["peak_mb"]} | measure(scene)
         )
-        print(f"extension {k}: {r['wall_s']:.1f} s, {rows[-1]['frames']} frames", file=sys.stderr, flush=True)
+        steps = ", ".join(f"{step} {sec:.1f}" for step, sec in r["steps"].items())
+        print(f"extension {k}: {r['wall_s']:.1f} s ({steps}), {rows[-1]['frames']} frames", file=sys.stderr, flush=True)
     scratch = _child(["generate", str(tmp / "scratch"), json.dumps([list(words), None])])
     head: dict[str, Any] = {}
     if a.dask:

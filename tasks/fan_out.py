@@ -3,6 +3,7 @@ run, as a nested task run per item; and `as_step`, which runs work as a step's (
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable, Sequence
 from concurrent.futures import ThreadPoolExecutor, as_completed
 from typing import Any, TypeVar
@@ -22,11 +23,12 @@ def as_step(step: str | None, fn: Callable[..., T], *args: Any) -> T:
         return fn(*args)
 
 
-def _in_prefect_task() -> bool:
-    try:
-        from prefect.context import TaskRunContext
-    except ImportError:
+def in_prefect_task() -> bool:
+    """Whether this runs inside a Prefect task run (without importing Prefect when the run never did)."""
+    if "prefect" not in sys.modules:  # a run under the local engine never imports Prefect (1-2 s): not in a task
         return False
+    from prefect.context import TaskRunContext
+
     return TaskRunContext.get() is not None
 
 
@@ -50,7 +52,7 @@ def fan_out(
     if n:
         report(0, n, "")
     out: list[Any] = [None] * n
-    if not _in_prefect_task():
+    if not in_prefect_task():
         if concurrency <= 1 or n <= 1:
             for k, item in enumerate(items):
                 out[k] = work(item)

@@ -14,6 +14,7 @@ from contextvars import ContextVar
 from dataclasses import dataclass, field
 
 from tasks.base import StepResult
+from tasks.fan_out import in_prefect_task
 from wonderverse.progress import ProgressFn
 
 PLAIN_EVERY_S = 10.0  # plain lines (logs, Prefect) at most this often per unit, plus each unit's first and last
@@ -86,15 +87,12 @@ _prefect_rate: ContextVar[Rate | None] = ContextVar("prefect_rate", default=None
 
 
 def _prefect_logger() -> logging.Logger | logging.LoggerAdapter | None:
-    """The current Prefect task run's logger, when running inside one (without importing Prefect)."""
-    import sys
-
-    if "prefect" not in sys.modules:
+    """The current Prefect task run's logger, when running inside one."""
+    if not in_prefect_task():
         return None
-    from prefect.context import TaskRunContext
     from prefect.logging import get_run_logger
 
-    return get_run_logger() if TaskRunContext.get() is not None else None
+    return get_run_logger()
 
 
 def advance(done: int, total: int, unit: str, note: str = "", eta: bool = True) -> None:
