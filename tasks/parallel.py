@@ -53,8 +53,7 @@ def _open_client(address: str | None, n_workers: int, closing: ExitStack) -> Any
 
 
 def _send(client: Any, step: str | None, fn: Callable[..., Any], *args: Any) -> Any:
-    """`fn(*args)` submitted to the cluster as work of `step`, under a task key named after `fn` (as Dask names
-    a plain submit), so the dashboard and task stream show `check_segment-…`, not the wrapper's name."""
+    """`fn(*args)` on the cluster as work of `step`, keyed after `fn` as a plain submit is (`check_segment-…`)."""
     from dask.utils import funcname  # dask loads only when there is a cluster
 
     return client.submit(as_step, step, fn, *args, key=f"{funcname(fn)}-{uuid.uuid4().hex}", pure=False)
@@ -65,8 +64,7 @@ class _Deferred:
     submitted while rendering runs afterwards, in the order results are asked for, as without workers)."""
 
     def __init__(self, fn: Callable[..., Any], args: tuple[Any, ...]) -> None:
-        self.fn, self.args = fn, args
-        self.started = False
+        self.fn, self.args, self.started = fn, args, False
         self._done: Future[Any] = Future()
         self._lock = threading.Lock()
 
