@@ -11,7 +11,6 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from wonderverse.planning.moves import Direction, PlanParseError, parse_move
 
-
 MAX_SEGMENTS = 64  # what one scene holds: its store, its poses' solve and its training stay within one machine
 
 
