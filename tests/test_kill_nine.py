@@ -16,6 +16,7 @@ import sys
 import threading
 import time
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -113,6 +114,14 @@ def wait_until(what: str, condition, timeout: float, proc: subprocess.Popen, lin
     pytest.fail(f"no {what} within {timeout} s:\n{''.join(lines)}")
 
 
+def wait_for_line(proc: subprocess.Popen, lines: list[str], wanted: Callable[[str], bool]) -> None:
+    """Until the running command has printed a line that is `wanted` (it must not end first, nor take 10 min)."""
+    deadline = time.monotonic() + 600
+    while not any(wanted(ln) for ln in lines):
+        assert proc.poll() is None and time.monotonic() < deadline, "".join(lines)[-3000:]
+        time.sleep(0.005)
+
+
 @pytest.mark.e2e
 def test_kill_9_of_wonderverse_alone_leaves_no_prefect_server_and_no_run(tmp_path: Path):
     marker = uuid.uuid4().hex
@@ -175,10 +184,7 @@ def test_a_run_killed_at_random_moments_resumes_to_byte_identical_outputs(made: 
         scene = tmp_path / f"killed-{i}"
         args = ("generate", "--config", str(made.spec), "--out", str(scene), "--engine", "local")
         proc, lines = start(*args, env={MARKER: marker})
-        deadline = time.monotonic() + 600
-        while not any(re.match(rf"\[\d+/\d+\] {step}: ", ln) for ln in lines):
-            assert proc.poll() is None and time.monotonic() < deadline, "".join(lines)[-3000:]
-            time.sleep(0.005)
+        wait_for_line(proc, lines, lambda ln, step=step: re.match(rf"\[\d+/\d+\] {step}: ", ln) is not None)
         delay = rng.random() * most
         time.sleep(delay)
         assert proc.poll() is None, f"the run finished {delay:.1f} s after {step} began:\n{''.join(lines)}"
@@ -211,10 +217,7 @@ def test_an_extension_killed_while_it_fuses_its_new_views_resumes_to_byte_identi
     truth = {name: (reference / name).read_bytes() for name in (*OUTPUTS, "mesh.glb")}
     marker = uuid.uuid4().hex
     proc, lines = start("extend", str(killed), words, "--engine", "local", env={MARKER: marker})
-    deadline = time.monotonic() + 600
-    while not any("views rendered for the mesh (new cameras)" in ln for ln in lines):  # the fusion has begun
-        assert proc.poll() is None and time.monotonic() < deadline, "".join(lines)[-3000:]
-        time.sleep(0.005)
+    wait_for_line(proc, lines, lambda ln: "views rendered for the mesh (new cameras)" in ln)  # the fusion has begun
     kill_everything(proc)
     assert not marked(marker), described(marked(marker))
     assert not any("] outputs: ran" in ln for ln in lines), "the kill came after the run finished"
