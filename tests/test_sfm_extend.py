@@ -159,11 +159,12 @@ def test_invalid_arguments_raise_value_error(scene: dict) -> None:
 
 
 def _put_segment(store, world: dict, seg: str, role: str, frames: np.ndarray | None = None) -> None:
-    """A generated segment as `generate_segments` writes it (attempt 0, no check yet: attempt 0 counts)."""
+    """A procedural segment as `generate_segments` writes it (attempt 0, no check yet: attempt 0 counts; the
+    renderer's K is known, so no parallax look decides the outcome on these 128-px frames)."""
     from wonderverse.store import cache_key, write_array
 
     frames = world["frames"][seg] if frames is None else frames
-    attrs = {"role": role, "reversed": role == "left", "repeats_reference": role != "init"}
+    attrs = {"role": role, "reversed": role == "left", "repeats_reference": role != "init", "k_is_guess": False}
     with store.staged(f"segments/{seg}", cache_key("segment", 1, {"segment": seg}), **attrs) as g:
         write_array(g, "path", np.full((len(frames), 4, 4), np.nan), chunks=(len(frames), 4, 4))
         write_array(g, "K", np.asarray(world["K"], np.float64), chunks=(3, 3))
