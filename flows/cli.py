@@ -453,6 +453,20 @@ app.command("batch")(batch_command)
 app.command("view")(view_command)
 
 
+@app.command("studio")
+def studio(
+    root: Annotated[Path, typer.Argument(help="folder of scenes (made when absent)")] = Path("scenes"),
+    port: Annotated[int, typer.Option(help="port (default: a free one)", min=0, max=65535)] = 0,
+    host: Annotated[str, typer.Option(help="address to bind (default 127.0.0.1: this machine only)")] = "127.0.0.1",
+    config: Annotated[Path | None, typer.Option(help="settings YAML for new scenes, as generate takes")] = None,
+    engine: Engine = "auto",
+) -> None:
+    """Build and grow scenes in the browser: create from a prompt, watch progress, view in 3D, extend, download."""
+    from flows.studio import serve_studio  # the web stack loads only here: `wonderverse --help` stays fast
+
+    serve_studio(root, host, port, config, engine)
+
+
 def error_line(message: str) -> str:
     """`message` as one line for a terminal: every run of whitespace one space, and any other control character
     (a terminal escape in a file name or a setting's name) written as its escape, never sent as it is."""

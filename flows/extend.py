@@ -21,9 +21,10 @@ from wonderverse.store import SceneStore
 MAX_WORDS_CHARS = 500
 
 
-def extended_config(cfg: RunConfig, words: str) -> RunConfig:
-    """`cfg` with one more user extension; WonderError for empty or over-long words, or words holding a control
-    character (a terminal escape)."""
+def checked_words(words: str) -> str:
+    """The extension request as it is stored (whitespace runs one space); WonderError for empty or over-long words,
+    or words holding a control character (a terminal escape). The studio checks a request with this too, so its
+    messages are the CLI's."""
     try:
         words = plain_words(words, "the extension request")
     except ValueError as e:
@@ -32,7 +33,12 @@ def extended_config(cfg: RunConfig, words: str) -> RunConfig:
         raise WonderError("the extension request is empty; say where to go, e.g. 'a frozen lake on the left'")
     if len(words) > MAX_WORDS_CHARS:
         raise WonderError(f"the extension request has {len(words)} characters; at most {MAX_WORDS_CHARS} are allowed")
-    return with_extensions(cfg, (*cfg.scene.extensions.added, words))
+    return words
+
+
+def extended_config(cfg: RunConfig, words: str) -> RunConfig:
+    """`cfg` with one more user extension; WonderError for unusable words (`checked_words`)."""
+    return with_extensions(cfg, (*cfg.scene.extensions.added, checked_words(words)))
 
 
 def with_extensions(cfg: RunConfig, added: tuple[str, ...]) -> RunConfig:

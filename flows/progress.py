@@ -1,10 +1,15 @@
 """What the CLI shows while a run goes: a line per step, and within a long step how far it is.
 
 On a terminal a live bar under the step lines (`RichReporter`); in a log (stderr not a terminal) plain
-lines, a few per step (`PlainReporter`). Both read the same `advance` calls (`tasks.progress`)."""
+lines, a few per step (`PlainReporter`); for a program that runs the CLI and shows its progress itself (the
+studio), JSON lines when the environment sets PROGRESS_ENV=json (`JsonReporter`). All read the same `advance`
+calls (`tasks.progress`)."""
 
 from __future__ import annotations
 
+import json
+import os
+import sys
 import time
 
 from rich.console import Console
@@ -14,7 +19,7 @@ from rich.table import Table
 from tasks.base import StepResult
 from tasks.progress import Rate, Reporter, current, describe
 
-__all__ = ["PlainReporter", "Reporter", "RichReporter", "current", "make_reporter", "results_table"]
+__all__ = ["JsonReporter", "PlainReporter", "Reporter", "RichReporter", "current", "make_reporter", "results_table"]
 
 
 class _StepLines(Reporter):
@@ -88,8 +93,50 @@ class RichReporter(_StepLines):
         super().finished(result)
 
 
+PROGRESS_ENV = "WONDERVERSE_PROGRESS"
+JSON_PREFIX = "wonderverse-progress: "  # JsonReporter's lines on stderr: this, then one JSON object
+JSON_EVERY_S = 0.5  # progress events at most this often per unit, plus each unit's first and last
+
+
+class JsonReporter(Reporter):
+    """Machine-readable progress on stderr, one line per event, JSON_PREFIX then an object with `event`:
+    `started` (step, description, index: 1-based, total), `progress` (step, done, total, unit, note, left_s,
+    line: what the terminal shows) and `finished` (step, status, seconds, detail). The same units as the
+    terminal's lines; other stderr lines (warnings, the `error:` line) stay as they are."""
+
+    def __init__(self, total: int):
+        self.total, self.done, self.step, self.rate, self.last_t = total, 0, "", Rate(), -1e9
+
+    def _emit(self, event: str, **fields: object) -> None:
+        line = json.dumps({"event": event, "step": self.step, **fields}, separators=(",", ":"))
+        sys.stderr.write(JSON_PREFIX + line + "\n")
+        sys.stderr.flush()
+
+    def started(self, step: str, description: str) -> None:
+        self.step, self.rate, self.last_t = step, Rate(), -1e9
+        self._emit("started", description=description, index=self.done + 1, total=self.total)
+
+    def advance(self, done: int, total: int, unit: str, note: str = "", eta: bool = True) -> None:
+        first = unit != self.rate.unit or done < self.rate.done0
+        self.rate.update(unit, done)
+        now = time.monotonic()
+        if not (first or done >= total or not eta or now - self.last_t >= JSON_EVERY_S):
+            return
+        self.last_t = now
+        left = self.rate.seconds_left(done, total) if eta else None
+        line = describe(done, total, unit, note, left)
+        self._emit("progress", done=done, total=total, unit=unit, note=note, left_s=left, line=line)
+
+    def finished(self, result: StepResult) -> None:
+        self.done += 1
+        self.step = result.step
+        self._emit("finished", status=result.status, seconds=round(result.seconds, 3), detail=result.detail)
+
+
 def make_reporter(console: Console, total: int) -> Reporter:
-    """A live bar on a terminal, plain lines otherwise."""
+    """JSON lines when PROGRESS_ENV says so, else a live bar on a terminal, plain lines otherwise."""
+    if os.environ.get(PROGRESS_ENV) == "json":
+        return JsonReporter(total)
     return RichReporter(console, total) if console.is_terminal else PlainReporter(console, total)
 
 

@@ -1,8 +1,9 @@
 """`wonderverse view SCENE_DIR`: the scene's splats in a real-time viewer in the browser.
 
-The viewer is Spark (`@sparkjsdev/spark`, World Labs' Gaussian-splat renderer on three.js, WebGL2), whose built
-files `scripts/install-tools.sh` installs from npm into `tools/node_modules` with three.js; nothing is fetched
-from a CDN. The server (Python's `http.server`, threaded) binds 127.0.0.1 on a free port unless told otherwise
+The viewer is Spark (`@sparkjsdev/spark` 2.2.0, World Labs' Gaussian-splat renderer on three.js 0.187.0, WebGL2,
+both MIT), whose built files ship inside this package (`flows/viewer_assets/`, with their licences; package data,
+so `pip install` alone makes `view` work, no npm at run time); nothing is fetched from a CDN. The server (Python's
+`http.server`, threaded) binds 127.0.0.1 on a free port unless told otherwise
 and serves exactly two things: the viewer's files (a fixed list, under `/_viewer/`) and regular files inside
 SCENE_DIR (`..`, absolute paths, encoded separators, hidden files and symlinks leading out are refused with
 404). It runs in the CLI's child process, so Ctrl-C (the supervisor kills the child's process group) stops it.
@@ -53,17 +54,18 @@ if TYPE_CHECKING:  # numpy and http.server load when the command runs: `wonderve
 
     import numpy as np
 
-ROOT = Path(__file__).resolve().parents[1]
-NODE_MODULES = ROOT / "tools" / "node_modules"
+# The viewer's built files, copied from npm (three 0.187.0: build/three.core.js, build/three.module.js,
+# examples/jsm/...; @sparkjsdev/spark 2.2.0: dist/spark.module.min.js) with their LICENSE files
+VIEWER_ASSETS = Path(__file__).resolve().parent / "viewer_assets"
 VIEWER_HTML = "viewer.html"
 SPLAT_FILES = ("splats.spz", "splats.ply")  # the viewer loads the first one present (SPZ: a tenth of the bytes)
-# URL path under /_viewer/ -> the built file in tools/node_modules (the only files of the viewer served)
+# URL path under /_viewer/ -> the built file in VIEWER_ASSETS (the only files of the viewer served)
 VIEWER_FILES = {
-    "three.core.js": "three/build/three.core.js",
-    "three.module.js": "three/build/three.module.js",
-    "addons/postprocessing/Pass.js": "three/examples/jsm/postprocessing/Pass.js",
-    "addons/controls/OrbitControls.js": "three/examples/jsm/controls/OrbitControls.js",
-    "spark.module.js": "@sparkjsdev/spark/dist/spark.module.min.js",
+    "three.core.js": "three.core.js",
+    "three.module.js": "three.module.js",
+    "addons/postprocessing/Pass.js": "addons/postprocessing/Pass.js",
+    "addons/controls/OrbitControls.js": "addons/controls/OrbitControls.js",
+    "spark.module.js": "spark.module.js",
 }
 IMPORTS = {  # bare module specifiers of the page -> VIEWER_FILES key
     "three": "three.module.js",
@@ -104,13 +106,14 @@ class SceneView:
 
 
 def viewer_files() -> dict[str, Path]:
-    """The viewer's files by URL path; WonderError when they are not installed."""
-    files = {name: NODE_MODULES / rel for name, rel in VIEWER_FILES.items()}
-    missing = [str(p.relative_to(ROOT) if p.is_relative_to(ROOT) else p) for p in files.values() if not p.is_file()]
+    """The viewer's files by URL path; WonderError when the package was installed without them (package data
+    left out: a broken install, not something npm should repair)."""
+    files = {name: VIEWER_ASSETS / rel for name, rel in VIEWER_FILES.items()}
+    missing = [str(p) for p in files.values() if not p.is_file()]
     if missing:
         raise WonderError(
-            f"the splat viewer is not installed ({missing[0]} is missing): run `bash scripts/install-tools.sh` "
-            "(needs Node.js with npm) once"
+            f"the splat viewer is not installed ({missing[0]} is missing): this wonderverse package was installed "
+            "without its package data; reinstall it with `pip install -e .` (or `pip install .`)"
         )
     return files
 
@@ -124,9 +127,11 @@ def _c2w_gl(w2c: np.ndarray) -> list[float]:
     return (invert_se3(w2c) @ np.diag([1.0, -1.0, -1.0, 1.0])).T.reshape(-1).tolist()
 
 
-def scene_view(scene_dir: Path) -> SceneView:
+def scene_view(scene_dir: Path, splat_path: Path | None = None) -> SceneView:
     """Read what the viewer shows from the scene folder and its store (through `wonderverse.schema`);
-    WonderError, in one line, when there is no scene, no splat file or no posed camera."""
+    WonderError, in one line, when there is no scene, no splat file or no posed camera. `splat_path`: a PLY in
+    the frame of `world_from_sfm` to show instead of the folder's splat file (the studio's splats, written from
+    the store as soon as the splats step has run); its name is the page's `splat`."""
     import numpy as np
     import zarr
 
@@ -145,6 +150,8 @@ def scene_view(scene_dir: Path) -> SceneView:
     if not (scene_dir / STORE_NAME).exists():
         raise WonderError(f"{scene_dir} holds no scene (no {STORE_NAME})")
     splat = next((name for name in SPLAT_FILES if (scene_dir / name).is_file()), None)
+    if splat_path is not None:
+        splat = Path(splat_path).name
     if splat is None:
         raise WonderError(f"{scene_dir} has no splats yet ({' or '.join(SPLAT_FILES)}): run the scene to `outputs`")
     store = SceneStore.open(scene_dir)
@@ -163,7 +170,7 @@ def scene_view(scene_dir: Path) -> SceneView:
     fly = flythrough_path(w2c, outputs.video_frames)
     splats = store.meta(SPLATS.path)
     background = tuple(float(c) for c in (splats.metrics.background_rgb if splats else None) or (0.0, 0.0, 0.0))
-    look, size = _look_distance(scene_dir / splat, w2c[0], camera_centers(w2c))
+    look, size = _look_distance(Path(splat_path) if splat_path else scene_dir / splat, w2c[0], camera_centers(w2c))
     return SceneView(
         splat_file=splat,
         file_from_world=Y_UP_FROM_WORLD if splat.endswith(".spz") else np.eye(3),
@@ -208,8 +215,9 @@ def _look_distance(splat_path: Path, w2c0: np.ndarray, centres: np.ndarray) -> t
     return (float(np.median(z[z > 0])) if (z > 0).any() else size), size
 
 
-def scene_json(view: SceneView) -> str:
-    """The scene as the page's JSON (three.js conventions: column-major C2W with OpenGL axes)."""
+def scene_json(view: SceneView, show_cameras: bool = False) -> str:
+    """The scene as the page's JSON (three.js conventions: column-major C2W with OpenGL axes); `show_cameras`: the
+    page draws each training camera's frustum (the studio does; `view` keeps the picture of the splats alone)."""
     import numpy as np
 
     K = view.K
@@ -227,6 +235,7 @@ def scene_json(view: SceneView) -> str:
         "lookDistance": view.look_distance,
         "near": view.scene_size * 1e-4,
         "far": view.scene_size * 100.0,
+        "showCameras": show_cameras,
     }
     data["splatMatrix"][15] = 1.0
     return json.dumps(data, separators=(",", ":")).replace("</", "<\\/")
@@ -321,6 +330,21 @@ window.addEventListener("keydown", (e) => {
   if (e.key === "]") document.getElementById("wv-next").click();
   if (e.key === "p") document.getElementById("wv-play").click();
 });
+
+if (S.showCameras) {
+  // each training camera as a frustum of lines (apex at the centre, the image plane at 4 % of the scene's size)
+  const d = 0.04 * S.lookDistance, points = [];
+  const corners = [[0, 0], [W, 0], [W, H], [0, H]].map(([u, v]) =>
+    new THREE.Vector3(((u - K.cx) / K.fx) * d, -((v - K.cy) / K.fy) * d, -d));
+  for (const c2w of S.cameras) {
+    const mc = new THREE.Matrix4().fromArray(c2w), o = new THREE.Vector3().applyMatrix4(mc);
+    const q = corners.map((c) => c.clone().applyMatrix4(mc));
+    for (let i = 0; i < 4; i++) points.push(o, q[i], q[i], q[(i + 1) % 4]);
+  }
+  const lines = new THREE.LineSegments(new THREE.BufferGeometry().setFromPoints(points),
+    new THREE.LineBasicMaterial({ color: 0xffaa33 }));
+  scene.add(lines);
+}
 
 function show(splat) {
   splat.matrixAutoUpdate = false;
@@ -432,9 +456,10 @@ def _script_text(source: str) -> str:
     return source.replace("</script", "<\\/script").replace("<!--", "<\\!--")
 
 
-def page_html(view: SceneView, title: str, inline: dict[str, Path] | None = None) -> str:
+def page_html(view: SceneView, title: str, inline: dict[str, Path] | None = None, show_cameras: bool = False) -> str:
     """The viewer page. `inline` None: the modules are imported from /_viewer/ (the server's page); else the
-    files of `viewer_files()` are inlined and loaded from blob URLs (the self-contained viewer.html)."""
+    files of `viewer_files()` are inlined and loaded from blob URLs (the self-contained viewer.html).
+    `show_cameras`: as `scene_json`."""
     title = html.escape(title)
     if inline is None:
         imports = {k: f"/_viewer/{v}" for k, v in IMPORTS.items()}
@@ -448,7 +473,7 @@ def page_html(view: SceneView, title: str, inline: dict[str, Path] | None = None
         loader = INLINE_LOADER.replace("NAMES", json.dumps(list(inline))).replace("IMPORTS", json.dumps(IMPORTS))
         modules = ""
         app = "\n".join([*sources, f'<script type="text/plain" id="wv-app">{_script_text(APP_JS)}</script>', loader])
-    return PAGE.format(title=title, modules=modules, scene=scene_json(view), app=app)
+    return PAGE.format(title=title, modules=modules, scene=scene_json(view, show_cameras), app=app)
 
 
 def write_viewer_html(scene_dir: Path, view: SceneView, files: dict[str, Path]) -> Path:

@@ -260,12 +260,29 @@ def test_a_read_only_scene_is_one_error_line(scene: Path, tmp_path: Path):
     assert not (copy / VIEWER_HTML).exists()
 
 
-def test_the_viewer_not_installed_is_one_error(monkeypatch, tmp_path: Path):
+def test_the_viewer_ships_in_the_package_and_its_absence_is_one_error(monkeypatch, tmp_path: Path):
+    """The viewer's files are the package's own (no tools/node_modules, no npm): each is a real ES module of the
+    right library, with both licences beside them, and pyproject declares them as package data. A package
+    installed without them names the missing file and how to reinstall."""
+    import tomllib
+
     import flows.view
     from wonderverse.errors import WonderError
 
-    monkeypatch.setattr(flows.view, "NODE_MODULES", tmp_path / "node_modules")
-    with pytest.raises(WonderError, match=r"splat viewer is not installed .* run `bash scripts/install-tools.sh`"):
+    files = flows.view.viewer_files()
+    assert set(files) == set(flows.view.VIEWER_FILES)
+    for path in files.values():
+        assert path.is_relative_to(ROOT / "flows" / "viewer_assets") and "node_modules" not in path.parts
+    assert "REVISION = '187'" in files["three.core.js"].read_text()  # three.js r187 = 0.187.0
+    assert "SplatMesh" in files["spark.module.js"].read_text()
+    for licence in ("LICENSE.three", "LICENSE.spark"):
+        assert "MIT License" in (ROOT / "flows" / "viewer_assets" / licence).read_text()
+    declared = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-data"]["flows"]
+    for name in [*flows.view.VIEWER_FILES.values(), "LICENSE.three"]:
+        assert any(Path("viewer_assets", name).match(pattern) for pattern in declared), name
+
+    monkeypatch.setattr(flows.view, "VIEWER_ASSETS", tmp_path / "viewer_assets")
+    with pytest.raises(WonderError, match=r"splat viewer is not installed \(.*three.core.js is missing\).*pip install"):
         flows.view.viewer_files()
 
 
