@@ -125,6 +125,11 @@ def create_app(root: Path, token: str, port: int, config: Path | None = None, en
         message = {404: "not found", 405: "method not allowed"}.get(e.status_code, str(e.detail))
         return JSONResponse({"error": message}, status_code=e.status_code)
 
+    @app.exception_handler(Exception)
+    async def internal_error(request: Request, e: Exception) -> JSONResponse:
+        """A bug, still answered in JSON (the page shows it); the traceback goes to the studio's stderr."""
+        return JSONResponse({"error": f"internal error ({type(e).__name__}: {_one_line(e)})"}, status_code=500)
+
     @app.middleware("http")
     async def guard(request: Request, call_next: Any) -> Response:
         """/api needs the Bearer token; scene files the cookie, ?token= or the header; the page and the viewer's
@@ -252,6 +257,12 @@ def create_app(root: Path, token: str, port: int, config: Path | None = None, en
         paths = [_clip_inside(root, c) for c in clips]
         argv = ["reconstruct", "--out", str(folder), "--engine", engine, *(["--preset", preset] if preset else [])]
         return started(name, "reconstruct", [*argv, "--", *paths])
+
+    @app.get("/api/status")
+    async def status() -> dict[str, Any]:
+        """The studio's own state: its folder, open event streams, active jobs (a health check)."""
+        active = [j.id for j in jobs.jobs.values() if j.active]
+        return {"root": str(root), "streams": len(hub.queues), "active_jobs": active, "events": len(hub.events)}
 
     @app.get("/api/jobs")
     async def list_jobs() -> dict[str, Any]:

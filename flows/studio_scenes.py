@@ -132,6 +132,7 @@ def scene_info(root: Path, name: str) -> dict[str, Any]:
         shown = next((a for a in s.attempts if a.index == s.accepted_attempt), s.attempts[-1] if s.attempts else None)
         check = shown.check if shown is not None else None
         plan = check.plan_following if check is not None else None
+        plan = plan.model_dump() if hasattr(plan, "model_dump") else plan or {}
         segments.append(
             {
                 "id": s.id,
@@ -141,8 +142,8 @@ def scene_info(root: Path, name: str) -> dict[str, Any]:
                 "complete": s.complete,
                 "check": _verdict(check.accepted if check is not None else None),
                 "check_reasons": list(check.reasons) if check is not None else [],
-                "plan_following": _verdict(plan.ok if plan is not None else None),
-                "plan_reasons": list(plan.reasons) if plan is not None else [],
+                "plan_following": _verdict(plan.get("ok")),
+                "plan_reasons": [str(r) for r in plan.get("reasons") or []],
             }
         )
     splats = store.meta(SPLATS.path)
