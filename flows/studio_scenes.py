@@ -117,8 +117,10 @@ def _verdict(ok: bool | None) -> str:
 
 def scene_info(root: Path, name: str) -> dict[str, Any]:
     """What the page shows of a scene: prompt, steps, segments (planned move, words, check and plan-following
-    verdicts), Gaussians, the exports present, and `view_key` (changes whenever the 3D view should reload).
-    Read while a job may be writing: the store commits whole groups, and what is not there yet is left out."""
+    verdicts), Gaussians, the exports present, and `view_key`: the splats' cache key, so the 3D view reloads once
+    per new splats (as soon as the splats step has written them), not again when the outputs step re-levels the
+    frame by a fraction of a degree (the next load shows that). Read while a job may be writing: the store
+    commits whole groups, and what is not there yet is left out."""
     from flows.inspect import scene_summary
     from wonderverse.schema import OUTPUTS, SFM, SPLATS
     from wonderverse.store import SceneStore
@@ -151,7 +153,7 @@ def scene_info(root: Path, name: str) -> dict[str, Any]:
     files = [f.path for f in outputs.files if (folder / f.path).exists()] if outputs is not None else []
     if (folder / REPORT).is_file():
         files.append(REPORT)
-    splats_key, outputs_key = store.cache_key_of(SPLATS.path), store.cache_key_of(OUTPUTS.path)
+    splats_key = store.cache_key_of(SPLATS.path)
     return {
         "name": name,
         "prompt": spec.get("prompt"),
@@ -161,7 +163,7 @@ def scene_info(root: Path, name: str) -> dict[str, Any]:
         "extensions": [e.model_dump() for e in summary.extensions],
         "gaussians": splats.metrics.n_gaussians if splats is not None else None,
         "posed": store.cache_key_of(SFM.path) is not None,
-        "view_key": f"{splats_key}.{outputs_key}" if splats_key else None,
+        "view_key": splats_key[:16] if splats_key else None,
         "files": files,
         "damaged": [d.group for d in summary.damaged],
     }
@@ -217,4 +219,4 @@ def view_page(folder: Path, cache: Path) -> str:
     live = live_splats(folder, cache)
     view = scene_view(folder, splat_path=live)
     view = type(view)(**{**view.__dict__, "splat_file": LIVE_SPLATS})
-    return page_html(view, folder.name, show_cameras=True)
+    return page_html(view, folder.name, studio=True)

@@ -215,9 +215,10 @@ def _look_distance(splat_path: Path, w2c0: np.ndarray, centres: np.ndarray) -> t
     return (float(np.median(z[z > 0])) if (z > 0).any() else size), size
 
 
-def scene_json(view: SceneView, show_cameras: bool = False) -> str:
-    """The scene as the page's JSON (three.js conventions: column-major C2W with OpenGL axes); `show_cameras`: the
-    page draws each training camera's frustum (the studio does; `view` keeps the picture of the splats alone)."""
+def scene_json(view: SceneView, studio: bool = False) -> str:
+    """The scene as the page's JSON (three.js conventions: column-major C2W with OpenGL axes); `studio`: the
+    page draws each training camera's frustum and, left idle, draws 2 frames a second (the studio does: its jobs need
+    the CPU; `view` keeps the picture of the splats alone, at full rate)."""
     import numpy as np
 
     K = view.K
@@ -235,7 +236,8 @@ def scene_json(view: SceneView, show_cameras: bool = False) -> str:
         "lookDistance": view.look_distance,
         "near": view.scene_size * 1e-4,
         "far": view.scene_size * 100.0,
-        "showCameras": show_cameras,
+        "showCameras": studio,
+        "idleFps": 2 if studio else None,
     }
     data["splatMatrix"][15] = 1.0
     return json.dumps(data, separators=(",", ":")).replace("</", "<\\/")
@@ -379,7 +381,16 @@ document.addEventListener("drop", async (e) => {
   await show(new SplatMesh({ fileBytes: new Uint8Array(await file.arrayBuffer()), fileName: file.name }));
 });
 
+// S.idleFps (the studio's view): once the splats have settled and nobody has touched the page for 2 s, draw only
+// idleFps frames a second, so an idle view leaves the CPU to the jobs (software WebGL draws on the CPU)
+let lastInput = -1e9, lastDraw = -1e9;
+for (const type of ["pointerdown", "pointermove", "wheel", "keydown", "click"]) {
+  window.addEventListener(type, () => (lastInput = performance.now()), { passive: true });
+}
 renderer.setAnimationLoop((time) => {
+  const idle = !state.playing && state.frames >= 30 && time - lastInput > 2000;
+  if (S.idleFps && idle && time - lastDraw < 1000 / S.idleFps) return;
+  lastDraw = time;
   if (state.playing) {
     if (t0 === null) t0 = time;
     const i = Math.floor(((time - t0) / 1000) * S.fps) % S.flythrough.length;
@@ -456,10 +467,10 @@ def _script_text(source: str) -> str:
     return source.replace("</script", "<\\/script").replace("<!--", "<\\!--")
 
 
-def page_html(view: SceneView, title: str, inline: dict[str, Path] | None = None, show_cameras: bool = False) -> str:
+def page_html(view: SceneView, title: str, inline: dict[str, Path] | None = None, studio: bool = False) -> str:
     """The viewer page. `inline` None: the modules are imported from /_viewer/ (the server's page); else the
     files of `viewer_files()` are inlined and loaded from blob URLs (the self-contained viewer.html).
-    `show_cameras`: as `scene_json`."""
+    `studio`: as `scene_json`."""
     title = html.escape(title)
     if inline is None:
         imports = {k: f"/_viewer/{v}" for k, v in IMPORTS.items()}
@@ -473,7 +484,7 @@ def page_html(view: SceneView, title: str, inline: dict[str, Path] | None = None
         loader = INLINE_LOADER.replace("NAMES", json.dumps(list(inline))).replace("IMPORTS", json.dumps(IMPORTS))
         modules = ""
         app = "\n".join([*sources, f'<script type="text/plain" id="wv-app">{_script_text(APP_JS)}</script>', loader])
-    return PAGE.format(title=title, modules=modules, scene=scene_json(view, show_cameras), app=app)
+    return PAGE.format(title=title, modules=modules, scene=scene_json(view, studio), app=app)
 
 
 def write_viewer_html(scene_dir: Path, view: SceneView, files: dict[str, Path]) -> Path:
