@@ -60,9 +60,9 @@ def _default_scene_folder(prompt: str, name_from: str | None = None) -> tuple[Pa
 
 
 def _fits_prompt(folder: Path, prompt: str) -> bool:
-    """True when a run of `prompt` may use `folder`: absent, empty, or holding a scene made from `prompt`."""
-    from flows.inspect import scene_spec
-    from wonderverse.store import LOCK_NAME, STORE_NAME, SceneStore
+    """True when a run of `prompt` may use `folder`: absent, empty, or holding a scene made from `prompt` (read from
+    the root's metadata without zarr: this is judged before anything heavy loads)."""
+    from wonderverse.folders import LOCK_NAME, STORE_NAME, root_attrs
 
     if not folder.exists():
         return True
@@ -70,11 +70,8 @@ def _fits_prompt(folder: Path, prompt: str) -> bool:
         return False
     if not (folder / STORE_NAME).exists():
         return not any(p.name != LOCK_NAME for p in folder.iterdir())
-    try:
-        spec = scene_spec(SceneStore.open(folder))
-    except WonderError:
-        return False
-    return spec is not None and spec.prompt == prompt
+    spec = (root_attrs(folder) or {}).get("spec")
+    return isinstance(spec, dict) and spec.get("prompt") == prompt
 
 
 Engine = Annotated[
@@ -121,26 +118,32 @@ def generate(
     replace_segments: ReplaceSegments = False,
 ) -> None:
     """Plan, render and reconstruct a scene; cached steps are skipped, the scene's extensions are kept."""
-    from flows.extend import with_extensions
-    from flows.pipeline import claimed, needed_steps, run_pipeline, segments_config, stored_config
-    from wonderverse.config import build_config, read_yaml
-    from wonderverse.store import check_scene_dir
+    from wonderverse.folders import check_scene_dir
+    from wonderverse.yaml_files import read_yaml
 
+    # judged cheapest first, before the steps, zarr or any engine load: a refusal costs what Python's start does
     check_engine(engine)
-    steps = needed_steps(until)
+    if prompt is not None:
+        _judge_prompt(prompt)
     file_scene = read_yaml(config).get("scene") if config else None
     file_prompt = file_scene.get("prompt") if isinstance(file_scene, dict) else None
     scene_dir, folder_note = (
         (out_dir, "") if out_dir else _default_scene_folder(str(prompt if prompt is not None else file_prompt or ""))
     )
     check_scene_dir(scene_dir)  # a bad --out is refused before anything slow
-    stored = stored_config(scene_dir)
+    from wonderverse.config import build_config, scene_config
+
+    stored = scene_config(scene_dir)
     name, why = _choose_preset(preset, config, stored)
     overrides: dict = {"scene": {"seed": seed}} if seed is not None else {}
     if dask is not None:  # where work runs is not part of any cache key
         overrides["execution"] = {"dask_address": dask}
     cfg = build_config(prompt=prompt, preset=name, config_file=config, overrides=overrides or None)
-    made = segments_config(scene_dir)
+    from flows.extend import with_extensions
+    from flows.pipeline import claimed, needed_steps, run_pipeline
+
+    steps = needed_steps(until)
+    made = scene_config(scene_dir, "segments_config") or stored
     if made is not None and not replace_segments and not cfg.scene.extensions.added:
         cfg = with_extensions(cfg, made.scene.extensions.added)  # extensions are part of the scene
     if cfg.scene.video.backend == "files":
@@ -157,6 +160,17 @@ def generate(
             folder_note,
             config_notes(cfg),
         )
+
+
+def _judge_prompt(prompt: str) -> None:
+    """The prompt's refusals (`wonderverse.text.words_problem`), worded as the config's, judged before the config
+    (pydantic, numpy) loads."""
+    from wonderverse.errors import ConfigError, shown
+    from wonderverse.text import MAX_PROMPT_CHARS, words_problem
+
+    problem = words_problem(prompt, "the prompt", MAX_PROMPT_CHARS)
+    if problem is not None:
+        raise ConfigError(f"invalid config: scene.prompt: {problem} (got {shown(prompt)})", field="scene.prompt")
 
 
 def _run_with_progress(
@@ -241,14 +255,11 @@ def reconstruct(
     replace_segments: ReplaceSegments = False,
 ) -> None:
     """Reconstruct your own clips (any video generator or a phone): check, poses, priors, splats, outputs."""
-    from flows.pipeline import claimed, needed_steps, run_pipeline, stored_config
-    from wonderverse.config import build_config, control_character
-    from wonderverse.store import check_scene_dir
-    from wonderverse.video import make_video_model
+    from wonderverse.folders import check_scene_dir
+    from wonderverse.text import control_character
     from wonderverse.video.files import group_sources
 
     check_engine(engine)
-    steps = needed_steps(until)
     paths = []
     for source in group_sources(clips):  # a shell turns frames/*.png into many arguments: one clip again
         if isinstance(source, list | tuple):
@@ -274,8 +285,14 @@ def reconstruct(
     prompt = "reconstruction of " + "".join("?" if control_character(c) else c for c in names)
     scene_dir, folder_note = (out_dir, "") if out_dir else _default_scene_folder(prompt, Path(paths[0]).stem)
     check_scene_dir(scene_dir)
-    name, why = _choose_preset(preset, config, stored_config(scene_dir))
+    from wonderverse.config import build_config, scene_config
+
+    name, why = _choose_preset(preset, config, scene_config(scene_dir))
     cfg = build_config(prompt=prompt, preset=name, config_file=config, overrides=overrides)
+    from flows.pipeline import claimed, needed_steps, run_pipeline
+    from wonderverse.video import make_video_model
+
+    steps = needed_steps(until)
     make_video_model(cfg.scene.video_source)  # reads every clip: a bad one is refused before the store is touched
     with claimed(scene_dir, cfg, replace_segments):
         _run_with_progress(
@@ -324,10 +341,11 @@ def extend(
 ) -> None:
     """Extend a scene in words: plan, generate, check one more segment; update poses, priors, splats, outputs."""
     from flows.extend import extension_config
-    from flows.pipeline import claimed, run_pipeline
 
     check_engine(engine)
-    cfg = extension_config(scene_dir, words)  # no scene, no completed run, unusable words: refused here
+    cfg = extension_config(scene_dir, words)  # no scene, no completed run, clips, unusable words: refused here
+    from flows.pipeline import claimed, run_pipeline
+
     with claimed(scene_dir, cfg):
         _run_with_progress(
             scene_dir,
@@ -468,14 +486,12 @@ def studio(
 
 
 def error_line(message: str) -> str:
-    """`message` as one line for a terminal: every run of whitespace one space, and any other control character
-    (a terminal escape in a file name or a setting's name) written as its escape, never sent as it is."""
-    from wonderverse.config import control_character
+    """`message` as one line for a terminal: every run of whitespace one space, any other control character (a
+    terminal escape or a bidirectional override in a file name or a setting's name) written as its escape, never
+    sent as it is, and the password of any URL in it redacted."""
+    from wonderverse.text import escaped, redact_urls
 
-    text = " ".join(message.split())
-    if control_character(text) is None:
-        return text
-    return "".join(c.encode("unicode_escape").decode() if control_character(c) else c for c in text)
+    return escaped(redact_urls(message))
 
 
 def main() -> None:

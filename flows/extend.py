@@ -11,12 +11,15 @@ parent has none yet), checked and placed inside generate_segments, as every guid
 from __future__ import annotations
 
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from flows.engine import Engine
-from tasks import StepResult
-from wonderverse.config import RunConfig, plain_words, validate_config
+from wonderverse.config import RunConfig, plain_words, scene_config, validate_config
 from wonderverse.errors import WonderError
-from wonderverse.store import SceneStore
+from wonderverse.text import visible
+
+if TYPE_CHECKING:  # the CLI imports this module to judge a request: the steps load only when a run starts
+    from tasks import StepResult
 
 MAX_WORDS_CHARS = 500
 
@@ -29,7 +32,7 @@ def checked_words(words: str) -> str:
         words = plain_words(words, "the extension request")
     except ValueError as e:
         raise WonderError(str(e)) from None
-    if not words:
+    if not words or not visible(words):
         raise WonderError("the extension request is empty; say where to go, e.g. 'a frozen lake on the left'")
     if len(words) > MAX_WORDS_CHARS:
         raise WonderError(f"the extension request has {len(words)} characters; at most {MAX_WORDS_CHARS} are allowed")
@@ -52,15 +55,20 @@ def extension_config(scene_dir: Path | str, words: str) -> RunConfig:
     """The configuration of the scene in `scene_dir` with one more extension, `words` (or, when the last extension
     of a run that stopped before completing had these words, that configuration: the run resumes); WonderError when
     there is no scene, no completed run, or the words are unusable."""
-    from flows.pipeline import segments_config, stored_config
-
-    cfg = stored_config(scene_dir)
+    cfg = scene_config(scene_dir, "config")
     if cfg is None:
+        from wonderverse.store import SceneStore
+
         SceneStore.open(scene_dir)  # no scene at all: its own one-line error
         raise WonderError(f"{scene_dir} holds no completed run; run `wonderverse generate` first")
     done = cfg.scene.extensions.added
-    made = segments_config(scene_dir)  # an extension whose run failed after its segment was made is kept
-    cfg = with_extensions(cfg, made.scene.extensions.added) if made is not None else cfg
+    made = scene_config(scene_dir, "segments_config") or cfg  # kept: an extension whose run failed after its segment
+    if "files" in (cfg.scene.video.backend, made.scene.video.backend):  # clips: no planned path to continue
+        raise WonderError(
+            f"{scene_dir} is a reconstruction of clips: extend grows generated scenes only; to add a clip, run "
+            "`wonderverse reconstruct` again with every clip, the new one last"
+        )
+    cfg = with_extensions(cfg, made.scene.extensions.added)
     pending = cfg.scene.extensions.added[len(done) :]
     more = extended_config(cfg, words)
     if pending and more.scene.extensions.added[-1] == pending[-1]:

@@ -209,7 +209,7 @@ def _readable_members(store: SceneStore, group_path: str) -> tuple[list[tuple[st
 def _shape(store: SceneStore, path: str) -> tuple[int, ...] | None:
     """An array's shape from its metadata (no data read), None when it is absent."""
     try:
-        return tuple(zarr.open_array(store.root.store, path=path, mode="r").shape)
+        return tuple(store.open_array(path).shape)
     except Exception:
         return None
 

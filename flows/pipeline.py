@@ -174,12 +174,16 @@ def claimed(scene_dir: Path | str, cfg: RunConfig, replace_segments: bool = Fals
     """Hold the scene for a run of `cfg` while the block runs: its lock taken (a busy scene is refused at once), its
     store, when it has one, opened for writing (a newer, damaged or read-only store is refused), and a run that
     would replace the scene's segments refused unless `replace_segments` (WonderError each). What `run_pipeline`
-    does before any engine starts; the CLI does it before its first line, so that a refusal is its only line."""
-    with scene_lock(scene_dir):
+    does before any engine starts; the CLI does it before its first line, so that a refusal is its only line. Every
+    refusal is judged before the lock is taken or anything written, and again under the lock (`scene_lock`)."""
+
+    def judge() -> None:
         if (Path(scene_dir) / STORE_NAME).exists():
             SceneStore.open(scene_dir, mode="r+")
         if not replace_segments:
             refuse_replacing_segments(scene_dir, cfg)
+
+    with scene_lock(scene_dir, judge=judge):
         yield
 
 
@@ -214,12 +218,9 @@ def segments_config(scene_dir: Path | str) -> RunConfig | None:
 
 
 def _config_attr(scene_dir: Path | str, name: Literal["config", "segments_config"]) -> RunConfig | None:
-    try:
-        root = SceneStore.open(scene_dir).meta(ROOT.path, complete=False)
-        data = getattr(root, name)
-        return RunConfig.model_validate(data) if data is not None else None
-    except (WonderError, ValueError):
-        return None
+    from wonderverse.config import scene_config
+
+    return scene_config(scene_dir, name)
 
 
 def refuse_replacing_segments(scene_dir: Path | str, cfg: RunConfig) -> None:

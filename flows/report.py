@@ -30,7 +30,6 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
-import zarr
 
 from flows.inspect import clips as clip_rows
 from flows.inspect import expected_keys, global_k, guide, priors, root_meta, run_config, scene_spec, step_statuses
@@ -93,12 +92,12 @@ KNOWN_FILES: dict[str, str] = {  # files no step describes (the outputs step lis
 
 def _rows(store: SceneStore, path: str, idx: np.ndarray) -> np.ndarray:
     """Selected leading indices of an array (reads only their chunks)."""
-    return np.asarray(zarr.open_array(store.root.store, path=path, mode="r").oindex[idx])
+    return np.asarray(store.open_array(path).oindex[idx])
 
 
 def _shape(store: SceneStore, path: str) -> tuple[int, ...] | None:
     try:
-        return tuple(zarr.open_array(store.root.store, path=path, mode="r").shape)
+        return tuple(store.open_array(path).shape)
     except Exception:
         return None
 
@@ -829,7 +828,7 @@ def _metadata_files(store_path: Path) -> list[tuple[str, bytes]]:
         out.append((d.relative_to(store_path).as_posix(), raw))
         try:
             is_group = json.loads(raw).get("node_type") == "group"
-        except ValueError:
+        except (ValueError, RecursionError, AttributeError):  # unreadable, nested beyond the parser, not a mapping
             continue
         if is_group:  # an array's folder holds only chunks
             with os.scandir(d) as entries:

@@ -27,11 +27,18 @@ ENTRYPOINT = "flows.serve.batch"  # module path the runner imports; resolved by 
 
 
 def find_specs(specs_dir: Path | str) -> list[Path]:
-    """The scene spec files directly in `specs_dir` (*.yaml, *.yml), sorted by name."""
+    """The scene spec files directly in `specs_dir` (*.yaml, *.yml), sorted by name. Each one's name (its stem) names
+    its scene's folder, OUT/<stem>: a name that is no single folder name (`..yaml` and `...yaml` are `.` and `..`:
+    OUT itself and its parent) is refused in one line, for the whole batch, before anything runs."""
+    from wonderverse.folders import check_child_name
+
     d = Path(specs_dir)
     if not d.is_dir():
         raise WonderError(f"scene spec folder {d} does not exist or is not a folder")
-    return sorted(p for p in d.iterdir() if p.is_file() and p.suffix in SPEC_SUFFIXES)
+    specs = sorted(p for p in d.iterdir() if p.suffix in SPEC_SUFFIXES and p.is_file())
+    for p in specs:
+        check_child_name(p.stem, f"scene spec {p.name}")
+    return specs
 
 
 def _one_line(e: BaseException) -> str:
@@ -269,8 +276,9 @@ def batch_command(
     from rich.console import Console
     from rich.table import Table
 
-    # Quiet terminal, but INFO logs still reach the API: with PREFECT_API_URL set they show in the UI.
-    quiet_prefect(console_level="WARNING")
+    # Quiet terminal (a failed scene is a row of the table below, not Prefect's traceback), but INFO logs still
+    # reach the API: with PREFECT_API_URL set they show in the UI.
+    quiet_prefect()
     summary = run_batch(specs_dir, out_root, until, dask)
     t = Table(title="batch")
     for c in ("scene", "status", "seconds", "steps / error"):

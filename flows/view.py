@@ -133,7 +133,6 @@ def scene_view(scene_dir: Path, splat_path: Path | None = None) -> SceneView:
     the frame of `world_from_sfm` to show instead of the folder's splat file (the studio's splats, written from
     the store as soon as the splats step has run); its name is the page's `splat`."""
     import numpy as np
-    import zarr
 
     from flows.inspect import run_config
     from tasks.segments import attempt_path
@@ -163,7 +162,7 @@ def scene_view(scene_dir: Path, splat_path: Path | None = None) -> SceneView:
         raise WonderError(f"{scene_dir}: no frame has a camera pose")
     w2c, K = world_from_sfm(store).transform_w2c(poses[ok]), store.array(SFM.K)
     seg = store.meta(SFM.path).segments[int(store.array(SFM.frame_index)[np.argmax(ok), 0])]
-    frames = zarr.open_array(store.root.store, path=attempt_path(store, seg).frames, mode="r")
+    frames = store.open_array(attempt_path(store, seg).frames)
     height, width = (int(v) for v in frames.shape[1:3])
     cfg = run_config(store)
     outputs = cfg.steps.outputs if cfg is not None else OutputsParams()

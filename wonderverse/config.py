@@ -14,7 +14,6 @@ import functools
 from pathlib import Path
 from typing import Any, Literal
 
-import yaml
 from pydantic import (
     BaseModel,
     ConfigDict,
@@ -40,46 +39,24 @@ from wonderverse.segment_geometry import GeometryParams
 from wonderverse.sfm import SfmParams
 from wonderverse.splats.cleanup import ExportPruneParams
 from wonderverse.splats.params import TrainParams
+from wonderverse.text import (  # noqa: F401 (re-exported: where callers have always found them)
+    ALLOWED_CONTROLS,
+    CONTROL_NAMES,
+    MAX_PROMPT_CHARS,
+    control_character,
+    plain_words,
+    redact_urls,
+    url_credentials,
+    words_problem,
+)
 from wonderverse.video.diffusion import DiffusionParams, size_problem
 from wonderverse.video.files import ClipParams
 from wonderverse.video.procedural_options import ProceduralOptions
+from wonderverse.yaml_files import MAX_CONFIG_BYTES, MAX_CONFIG_VALUES, read_yaml  # noqa: F401 (re-exported)
 
 CONFIG_DIR = Path(__file__).resolve().parent.parent / "configs"
 PRESET_DIR = CONFIG_DIR / "presets"
-MAX_PROMPT_CHARS = 2000
-# A config file holds settings, not data: bigger files, and aliases that expand to more values than this, are refused
-# before anything reads them further (a YAML alias bomb expands exponentially).
-MAX_CONFIG_BYTES = 1_000_000
-MAX_CONFIG_VALUES = 100_000
 MAX_ERRORS_SHOWN = 5
-# Whitespace a user may type or paste into words (a tab, a line break): it becomes a single space, as any run of
-# whitespace does. Every other control character (C0, DEL, C1: ESC and CSI start terminal escapes, BEL rings, BS
-# and CR rewrite the line) is refused, so the words stored in a scene and echoed to a terminal are plain text.
-ALLOWED_CONTROLS = frozenset("\t\n\r")
-CONTROL_NAMES = {0x00: "NUL", 0x07: "BEL", 0x08: "BS", 0x0B: "VT", 0x0C: "FF", 0x1B: "ESC", 0x7F: "DEL", 0x9B: "CSI"}
-
-
-def control_character(text: str) -> str | None:
-    """What is wrong with `text` for words stored and shown (a prompt, an extension): the first control character
-    other than a tab or a line break, named with its code point and position ('U+001B (ESC) at character 3');
-    None when there is none."""
-    for i, c in enumerate(text):
-        code = ord(c)
-        if (code < 0x20 or 0x7F <= code < 0xA0) and c not in ALLOWED_CONTROLS:
-            name = f" ({CONTROL_NAMES[code]})" if code in CONTROL_NAMES else ""
-            return f"U+{code:04X}{name} at character {i + 1}"
-    return None
-
-
-def plain_words(text: str, what: str) -> str:
-    """`text` with every run of whitespace (tabs and line breaks included) as one space; ValueError naming `what`
-    when it holds any other control character (a terminal escape, a bell)."""
-    bad = control_character(text)
-    if bad is not None:
-        raise ValueError(
-            f"{what} holds the control character {bad}; control characters and terminal escapes are not allowed"
-        )
-    return " ".join(text.split())
 
 
 class Model(BaseModel):
@@ -198,12 +175,10 @@ class SceneSpec(Model):
     @field_validator("prompt")
     @classmethod
     def _prompt_ok(cls, v: str) -> str:
-        v = plain_words(v, "the prompt")
-        if not v:
-            raise ValueError("prompt is empty")
-        if len(v) > MAX_PROMPT_CHARS:
-            raise ValueError(f"prompt has {len(v)} characters; at most {MAX_PROMPT_CHARS} are allowed")
-        return v
+        problem = words_problem(v, "the prompt", MAX_PROMPT_CHARS)
+        if problem is not None:
+            raise ValueError(problem)
+        return " ".join(v.split())
 
     @model_validator(mode="after")
     def _words_are_plain(self) -> SceneSpec:
@@ -334,12 +309,20 @@ class ExecutionParams(Model):
         2, ge=1, le=256, description="segments checked / given priors at once (Dask LocalCluster worker processes)"
     )
     dask_address: str | None = Field(
-        None, description="an existing Dask scheduler for per-segment work, tcp://host:8786"
+        None, description="an existing Dask scheduler for per-segment work, tcp://host:8786 (no user:password@)"
     )
     renderer: Literal["auto", "torch", "gsplat"] = Field("auto", description="auto: gsplat whenever CUDA is there")
     render_workers: int = Field(
         0, ge=0, le=256, description="CPU renderer: views rendered at once in outputs (0 = one per core)"
     )
+
+    @field_validator("dask_address")
+    @classmethod
+    def _no_credentials(cls, v: str | None) -> str | None:
+        problem = url_credentials(v) if v is not None else None
+        if problem is not None:
+            raise ValueError(problem.replace(" and name it in api_key_env", ""))
+        return v
 
 
 class StepsConfig(Model):
@@ -458,62 +441,6 @@ def _shown_path(path: str, part_chars: int = 40) -> str:
     return ".".join(p if len(p) <= part_chars else p[: part_chars - 3] + "..." for p in parts)
 
 
-def read_yaml(path: Path) -> dict[str, Any]:
-    """A YAML mapping from `path`; a missing, unreadable, oversized, non-UTF-8, malformed or non-mapping file, or
-    one whose aliases expand beyond MAX_CONFIG_VALUES values, is a ConfigError."""
-    try:
-        with open(path, "rb") as f:
-            raw = f.read(MAX_CONFIG_BYTES + 1)  # bounded: /dev/zero or a huge file is refused, not read
-    except OSError as e:
-        raise ConfigError(f"cannot read config file {path}: {e.strerror or e}") from None
-    if len(raw) > MAX_CONFIG_BYTES:
-        raise ConfigError(f"config file {path} is larger than {MAX_CONFIG_BYTES // 1_000_000} MB: is it a config?")
-    try:
-        text = raw.decode("utf-8-sig")
-    except UnicodeDecodeError as e:
-        raise ConfigError(
-            f"config file {path} is not UTF-8 text (byte 0x{raw[e.start]:02x} at offset {e.start}); "
-            "a config is YAML saved as UTF-8"
-        ) from None
-    if "\x00" in text:
-        raise ConfigError(f"config file {path} is binary (it holds NUL bytes), not YAML text")
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" at line {mark.line + 1}, column {mark.column + 1}" if mark else ""
-        problem = getattr(e, "problem", None) or str(e).splitlines()[0]
-        raise ConfigError(f"malformed YAML in {path}{where}: {problem}") from None
-    except RecursionError:
-        raise ConfigError(f"malformed YAML in {path}: nested too deeply") from None
-    except ValueError as e:  # e.g. an integer beyond Python's digit limit
-        raise ConfigError(f"malformed YAML in {path}: {shown(str(e), 120)}") from None
-    if data is None:
-        return {}
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path} must hold a mapping of settings, not a {type(data).__name__}")
-    _refuse_expansion(data, path)
-    return data
-
-
-def _refuse_expansion(data: Any, path: Path) -> None:
-    """ConfigError when `data`, its aliases expanded, holds more than MAX_CONFIG_VALUES values (YAML aliases are
-    shared references: a small file can stand for billions of values, or for a cycle)."""
-    stack, count = [data], 0
-    while stack:
-        x = stack.pop()
-        count += 1
-        if count > MAX_CONFIG_VALUES:
-            raise ConfigError(
-                f"config file {path} expands to more than {MAX_CONFIG_VALUES} values through its aliases "
-                "(&anchor / *alias); a config needs far fewer"
-            )
-        if isinstance(x, dict):
-            stack += [*x.keys(), *x.values()]
-        elif isinstance(x, list | tuple | set):
-            stack += list(x)
-
-
 def preset_names() -> list[str]:
     return sorted(p.stem for p in PRESET_DIR.glob("*.yaml"))
 
@@ -558,7 +485,7 @@ def format_validation_error(err: ValidationError) -> str:
             lines.append(f"{loc}: {msg} (got {shown(e.get('input'))})")
     if len(errors) > MAX_ERRORS_SHOWN:
         lines.append(f"and {len(errors) - MAX_ERRORS_SHOWN} more")
-    return "; ".join(lines)
+    return redact_urls("; ".join(lines))  # a refused URL is quoted, never its password
 
 
 def build_config(
@@ -619,3 +546,23 @@ def validate_config(data: dict[str, Any]) -> RunConfig:
     except ValidationError as e:
         first = ".".join(str(p) for p in e.errors()[0]["loc"]) if e.errors() else None
         raise ConfigError(f"invalid config: {format_validation_error(e)}", field=first) from None
+
+
+def scene_config(scene_dir: Path | str, name: Literal["config", "segments_config"] = "config") -> RunConfig | None:
+    """A RunConfig a scene's root records (`schema.attrs.RootAttrs`): `config`, its last completed run's, or
+    `segments_config`, the one its segments were last generated under. Read from the root's metadata without zarr
+    (a command judges its inputs with it before anything heavy loads); None for a new scene, a store of a newer
+    format, or a record this version cannot read."""
+    from wonderverse import STORE_FORMAT
+    from wonderverse.folders import root_attrs
+
+    attrs = root_attrs(scene_dir)
+    if attrs is None:
+        return None
+    fmt, data = attrs.get("format"), attrs.get(name)
+    if not isinstance(fmt, int) or fmt > STORE_FORMAT or not isinstance(data, dict):
+        return None
+    try:
+        return RunConfig.model_validate(data)
+    except (ValidationError, ValueError):
+        return None

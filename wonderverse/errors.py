@@ -2,6 +2,8 @@
 
 import reprlib
 
+from wonderverse.text import redact_urls
+
 
 class WonderError(Exception):
     """A problem the user can fix (bad input, bad config, unusable store); never a bug."""
@@ -22,7 +24,13 @@ class StoreError(WonderError):
 
 SHOWN_MAX_CHARS = 60
 
-_short = reprlib.Repr()
+
+class _Short(reprlib.Repr):
+    def repr_str(self, x: str, level: int) -> str:
+        return super().repr_str(redact_urls(x), level)  # before it is cut: a cut URL is no longer one
+
+
+_short = _Short()
 _short.maxlevel, _short.maxdict, _short.maxlist, _short.maxtuple, _short.maxset = 2, 4, 4, 4, 4
 _short.maxstring, _short.maxother, _short.maxlong = SHOWN_MAX_CHARS, SHOWN_MAX_CHARS, SHOWN_MAX_CHARS
 

@@ -25,7 +25,7 @@ import shutil
 import socket
 import time
 import uuid
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from contextlib import contextmanager, suppress
 from pathlib import Path
 from typing import Any
@@ -37,11 +37,17 @@ from zarr.errors import ContainsGroupError
 
 from wonderverse import STORE_FORMAT, __version__
 from wonderverse.errors import StoreError
+from wonderverse.folders import (  # noqa: F401 (re-exported: the store's names and judgements)
+    LOCK_NAME,
+    STORE_NAME,
+    check_scene_dir,
+    check_writable,
+    read_limited_json,
+    scene_name_problem,
+)
 from wonderverse.schema import ArrayPath, group_of
 from wonderverse.schema.attrs import Attrs
 
-STORE_NAME = "scene.zarr"
-LOCK_NAME = ".wonderverse.lock"  # beside the store; see `scene_lock`
 _STAGING = "_staging"
 _TRASH = "_trash"
 DIGESTS = "chunk_digests"  # group attribute: {"algorithm", "arrays": {array: {file: [bytes, crc]}}, "groups": {...}}
@@ -109,10 +115,85 @@ def _file_digest(path: Path) -> list[Any]:
 def _node(d: Path) -> dict[str, Any] | None:
     """The zarr v3 metadata of the node at folder `d` (a group or an array), None when absent or unreadable."""
     try:
-        meta = json.loads((d / "zarr.json").read_bytes())
+        meta = read_limited_json(d / "zarr.json")
     except (OSError, ValueError):
         return None
     return meta if isinstance(meta, dict) else None
+
+
+# What an array's metadata may ask for before zarr is let near it: zarr allocates the whole array for a read and walks
+# every chunk of its grid, so a crafted zarr.json (a shape of 10^12, a grid of millions of 1-element chunks) would
+# exhaust the memory or run for minutes. The largest arrays this version writes stay far inside these.
+MAX_RANK = 8
+MAX_DIM = 2**40
+MAX_CHUNKS = 100_000
+MAX_ARRAY_BYTES = 2**36  # 64 GiB
+
+
+def array_meta_problem(meta: Any, declared: Any = None) -> str | None:
+    """Why zarr v3 array metadata `meta` (a parsed zarr.json) must not be read, None when it may: not an array's,
+    a shape or chunk shape that is not a list of sizes, more than MAX_RANK axes, a size beyond MAX_DIM, a chunk grid of
+    more than MAX_CHUNKS chunks, more than MAX_ARRAY_BYTES bytes in all, a dtype that is not a plain number's, or
+    (`declared`: the schema's `Array`) another rank, fixed size or dtype than the schema declares."""
+    if not isinstance(meta, dict) or meta.get("node_type") != "array":
+        return "it is not an array's metadata"
+    shape = meta.get("shape")
+    grid = meta.get("chunk_grid")
+    config = grid.get("configuration") if isinstance(grid, dict) else None
+    chunks = config.get("chunk_shape") if isinstance(config, dict) else None
+
+    def sizes(v: Any, least: int) -> bool:
+        return isinstance(v, list) and all(isinstance(n, int) and not isinstance(n, bool) and n >= least for n in v)
+
+    if not sizes(shape, 0) or not sizes(chunks, 1) or len(shape) != len(chunks):
+        return "its shape or chunk shape is not a list of sizes, one per axis"
+    if len(shape) > MAX_RANK or any(n > MAX_DIM for n in shape) or any(n > MAX_DIM for n in chunks):
+        return f"it asks for shape {shape}, beyond the limits ({MAX_RANK} axes, {MAX_DIM} per axis)"
+    dtype = meta.get("data_type")
+    try:
+        itemsize = np.dtype(dtype).itemsize if isinstance(dtype, str) else 0
+    except TypeError:
+        itemsize = 0
+    if not 0 < itemsize <= 16:
+        return f"its data type {str(dtype)[:40]!r} is not a number's"
+    n_chunks = 1
+    for n, c in zip(shape, chunks, strict=True):
+        n_chunks *= -(-n // c)
+    if n_chunks > MAX_CHUNKS:
+        return f"it asks for {n_chunks} chunks, more than {MAX_CHUNKS} (shape {shape}, chunks {chunks})"
+    total = itemsize
+    for n in shape:
+        total *= n
+    if total > MAX_ARRAY_BYTES:
+        return f"it asks for {total} bytes (shape {shape}), more than {MAX_ARRAY_BYTES}"
+    if declared is not None:
+        if len(shape) != len(declared.shape) or any(
+            isinstance(want, int) and want != n for want, n in zip(declared.shape, shape, strict=False)
+        ):
+            return f"its shape {shape} does not match the schema's {list(declared.shape)}"
+        if np.dtype(dtype) != np.dtype(declared.dtype):
+            return f"its data type {dtype} is not the schema's {declared.dtype}"
+    return None
+
+
+def _declared_array(path: str) -> Any:
+    """The schema's declaration of the array at `path` (None: not declared, or an ad-hoc store's)."""
+    parent, _, name = path.strip("/").rpartition("/")
+    group = group_of(parent)
+    if group is None:
+        return None
+    return group.arrays.get(name) or group.any_arrays
+
+
+def _array_meta_at(folder: Path, path: str) -> str | None:
+    """Why the array in `folder` (at store path `path`) must not be read (`array_meta_problem`), None when it may."""
+    try:
+        meta = read_limited_json(folder / "zarr.json")
+    except OSError:
+        return None  # absent: the caller says so in its own words
+    except ValueError as e:
+        return f"its metadata cannot be read: {e}"
+    return array_meta_problem(meta, _declared_array(path))
 
 
 def _is_unit(meta: dict[str, Any]) -> bool:
@@ -155,8 +236,9 @@ def _files(folder: Path) -> list[str]:
     return sorted(out)
 
 
-def _check_array(base: Path, name: str, files: Any) -> list[str]:
-    """What differs between array `name`'s files under `base` and their recorded digests (empty: intact)."""
+def _check_array(base: Path, name: str, files: Any, group_path: str | None = None) -> list[str]:
+    """What differs between array `name`'s files under `base` (the folder of group `group_path`) and their recorded
+    digests, and what its metadata asks for beyond the limits (`array_meta_problem`); empty: intact."""
     if not isinstance(files, dict):
         return [f"the digests of array {name} are unreadable"]
     problems = []
@@ -174,6 +256,10 @@ def _check_array(base: Path, name: str, files: Any) -> list[str]:
             problems.append(f"{what} has {size} bytes, {want[0]} were written" if size else f"{what} is empty")
         elif _file_digest(f) != want:
             problems.append(f"{what} differs from what was written (CRC-32C)")
+    if not problems and "zarr.json" in files:  # intact as recorded, but a crafted record can match crafted metadata
+        bad = _array_meta_at(base / name, name if group_path is None else f"{group_path}/{name}")
+        if bad is not None:
+            problems.append(f"the metadata of array {name} is refused: {bad}")
     return problems
 
 
@@ -353,7 +439,8 @@ class SceneStore:
         if not (isinstance(record, dict) and record.get("algorithm") == _ALGORITHM):
             return {group_path: ["its digests are unreadable"]}
         base = self._dir(group_path)
-        problems = [p for name, files in (record.get("arrays") or {}).items() for p in _check_array(base, name, files)]
+        arrays = (record.get("arrays") or {}).items()
+        problems = [p for name, files in arrays for p in _check_array(base, name, files, group_path)]
         found: dict[str, list[str]] = {}
         for child, key in (record.get("groups") or {}).items():
             child_path = f"{group_path}/{child}"
@@ -473,12 +560,14 @@ class SceneStore:
         owner, name, record = self._owner(path)
         files = record.get("arrays", {}).get(name) if isinstance(record, dict) else None
         if owner is not None and record is not None and (files is not None or not isinstance(record, dict)):
-            problems = _check_array(self._dir(owner), name, files)
+            problems = _check_array(self._dir(owner), name, files, owner)
             if problems:
                 self._mark_damaged({owner: problems})
                 raise DamagedData(owner, _described(problems))
         try:
-            return np.asarray(zarr.open_array(self.root.store, path=path, mode="r")[...])
+            return np.asarray(self.open_array(path)[...])
+        except DamagedData:
+            raise
         except Exception as e:
             if not (self._dir(path) / "zarr.json").is_file():
                 raise
@@ -488,8 +577,32 @@ class SceneStore:
             raise DamagedData(owner or path.rsplit("/", 1)[0], what) from None
 
     def shape(self, path: str) -> tuple[int, ...]:
-        """The shape of an array, from its metadata alone (nothing is read or verified)."""
-        return tuple(zarr.open_array(self.root.store, path=path, mode="r").shape)
+        """The shape of an array, from its metadata alone (no chunk is read; the metadata is judged first)."""
+        return tuple(self.open_array(path).shape)
+
+    def open_array(self, path: str) -> zarr.Array:
+        """The zarr array at `path`, read-only, once its metadata is judged within the limits (`array_meta_problem`):
+        what every reader outside the store opens arrays with. DamagedData naming the committed group it belongs to
+        (marked incomplete when the store is writable, so its step rebuilds it) when the metadata is refused; an
+        absent array raises as zarr does."""
+        bad = _array_meta_at(self._dir(path), path)
+        if bad is not None:
+            owner = self._owner_path(path)
+            what = f"array {path.removeprefix(owner + '/') if owner else path}: {bad}"
+            if owner is not None:
+                self._mark_damaged({owner: [what]})
+            raise DamagedData(owner or path.rsplit("/", 1)[0], what)
+        return zarr.open_array(self.root.store, path=path, mode="r")
+
+    def _owner_path(self, path: str) -> str | None:
+        """The nearest ancestor group of `path` that carries a cache key (a committed unit), complete or not."""
+        parts = path.strip("/").split("/")
+        for i in range(len(parts) - 1, 0, -1):
+            group = "/".join(parts[:i])
+            attrs = (_node(self._dir(group)) or {}).get("attributes")
+            if isinstance(attrs, dict) and "cache_key" in attrs:
+                return group
+        return None
 
     def _owner(self, path: str) -> tuple[str | None, str, Any]:
         """The commit `path` belongs to (its nearest ancestor group with a cache key), `path` relative to it and the
@@ -590,57 +703,40 @@ def _holder(lock_file: Path) -> str:
         return "holder not yet recorded"  # it has the lock but has not written its details yet
 
 
-def check_scene_dir(scene_dir: Path | str) -> None:
-    """StoreError, touching nothing, when `scene_dir` cannot hold a scene: a file, a non-empty folder that holds
-    no scene, or a folder that could not be created or written (the nearest existing ancestor is a file or not
-    writable). Cheap, so a command can refuse a bad --out before anything slow."""
-    scene_dir = Path(scene_dir)
-    if scene_dir.exists() and not scene_dir.is_dir():
-        raise StoreError(f"output path {scene_dir} exists and is not a folder")
-    lock_file = scene_dir / LOCK_NAME
-    foreign = scene_dir.is_dir() and not (scene_dir / STORE_NAME).exists() and not lock_file.exists()
-    if foreign and any(scene_dir.iterdir()):
-        raise StoreError(f"output folder {scene_dir} is not empty and holds no scene; choose another --out")
-    existing = next(p for p in (scene_dir, *scene_dir.absolute().parents) if p.exists() or p == p.parent)
-    if not existing.is_dir():
-        raise StoreError(f"cannot write to output folder {scene_dir}: {existing} is not a folder")
-    check_writable(existing, f"output folder {scene_dir}")
-
-
-def check_writable(folder: Path | str, what: str | None = None) -> None:
-    """StoreError, touching nothing, when no file can be created in the existing folder `folder` (a read-only file
-    system, or no permission); `what` names it in the message (default: the folder)."""
-    folder = Path(folder)
-    if os.access(folder, os.W_OK | os.X_OK):
-        return
-    try:
-        read_only = bool(os.statvfs(folder).f_flag & os.ST_RDONLY)
-    except OSError:
-        read_only = False
-    why = f"{folder} is on a read-only file system" if read_only else f"permission denied on {folder}"
-    raise StoreError(f"cannot write to {what or folder}: {why}")
-
-
 @contextmanager
-def scene_lock(scene_dir: Path | str, wait_s: float = 0.0, poll_s: float = 0.1) -> Iterator[Path]:
+def scene_lock(
+    scene_dir: Path | str, wait_s: float = 0.0, poll_s: float = 0.1, judge: Callable[[], None] | None = None
+) -> Iterator[Path]:
     """Hold the one-writer lock of a scene while the block runs; yields the lock file's path.
 
-    An exclusive `fcntl.flock` on the scene folder itself (a descriptor of the directory, created when
-    absent): a lock on something a file operation inside the folder cannot swap out, so deleting or replacing
-    `<scene_dir>/.wonderverse.lock` while a run holds the lock lets no second run in. Non-blocking attempts
-    every `poll_s` seconds for up to `wait_s` (0: one attempt; math.inf: wait for ever); when the scene stays
-    busy, raises StoreError naming the holder's pid, host and start time. The kernel drops the lock when its
-    holder exits or is killed, so a crashed run never leaves the scene locked. The holder writes its details
-    into `.wonderverse.lock` (what a refused run quotes; it also marks the folder as a scene's) and empties it
-    again on release. A folder that is non-empty and holds no scene is refused untouched, as `open_or_create`
-    does. What it does not stop: a process that writes the store without taking the lock, or a scene folder
+    An exclusive `fcntl.flock` on the scene folder itself (a descriptor of the directory): a lock on something a
+    file operation inside the folder cannot swap out, so deleting or replacing `<scene_dir>/.wonderverse.lock` while
+    a run holds the lock lets no second run in. Non-blocking attempts every `poll_s` seconds for up to `wait_s` (0:
+    one attempt; math.inf: wait for ever); when the scene stays busy, raises StoreError naming the holder's pid, host
+    and start time. The kernel drops the lock when its holder exits or is killed, so a crashed run never leaves the
+    scene locked.
+
+    Judged before anything is written: the folder (`check_scene_dir`: a foreign folder, a user's own file named
+    `.wonderverse.lock`, a `scene.zarr` that is no store are refused) and `judge()` (the caller's own refusals: a
+    newer store, a run that would replace segments) run before the folder is created or the lock file opened, and
+    again once the lock is held (nothing can change under it then); a refusal leaves every byte and every name as
+    it was (a folder this call created for the lock is removed again). Only then does the holder write its details
+    into `.wonderverse.lock` (what a refused run quotes; it also marks the folder as a scene's), emptied again on
+    release. What it does not stop: a process that writes the store without taking the lock, or a scene folder
     renamed or replaced as a whole while a run holds it.
     """
     import fcntl
 
     scene_dir = Path(scene_dir)
     lock_file = scene_dir / LOCK_NAME
-    check_scene_dir(scene_dir)
+
+    def judged() -> None:
+        check_scene_dir(scene_dir)
+        if judge is not None:
+            judge()
+
+    judged()
+    created = [p for p in (scene_dir, *scene_dir.absolute().parents) if not p.exists()]  # deepest first
     try:
         scene_dir.mkdir(parents=True, exist_ok=True)
         dir_fd = os.open(scene_dir, os.O_RDONLY | os.O_DIRECTORY)
@@ -660,6 +756,13 @@ def scene_lock(scene_dir: Path | str, wait_s: float = 0.0, poll_s: float = 0.1) 
                         "wait for it to finish or use another --out"
                     ) from None
                 time.sleep(poll_s)
+        try:
+            judged()  # under the lock: what was judged before cannot have changed since
+        except BaseException:
+            for folder in created:
+                with suppress(OSError):
+                    folder.rmdir()
+            raise
         try:  # opened only once the lock is ours: a refused run leaves the holder's details (and file) alone
             fd = os.open(lock_file, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW, 0o644)
         except OSError as e:

@@ -10,6 +10,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from wonderverse.planning.moves import Direction, PlanParseError, parse_move
+from wonderverse.text import url_credentials
 
 MAX_SEGMENTS = 64  # what one scene holds: its store, its poses' solve and its training stay within one machine
 
@@ -65,6 +66,16 @@ class PlannerSpec(Model):
     max_retries: int = Field(
         1, ge=0, le=5, description="requests repeated after a transport error, timeout or HTTP 5xx (not a bad answer)"
     )
+
+    @field_validator("base_url")
+    @classmethod
+    def _no_credentials(cls, v: str) -> str:
+        """A URL's user:password would be printed, logged and stored with the scene (its config is in the store and
+        the report): the key belongs in an environment variable (`api_key_env`), read when the request is sent."""
+        problem = url_credentials(v)
+        if problem is not None:
+            raise ValueError(problem)
+        return v
 
 
 class PlanParams(Model):
