@@ -46,6 +46,7 @@ QUICK = {  # tests/test_studio.py's tiny scene
     },
     "steps": {
         "check": {"max_attempts": 1},
+        "poses": {"sfm": {"num_threads": 1}},  # COLMAP's mapper on one thread repeats itself (test_kill_nine)
         "splats": {"max_side_px": 96, "train": {"iterations": 60, "holdout_every": 0}},
         "outputs": {"video_frames": 4, "quality_frames": 1, "colmap": False, "nerfstudio": False},
     },
@@ -63,19 +64,35 @@ def _rss_mb(pid: int) -> float:
 
 def _view(page: Any, loads: int) -> Any:
     """The 3D view's frame once the page's `loads`-th view has drawn."""
-    page.wait_for_function(f"window.studio.viewLoads >= {loads}", timeout=900_000)
+    waited = time.monotonic()
+    while True:
+        try:
+            page.wait_for_function(f"window.studio.viewLoads >= {loads}", timeout=20_000)
+            break
+        except Exception:
+            state = page.evaluate("JSON.stringify({...window.studio, lastEvent: window.studio.lastEvent})")
+            print(f"waiting for view {loads} ({time.monotonic() - waited:.0f} s): {state[:600]}", file=sys.stderr)
+            if time.monotonic() - waited > 900:
+                raise
     key = page.evaluate("window.studio.viewKey")
     deadline = time.monotonic() + 300
     while time.monotonic() < deadline:
         frame = next((f for f in page.frames if f.url.endswith(f"key={key}")), None)
         if frame is not None:
             try:
-                frame.wait_for_function(READY, timeout=300_000)
-                return frame
-            except Exception:
-                pass
+                frame.wait_for_function(READY, timeout=20_000)
+            except Exception as e:  # still loading, or reloaded meanwhile
+                print(f"view {key}: {type(e).__name__}: {str(e)[:200]}", file=sys.stderr)
+                continue
+            error = frame.evaluate("window.wonderverse.error")
+            if error:
+                raise RuntimeError(f"the view failed: {error}")
+            return frame
+        if int(time.monotonic() * 20) % 100 == 0:
+            state = page.evaluate("[window.studio.viewKey, window.studio.viewLoads, window.studio.error]")
+            print(f"view {key}: frames {[f.url for f in page.frames]}, page {state}", file=sys.stderr)
         time.sleep(0.05)
-    raise RuntimeError("the view never drew")
+    raise RuntimeError(f"the view never drew; frames: {[f.url for f in page.frames]}")
 
 
 def _fps(page: Any, frame: Any, orbit: bool, seconds: float = 5.0) -> float:
@@ -129,14 +146,21 @@ def main() -> None:
                 page.wait_for_function("window.studio.job && window.studio.job.kind === 'generate'")
                 page.wait_for_function("window.studio.job.state === 'done'", timeout=1_800_000)
                 generate_s = time.monotonic() - t0
+                print(f"generated in {generate_s:.1f} s", file=sys.stderr, flush=True)
                 _view(page, 1)
                 auth = {"Authorization": f"Bearer {token}"}
                 before = httpx.get(f"{base}/api/scenes/bench", headers=auth, timeout=60).json()
                 assert before["job"] is None and before["last_job"]["state"] == "done", before["last_job"]
                 loads = page.evaluate("window.studio.viewLoads")
-                page.fill("#words", "a frozen lake on the left")
+                page.fill("#words", "a red barn straight ahead")
                 t0 = time.monotonic()
                 page.click("#extend")
+                page.wait_for_function(
+                    "window.studio.error || (window.studio.job && window.studio.job.kind === 'extend')"
+                )
+                if page.evaluate("window.studio.error"):
+                    raise RuntimeError(f"extend refused: {page.evaluate('window.studio.error')}")
+                print(f"extend started; view loads {loads}", file=sys.stderr, flush=True)
                 frame = _view(page, loads + 1)
                 drawn_s = time.monotonic() - t0
                 page.wait_for_function(

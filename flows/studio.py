@@ -392,8 +392,8 @@ def _placeholder(message: str) -> str:
 
     return (
         '<!doctype html><meta charset="utf-8"><body style="background:#111;color:#fc6;font:14px system-ui">'
-        f'<p id="wv-status">{html.escape(message)}</p><script>window.wonderverse={{ready:false,error:null,'
-        "empty:true}</script>"
+        f'<p id="wv-status">{html.escape(message)}</p><script>window.wonderverse={{ready:false,'
+        f"error:{json.dumps(message)},empty:true}}</script>"
     )
 
 
