@@ -31,7 +31,7 @@ from tasks.output_mesh import make_mesh
 from tasks.output_scene import Made, OutputScene
 from wonderverse.config import Model, OutputsParams, RunConfig
 from wonderverse.schema import OUTPUT_PRODUCT, OUTPUTS, SPLATS
-from wonderverse.store import SceneStore, cache_key, write_array
+from wonderverse.store import SceneStore, cache_key, path_digest, write_array
 
 if TYPE_CHECKING:
     from wonderverse.camera import Sim3
@@ -58,6 +58,7 @@ class Product:
     reads: Callable[[Params], dict[str, Any]]
     make: Callable[[OutputScene], Made]
     after: tuple[str, ...] = ()
+    writes_into: tuple[str, ...] = ()  # folders another product lists that this one writes files into
 
 
 def _video(p: Params) -> dict[str, Any]:
@@ -109,6 +110,7 @@ PRODUCTS: tuple[Product, ...] = (
         lambda p: _video(p) | {"fps": p.outputs.video_fps, "nerfstudio": p.outputs.nerfstudio},
         make.make_camera_paths,
         ("frame", "mesh"),
+        ("nerfstudio",),  # nerfstudio/camera_paths/
     ),
     Product("videos", 1, lambda p: _video(p) | {"fps": p.outputs.video_fps}, make.make_videos, ("frame", "mesh")),
     Product(
@@ -138,6 +140,31 @@ def product_keys(p: Params, splats_key: str) -> dict[str, str]:
     return keys
 
 
+def altered_files(store: SceneStore) -> set[str]:
+    """The files beside the store that the outputs step's last commit recorded with a digest and that are now missing
+    or differ from it (a user deleted `mesh.ply`, truncated `splats.ply`)."""
+    from wonderverse.store import DamagedData
+
+    try:
+        meta = store.meta(OUTPUTS.path, complete=False)
+    except DamagedData:
+        return set()
+    altered = set()
+    for f in meta.files if meta is not None else []:
+        if f.digest is not None and path_digest(store.scene_dir / f.path) != f.digest:
+            altered.add(f.path)
+    return altered
+
+
+def _touches(store: SceneStore, product: Product, altered: set[str]) -> bool:
+    """Whether `product` wrote one of the `altered` files, or writes into one of them (a folder)."""
+    if not altered:
+        return False
+    record = store.meta(OUTPUT_PRODUCT.at(product=product.name))
+    listed = {f.path for f in record.files} if record is not None else set()
+    return bool((listed | set(product.writes_into)) & altered)
+
+
 def output_frame(store: SceneStore) -> Sim3:
     """The rigid transform from the global poses' frame (`sfm/`) to the frame every output file is in
     (x_out = R (x_sfm - origin)); for readers that compare the files with the store (the report, benchmarks).
@@ -155,8 +182,11 @@ def run(store: SceneStore, params: Params, ctx: StepContext) -> str:
     scene.settings = settings_digests(params)
     keys = product_keys(params, store.cache_key_of(SPLATS.path) or "")
     made = []
+    altered = altered_files(store)
     for product in PRODUCTS:
         group = OUTPUT_PRODUCT.at(product=product.name)
+        if _touches(store, product, altered):  # made again from scratch: nothing of its files is kept
+            store.mark_damaged(group, [f"file {name} is missing or altered" for name in sorted(altered)])
         if not store.is_complete(group, keys[product.name]):
             m = product.make(scene)
             listed = [{"path": f.path.name, "bytes": f.size, "description": f.description} for f in m.files]
@@ -167,7 +197,13 @@ def run(store: SceneStore, params: Params, ctx: StepContext) -> str:
             made.append(product.name)
         scene.records[product.name] = store.meta(group)
     r = scene.records
-    files = [f for product in PRODUCTS for f in r[product.name].files]
+    # the files as the step leaves them, each with its digest: a file deleted or altered later makes the products that
+    # wrote it run again (`altered_files`), and the step's group counts as damaged until then (`SceneStore.damage`)
+    files = [
+        f.model_copy(update={"digest": path_digest(store.scene_dir / f.path)})
+        for product in PRODUCTS
+        for f in r[product.name].files
+    ]
     mesh = r["mesh"].mesh.model_copy(update={"points": r["points"].points, "fused": [], "view_depths": []})
     store.mark_complete(
         OUTPUTS.path,

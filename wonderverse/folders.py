@@ -132,7 +132,7 @@ def _our_lock_file(lock_file: Path) -> bool:
         info = json.loads(lock_file.read_bytes())
     except (OSError, ValueError, RecursionError):
         return False
-    return isinstance(info, dict) and set(info) == _LOCK_KEYS
+    return isinstance(info, dict) and set(info) <= _LOCK_KEYS
 
 
 def check_scene_dir(scene_dir: Path | str) -> None:
@@ -150,11 +150,11 @@ def check_scene_dir(scene_dir: Path | str) -> None:
         except OSError as e:
             raise StoreError(f"cannot read output folder {scene_dir}: {e.strerror or e}") from None
         lock_file = scene_dir / LOCK_NAME
+        if LOCK_NAME in names and (lock_file.is_symlink() or not lock_file.is_file()):
+            raise StoreError(f"cannot write to output folder {scene_dir}: {LOCK_NAME} is not a regular file")
         if STORE_NAME in names:
             if not (scene_dir / STORE_NAME / "zarr.json").is_file():
                 raise StoreError(f"{scene_dir} holds no scene store ({STORE_NAME}/zarr.json is missing)")
-            if LOCK_NAME in names and (lock_file.is_symlink() or not lock_file.is_file()):
-                raise StoreError(f"cannot write to output folder {scene_dir}: {LOCK_NAME} is not a regular file")
         elif names - {LOCK_NAME} or (LOCK_NAME in names and not _our_lock_file(lock_file)):
             raise StoreError(f"output folder {scene_dir} is not empty and holds no scene; choose another --out")
     existing = next(p for p in (scene_dir, *scene_dir.absolute().parents) if p.exists() or p == p.parent)

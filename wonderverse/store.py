@@ -112,6 +112,35 @@ def _file_digest(path: Path) -> list[Any]:
     return [len(data), f"{google_crc32c.value(data):08x}"]
 
 
+def path_digest(path: Path | str) -> str | None:
+    """CRC-32C (8 hex digits) of a file's bytes, or of a folder's files (their relative paths, sizes and CRCs, in
+    order); None when nothing is there. What a step records of the files it writes beside the store (`FileEntry`)."""
+    import google_crc32c
+
+    path = Path(path)
+    if path.is_file():
+        return _file_digest(path)[1]
+    if not path.is_dir():
+        return None
+    lines = [f"{rel}\0{size}\0{crc}\n" for rel in _files(path) for size, crc in [_file_digest(path / rel)]]
+    return f"{google_crc32c.value(''.join(lines).encode('utf-8', 'surrogateescape')):08x}"
+
+
+def _check_files(scene_dir: Path, files: Any) -> list[str]:
+    """What differs between the files a group lists (`FileEntry`s with a digest) and those beside the store."""
+    problems: list[str] = []
+    for f in files if isinstance(files, list) else []:
+        name, want = (f.get("path"), f.get("digest")) if isinstance(f, dict) else (None, None)
+        if not isinstance(name, str) or not isinstance(want, str) or scene_name_problem(name) is not None:
+            continue  # recorded before digests (or not a name of this folder): read unverified, as before
+        got = path_digest(scene_dir / name)
+        if got is None:
+            problems.append(f"file {name} is missing")
+        elif got != want:
+            problems.append(f"file {name} differs from what was written (CRC-32C)")
+    return problems
+
+
 def _node(d: Path) -> dict[str, Any] | None:
     """The zarr v3 metadata of the node at folder `d` (a group or an array), None when absent or unreadable."""
     try:
@@ -441,6 +470,7 @@ class SceneStore:
         base = self._dir(group_path)
         arrays = (record.get("arrays") or {}).items()
         problems = [p for name, files in arrays for p in _check_array(base, name, files, group_path)]
+        problems += _check_files(self.scene_dir, a.get("files"))  # what the group wrote beside the store
         found: dict[str, list[str]] = {}
         for child, key in (record.get("groups") or {}).items():
             child_path = f"{group_path}/{child}"
@@ -472,6 +502,12 @@ class SceneStore:
 
         walk(self.path, "")
         return out
+
+    def mark_damaged(self, group_path: str, problems: list[str]) -> None:
+        """Mark a committed group damaged (incomplete, keeping its key, with `problems` recorded): what a step does
+        with a part of its own output it found altered, so that the part is made again."""
+        if self.cache_key_of(group_path) is not None:
+            self._mark_damaged({group_path: problems})
 
     def _mark_damaged(self, found: dict[str, list[str]]) -> None:
         """Mark damaged groups incomplete (keeping their key: a rewrite under the same key keeps their units)."""

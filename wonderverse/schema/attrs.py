@@ -41,6 +41,11 @@ class FileEntry(Attrs):
     path: str = Field(description="its name in the scene folder")
     bytes: int = Field(description="its size (a folder's files summed)")
     description: str = Field("", description="what it holds, and the conventions it follows")
+    digest: str | None = Field(
+        None,
+        description="CRC-32C of its bytes (a folder: of its files' paths, sizes and CRCs), checked before the step's "
+        "result is trusted: a file missing or altered makes its product run again (None: written before digests)",
+    )
 
 
 class RunRecord(Attrs):
