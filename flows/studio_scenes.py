@@ -11,15 +11,12 @@ from __future__ import annotations
 
 import os
 import threading
-import unicodedata
 from pathlib import Path
 from typing import Any
 from urllib.parse import unquote
 
-from wonderverse.config import control_character
 from wonderverse.errors import WonderError
 
-MAX_NAME_CHARS = 100
 REPORT = "report.html"
 LIVE_SPLATS = "live.ply"
 
@@ -29,22 +26,16 @@ class NotFound(WonderError):
 
 
 def check_name(name: str) -> str:
-    """`name` when it is one folder name for a scene inside the root, else WonderError saying why: one path
-    component (no `/` or `\\`), not `.` or `..` (also after Unicode and path normalisation), not hidden (a leading
-    `.`), no control character, at most MAX_NAME_CHARS characters."""
-    shown = repr(name[:40] + ("…" if len(name) > 40 else ""))
-    if not isinstance(name, str) or not name.strip():
-        raise WonderError("the scene name is empty; give the scene a folder name, e.g. 'winter-house'")
-    if len(name) > MAX_NAME_CHARS:
-        raise WonderError(f"the scene name has {len(name)} characters; at most {MAX_NAME_CHARS} are allowed")
-    bad = control_character(name)
-    if bad is not None:
-        raise WonderError(f"the scene name holds the control character {bad}")
-    normal = os.path.normpath(unicodedata.normalize("NFKC", name))
-    if "/" in name or "\\" in name or "/" in normal or "\\" in normal or normal in (".", ".."):
-        raise WonderError(f"scene name {shown}: a name is one folder name inside the studio's folder (no '/' or '..')")
-    if name.startswith(".") or normal.startswith(".") or name != name.strip():
-        raise WonderError(f"scene name {shown}: a name may not start with '.' or a space, nor end with a space")
+    """`name` when it is one folder name for a scene inside the root, else WonderError saying why: the project's one
+    rule for names that become paths (`wonderverse.text.scene_name_problem`: one path component, not `.` or `..`
+    after NFKC normalisation, not hidden, no separator or control character, no space at either end, at most 255
+    bytes)."""
+    from wonderverse.text import scene_name_problem
+
+    problem = scene_name_problem(name)
+    if problem is not None:
+        shown = repr(name[:40] + ("…" if len(name) > 40 else "")) if isinstance(name, str) else "?"
+        raise WonderError(f"scene name {shown}: {problem}")
     return name
 
 
