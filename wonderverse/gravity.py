@@ -60,7 +60,7 @@ class GravityParams(BaseModel):
     plane_inlier_frac: float = Field(0.002, gt=0, lt=0.5, description="RANSAC inlier distance / points' extent")
     plane_min_support_frac: float = Field(0.05, gt=0, le=1, description="ground plane's share of the points")
     plane_min_points: int = Field(30, ge=3, description="fewer points: no plane is sought")
-    plane_max_points: int = Field(20_000, ge=3, description="points subsampled to this many for RANSAC")
+    plane_max_points: int = Field(20_000, ge=3, le=10_000_000, description="points subsampled to this many for RANSAC")
     ransac_iterations: int = Field(400, ge=1, le=100_000)
     seed: int = 0
 

@@ -34,7 +34,9 @@ class AlignParams(_Model):
     ransac_rel_thresh: float = Field(
         0.05, gt=0, description="inlier if |a*p+b - t| <= thresh * |t| (relative, so scale-free)"
     )
-    ransac_max_score_points: int = Field(4096, ge=16, description="hypotheses are scored on this many samples")
+    ransac_max_score_points: int = Field(
+        4096, ge=16, le=10_000_000, description="hypotheses are scored on this many samples"
+    )
     depth_clamp_ratio: float = Field(
         10.0, gt=1, description="aligned depth is clamped to [min_ref/ratio, max_ref*ratio]"
     )

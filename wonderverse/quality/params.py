@@ -31,4 +31,4 @@ class QualityParams(BaseModel):
         "auto", description="where CLIP and Q-Align run; auto: CUDA when available (NIQE runs on the CPU)"
     )
     fp16: bool = Field(True, description="half precision on CUDA (ignored on CPU)")
-    batch_size: int = Field(8, ge=1, description="images per forward pass of CLIP / Q-Align")
+    batch_size: int = Field(8, ge=1, le=1024, description="images per forward pass of CLIP / Q-Align")

@@ -165,7 +165,9 @@ class TrainParams(BaseModel):
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
-    iterations: int = Field(7000, ge=0, description="optimisation steps, one training view each")
+    iterations: int = Field(
+        7000, ge=0, le=200_000, description="optimisation steps, one training view each (high: 30 000)"
+    )
     lr_means: float = Field(1.6e-4, ge=0, description="times scene_scale; decays exponentially")
     lr_means_final_ratio: float = Field(0.01, gt=0, le=1, description="lr_means at the end / at the start")
     lr_quats: float = Field(1e-3, ge=0, description="learning rate of the rotations (quaternions)")

@@ -40,7 +40,7 @@ class WorldParams(BaseModel):
     object_radius_m: Range = Field((5.0, 40.0), description="outdoor objects stand at distances in this range")
     object_gap_m: float = Field(0.6, ge=0, description="free space between object footprints")
     outdoor_objects: int = Field(60, ge=0, le=400, description="objects of a meadow; themes scale it")
-    placement_tries: int = Field(60, ge=1, description="rejection-sampling tries per object")
+    placement_tries: int = Field(60, ge=1, le=10_000, description="rejection-sampling tries per object")
     camera_height_m: float = Field(3.0, gt=0, description="outdoors: the start pose's height above the ground")
     camera_pitch_deg: float = Field(10.0, ge=-60, le=60, description="downwards pitch of the start pose")
     shore_distance_m: float = Field(14.0, gt=0, description="beach: the sea begins this far out")
