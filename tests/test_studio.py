@@ -80,6 +80,43 @@ def test_scene_files_stay_inside_the_scene(tmp_path: Path):
         assert scene_entry(scene, bad) is None, bad
 
 
+def test_the_json_reporter_writes_the_terminals_units_as_json_lines(monkeypatch, capsys):
+    """PROGRESS_ENV=json: make_reporter gives JSON lines (one per event, progress at most every JSON_EVERY_S per
+    unit plus each unit's first and last report) with the line the terminal would show."""
+    from rich.console import Console
+
+    from flows.progress import JSON_PREFIX, PROGRESS_ENV, JsonReporter, make_reporter
+    from tasks.base import StepResult
+
+    monkeypatch.setenv(PROGRESS_ENV, "json")
+    reporter = make_reporter(Console(stderr=True), 7)
+    assert isinstance(reporter, JsonReporter)
+    reporter.started("splats", "3D Gaussian splatting")
+    for i in range(0, 101):
+        reporter.advance(i, 100, "iterations", f"loss {1 / (i + 1):.4f}")
+    reporter.finished(StepResult(step="splats", status="ran", seconds=1.5, cache_key="k", detail="9 Gaussians"))
+    lines = capsys.readouterr().err.splitlines()
+    assert all(line.startswith(JSON_PREFIX) for line in lines)
+    events = [json.loads(line[len(JSON_PREFIX) :]) for line in lines]
+    assert events[0] == {
+        "event": "started",
+        "step": "splats",
+        "description": "3D Gaussian splatting",
+        "index": 1,
+        "total": 7,
+    }
+    progress = [e for e in events if e["event"] == "progress"]
+    assert progress[0]["done"] == 0 and progress[-1]["done"] == 100 and len(progress) < 10  # throttled
+    assert progress[-1]["line"] == "iterations 100/100 (100 %), loss 0.0099"
+    assert events[-1] == {
+        "event": "finished",
+        "step": "splats",
+        "status": "ran",
+        "seconds": 1.5,
+        "detail": "9 Gaussians",
+    }
+
+
 # ------------------------------------------------------------------------------------------- one studio
 
 
