@@ -6,6 +6,7 @@ code 2; nothing already in the store is touched before the inputs are validated.
 
 from __future__ import annotations
 
+import errno
 import glob
 import json
 import os
@@ -122,7 +123,7 @@ def generate(
     from wonderverse.yaml_files import read_yaml
 
     # judged cheapest first, before the steps, zarr or any engine load: a refusal costs what Python's start does
-    check_engine(engine)
+    _judge_engine(engine)
     if prompt is not None:
         _judge_prompt(prompt)
     file_scene = read_yaml(config).get("scene") if config else None
@@ -259,7 +260,7 @@ def reconstruct(
     from wonderverse.text import control_character
     from wonderverse.video.files import group_sources
 
-    check_engine(engine)
+    _judge_engine(engine)
     paths = []
     for source in group_sources(clips):  # a shell turns frames/*.png into many arguments: one clip again
         if isinstance(source, list | tuple):
@@ -342,7 +343,7 @@ def extend(
     """Extend a scene in words: plan, generate, check one more segment; update poses, priors, splats, outputs."""
     from flows.extend import extension_config
 
-    check_engine(engine)
+    _judge_engine(engine)
     cfg = extension_config(scene_dir, words)  # no scene, no completed run, clips, unusable words: refused here
     from flows.pipeline import claimed, run_pipeline
 
@@ -485,6 +486,35 @@ def studio(
     serve_studio(root, host, port, config, engine)
 
 
+def _quiet_libraries() -> None:
+    """Only the command's own lines reach the terminal: other libraries' Python warnings (a deprecation noticed at
+    import, before a run's first line) and log records of loggers nobody configured (Python would print them through
+    its last-resort handler) are dropped; our own warnings stay, and PYTHONWARNINGS / -W still decide when given."""
+    import logging
+    import warnings
+
+    if not sys.warnoptions:
+        warnings.simplefilter("ignore")
+        warnings.filterwarnings("default", module=r"(wonderverse|flows|tasks)(\.|$)")
+    logging.getLogger().addHandler(logging.NullHandler())
+
+
+# A file-size limit (`ulimit -f`) shows as EFBIG on the first large write, in our files or in Prefect's database
+FSIZE_ADVICE = "a file-size limit is set for this shell (ulimit -f): raise it with `ulimit -f unlimited`"
+MIN_FILE_SIZE_LIMIT = 1 << 30  # bytes: a scene's files and Prefect's database need more than this
+
+
+def _judge_engine(engine: str) -> None:
+    """The engine's refusals before anything is written: an unknown name; a file-size limit too small for a run
+    (under Prefect it would surface as a database error after its server started)."""
+    import resource
+
+    check_engine(engine)
+    soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
+    if soft != resource.RLIM_INFINITY and soft < MIN_FILE_SIZE_LIMIT:
+        raise WonderError(f"files may be at most {soft} bytes here: {FSIZE_ADVICE}")
+
+
 def error_line(message: str) -> str:
     """`message` as one line for a terminal: every run of whitespace one space, any other control character (a
     terminal escape or a bidirectional override in a file name or a setting's name) written as its escape, never
@@ -502,6 +532,7 @@ def main() -> None:
     if os.environ.get(CHILD_ENV) != "1":
         sys.exit(run_supervised(sys.argv[1:]))
     start_reaper()
+    _quiet_libraries()
     try:
         app(standalone_mode=False)
     except WonderError as e:  # StepFailed included
@@ -509,7 +540,8 @@ def main() -> None:
         sys.exit(2)
     except OSError as e:  # the disk, not the code: full, read-only, gone while writing
         where = f"{e.filename}: " if e.filename else ""
-        print(f"error: {error_line(where + (e.strerror or str(e)))}", file=sys.stderr)
+        why = (e.strerror or str(e)) + (f" ({FSIZE_ADVICE})" if e.errno == errno.EFBIG else "")
+        print(f"error: {error_line(where + why)}", file=sys.stderr)
         sys.exit(2)
     except (typer.Exit, SystemExit) as e:
         code = getattr(e, "exit_code", getattr(e, "code", 0))
