@@ -124,9 +124,10 @@ def run_batch(
     specs_dir: Path | str, out_root: Path | str, until: str | None = None, dask_address: str | None = None
 ) -> dict[str, Any]:
     """Run the `batch` flow in this process (on PREFECT_API_URL if set, else Prefect's ephemeral API)."""
-    _check_until(until)
-    find_specs(specs_dir)  # a missing folder is a user error before Prefect starts
+    if not find_specs(specs_dir):  # a missing folder, a bad spec name, no spec: user errors before Prefect starts
+        raise WonderError(f"no scene specs (*.yaml, *.yml regular files) in {specs_dir}")
     _check_out_root(Path(out_root))
+    _check_until(until)
     args = (str(Path(specs_dir).resolve()), str(Path(out_root).resolve()), until, dask_address)
     state = batch_flow()(*args, return_state=True)
     summary = state.result(raise_on_failure=False)

@@ -14,6 +14,7 @@ nonsense falls back to the rules with a warning (exit 0, its own test)."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import re
@@ -32,7 +33,7 @@ import imageio.v2 as imageio
 import numpy as np
 import pytest
 import yaml
-from conftest import ROOT, TINY_VIDEO, complete_config, lock_held_elsewhere, tiny_config, tree_digest
+from conftest import ROOT, TINY_VIDEO, complete_config, lock_held_elsewhere, tiny_config
 
 from flows.pipeline import execute
 from wonderverse.schema import ATTEMPT, PLAN
@@ -57,6 +58,9 @@ class Case:
     target: Path | None = None
     read_only: Path | None = None
     full_disk: bool = False
+    secret: str | None = None  # must appear nowhere in what the call prints
+    env: tuple[tuple[str, str], ...] = ()  # more environment variables for the call
+    fsize_bytes: int | None = None  # a file-size limit (ulimit -f) for the call
 
     @property
     def takes_engine(self) -> bool:
@@ -70,6 +74,28 @@ class World:
     copies: dict[str, Path]
     specs: Path
     clips: Path
+    batches: dict[str, Path]  # a folder of specs whose one spec file has a name that is no folder name
+
+
+SECRET = "hunter2-PASSWORD"  # a password in a URL: no call may print it
+FRAMES_META = f"scene.zarr/{FRAMES}/zarr.json"
+# Spec file names that are no single folder name: `..yaml` names OUT itself, `...yaml` its parent (the file's stem)
+BAD_SPEC_NAMES = {
+    "dot": "..yaml",
+    "dotdot": "...yaml",
+    "hidden": ".hidden.yaml",
+    "fullwidth-dots": "\uff0e\uff0e.yaml",
+    "one-dot-leader": "\u2025.yaml",
+    "backslash": "a\\b.yaml",
+    "fullwidth-slash": "a\uff0fb.yaml",
+    "rlo": "\u202escene.yaml",
+    "esc": "\x1b[2Jscene.yaml",
+    "zero-width": "\u200b.yaml",
+    "space-end": "scene .yaml",
+    "space-start": " scene.yaml",
+    "long": "x" * 251 + ".yaml",
+    "newline": "a\nb.yaml",
+}
 
 
 def _prefect_env(home: Path) -> dict[str, str]:
@@ -93,6 +119,78 @@ def _set_format(scene: Path, value: object) -> None:
     meta = json.loads(meta_file.read_text())
     meta["attributes"]["format"] = value
     meta_file.write_text(json.dumps(meta))
+
+
+def _forge_frames_meta(scene: Path, kind: str) -> None:
+    """Rewrite the first attempt's frames metadata as a hostile store would (`kind`), and, unless `kind` ends in
+    `-unrecorded`, its digest in the segment's record too, so the digests pass and only the limits can tell."""
+    import google_crc32c
+
+    meta_file = scene / FRAMES_META
+    meta = json.loads(meta_file.read_text())
+    grid = meta["chunk_grid"]["configuration"]
+    if kind.startswith("deep"):
+        raw = meta_file.read_bytes().rstrip()[:-1] + b', "x": ' + b"[" * 100_000 + b"]" * 100_000 + b"}"
+    else:
+        if kind == "huge-shape":
+            meta["shape"][0] = 6_000_000
+        elif kind == "tiny-chunks":
+            grid["chunk_shape"] = [1] * len(meta["shape"])
+        elif kind == "huge-bytes":
+            meta["shape"] = grid["chunk_shape"] = [6, 64_000, 96_000, 3]
+        elif kind == "schema-shape":
+            meta["shape"][-1] = grid["chunk_shape"][-1] = 4
+        elif kind == "float-shape":
+            meta["shape"][0] = 6.5
+        elif kind == "huge-int":
+            meta["shape"][0] = 10**30
+        elif kind == "dtype":
+            meta["data_type"] = "object"
+        raw = json.dumps(meta).encode()
+    meta_file.write_bytes(raw)
+    if kind.endswith("-unrecorded"):
+        return
+    group = scene / "scene.zarr" / "segments" / "s000" / "zarr.json"
+    gm = json.loads(group.read_text())
+    gm["attributes"]["chunk_digests"]["arrays"]["attempts/0/frames"]["zarr.json"] = [
+        len(raw),
+        f"{google_crc32c.value(raw):08x}",
+    ]
+    group.write_text(json.dumps(gm))
+
+
+FORGED = ("deep", "deep-unrecorded", "huge-shape", "tiny-chunks", "huge-bytes", "schema-shape", "huge-int", "dtype")
+
+
+def _as_clip_scene(scene: Path, clip: Path) -> None:
+    """Make `scene`'s records say its segments are a clip (what `reconstruct` records): cheaper than reconstructing."""
+    meta_file = scene / "scene.zarr" / "zarr.json"
+    meta = json.loads(meta_file.read_text())
+    for name in ("config", "segments_config"):
+        cfg = meta["attributes"].get(name)
+        if cfg is None:
+            continue
+        cfg["scene"]["video"] = {**cfg["scene"]["video"], "backend": "files", "clips": [str(clip)], "options": {}}
+        cfg["steps"]["priors"]["models"] |= {"depth_backend": "none", "normal_backend": "none"}
+    meta_file.write_text(json.dumps(meta))
+
+
+def folder_state(folder: Path) -> str:
+    """One hash of every name under `folder` (files, folders, links, pipes: a new empty folder or lock file counts),
+    each with its kind and, for files, bytes, for links, target."""
+    h = hashlib.sha256()
+    for p in sorted(folder.rglob("*")):
+        rel = str(p.relative_to(folder)).encode("utf-8", "surrogateescape")
+        if p.is_symlink():
+            h.update(b"L" + rel + os.readlink(p).encode("utf-8", "surrogateescape"))
+        elif p.is_dir():
+            h.update(b"D" + rel)
+        elif p.is_file():
+            h.update(b"F" + rel + p.read_bytes())
+        else:
+            h.update(b"S" + rel)
+        h.update(b"\0")
+    return h.hexdigest()
 
 
 @pytest.fixture(scope="module")
@@ -150,7 +248,53 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> World:
     for i, (w_, h_) in enumerate([(96, 64), (96, 64), (128, 64)]):
         imageio.imwrite(clips / "mixed" / f"f{i}.png", np.full((h_, w_, 3), 40 * i, np.uint8))
     (clips / "model-file").write_text("not a folder")
-    return World(root, scene, copies, specs, clips)
+    (clips / "\u202ex.mp4").write_text("not a video")  # a name that reorders what a terminal shows
+    os.mkfifo(clips / "pipe.mp4")
+
+    # folders that are no scene, however they look like one, and stores whose metadata is hostile
+    for name, entries in {
+        "zarr-file": {"scene.zarr": "a file"},
+        "zarr-empty": {"scene.zarr/": None},
+        "zarr-no-root": {"scene.zarr/segments/": None},
+        "user-lock": {LOCK_NAME: "my own notes, not a lock"},
+        "user-lock-json": {LOCK_NAME: '{"pid": 1, "user": "me"}'},
+        "lock-and-file": {LOCK_NAME: "", "notes.txt": "mine"},
+        "lock-a-folder": {f"{LOCK_NAME}/": None},
+        "only-hidden": {".hidden": "x"},
+    }.items():
+        copies[name] = root / name
+        copies[name].mkdir()
+        for entry, content in entries.items():
+            if content is None:
+                (copies[name] / entry).mkdir(parents=True)
+            else:
+                (copies[name] / entry).write_text(content)
+    copies["lock-fifo"] = root / "lock-fifo"
+    copies["lock-fifo"].mkdir()
+    os.mkfifo(copies["lock-fifo"] / LOCK_NAME)
+    copies["lock-fifo-scene"] = copy("lock-fifo-scene")
+    (copies["lock-fifo-scene"] / LOCK_NAME).unlink()
+    os.mkfifo(copies["lock-fifo-scene"] / LOCK_NAME)
+    for kind in FORGED:
+        _forge_frames_meta(copy(f"forged-{kind}"), kind)
+    root_meta = copy("root-deep") / "scene.zarr" / "zarr.json"
+    root_meta.write_bytes(root_meta.read_bytes().rstrip()[:-1] + b', "x": ' + b"[" * 100_000 + b"]" * 100_000 + b"}")
+    _as_clip_scene(copy("clip-scene"), clips / "one.mp4")
+    copies["parent"] = root / "parent"  # batches write OUT below it: nothing may appear here
+    copies["parent"].mkdir()
+
+    batches = {}
+    for key, file_name in BAD_SPEC_NAMES.items():
+        batches[key] = root / "batches" / key
+        batches[key].mkdir(parents=True)
+        (batches[key] / "good.yaml").write_text(yaml.safe_dump(_spec_data()))
+        (batches[key] / file_name).write_text(yaml.safe_dump(_spec_data()))
+    batches["fifo-only"] = root / "batches" / "fifo-only"
+    batches["fifo-only"].mkdir()
+    os.mkfifo(batches["fifo-only"] / "scene.yaml")
+    batches["empty"] = root / "batches" / "empty"
+    batches["empty"].mkdir()
+    return World(root, scene, copies, specs, clips, batches)
 
 
 def _config_files(folder: Path) -> dict[str, tuple[Path, str]]:
@@ -178,6 +322,23 @@ def _config_files(folder: Path) -> dict[str, tuple[Path, str]]:
         "intent-bel": (b'scene: {prompt: x, extensions: {intents: ["go \\a left"]}}\n', "extensions.intents.0"),
         "added-esc": (b'scene: {prompt: x, extensions: {added: [ok, "\\e]0;title\\a"]}}\n', "extensions.added.1"),
         "empty": (b"", "scene.prompt: no prompt given"),
+        "dup-top": (b"preset: preview\npreset: high\nscene: {prompt: x}\n", "duplicate key 'preset'"),
+        "dup-nested": (
+            b"scene:\n  prompt: a\n  seed: 1\n  prompt: b\n",
+            "duplicate key 'prompt' (first given at line 2)",
+        ),
+        "dup-flow": (b"scene: {prompt: a, prompt: b}\n", "duplicate key 'prompt'"),
+        "dup-deep": (
+            b"steps:\n  splats:\n    train: {iterations: 5, iterations: 6}\nscene: {prompt: x}\n",
+            "duplicate key",
+        ),
+        "prompt-zwsp": ('scene: {prompt: "\u200b\u200c\u200d"}\n'.encode(), "holds no visible character"),
+        "prompt-bom": ('scene: {prompt: "\ufeff \u2060"}\n'.encode(), "holds no visible character"),
+        "prompt-filler": ('scene: {prompt: "\u3164\u3164"}\n'.encode(), "holds no visible character"),
+        "prompt-combining": ('scene: {prompt: "\u0301\u0302"}\n'.encode(), "holds no visible character"),
+        "prompt-rlo": ('scene: {prompt: "a \u202ehouse"}\n'.encode(), "U+202E (RLO) at character 3"),
+        "prompt-lri": ('scene: {prompt: "a \u2066house"}\n'.encode(), "U+2066 (LRI)"),
+        "added-zwsp": ('scene: {prompt: x, extensions: {added: ["\u200b"]}}\n'.encode(), "extensions.added"),
     }
     bomb = ["a: &a [lol, lol, lol, lol, lol, lol, lol, lol, lol]"]
     bomb += [f"{c}: &{c} [{', '.join(['*' + p] * 9)}]" for p, c in zip("abcdefghi", "bcdefghij", strict=True)]
@@ -227,6 +388,31 @@ def _config_files(folder: Path) -> dict[str, tuple[Path, str]]:
             _spec_data(scene__video={"backend": "files", "clips": ["/x/c.mp4"]}, steps__poses={"source": "x"}),
             "steps.poses.source",
         ),
+        "iterations-huge": (_spec_data(steps__splats={"train": {"iterations": 10**9}}), "train.iterations"),
+        "iterations-negative": (_spec_data(steps__splats={"train": {"iterations": -1}}), "train.iterations"),
+        "video-frames-huge": (_spec_data(steps__outputs={"video_frames": 10**7}), "outputs.video_frames"),
+        "placement-huge": (
+            _spec_data(scene__video__options={"placement_tries": 10**9}),
+            "options.placement_tries",
+        ),
+        "ransac-huge": (_spec_data(steps__priors={"models": {"align": {"ransac_iters": 10**9}}}), "ransac_iters"),
+        "segments-cap": (
+            _spec_data(scene__extensions={"rounds": 16, "directions": ["left", "right", "up", "down"]}),
+            "at most 64 segments",
+        ),
+        "url-password": (
+            _spec_data(scene__planner={"backend": "chat", "base_url": f"http://user:{SECRET}@127.0.0.1:9/v1"}),
+            "carries credentials",
+        ),
+        "url-password-long": (
+            _spec_data(scene__planner={"base_url": f"https://u:{SECRET * 8}@{'h' * 80}.example/v1"}),
+            "api_key_env",
+        ),
+        "url-user-only": (
+            _spec_data(scene__planner={"base_url": "http://admin@127.0.0.1:9/v1"}),
+            "carries credentials",
+        ),
+        "dask-password": (_spec_data(execution__dask_address=f"tcp://u:{SECRET}@127.0.0.1:8786"), "credentials"),
     }
     for name, (data, message) in settings.items():
         (folder / f"{name}.yaml").write_text(yaml.safe_dump(data))
@@ -234,9 +420,23 @@ def _config_files(folder: Path) -> dict[str, tuple[Path, str]]:
     return files
 
 
+def _special_files(folder: Path) -> tuple[Path, Path, Path]:
+    """A FIFO (opening it for reading would block until a writer came), a link to it, and a Unix socket."""
+    import socket
+
+    if not folder.exists():
+        folder.mkdir()
+        os.mkfifo(folder / "config.yaml")
+        (folder / "link.yaml").symlink_to(folder / "config.yaml")
+        with socket.socket(socket.AF_UNIX) as s:
+            s.bind(str(folder / "sock.yaml"))
+    return folder / "config.yaml", folder / "link.yaml", folder / "sock.yaml"
+
+
 def cases(world: World) -> list[Case]:
     c, scene, clips = world.copies, world.scene, world.clips
     out = ("--out", str(scene))
+    fifo, fifo_link, sock = _special_files(world.root / "special")
     found = [
         Case(f"config {name}", ("generate", "--config", str(f), *out), message, scene)
         for name, (f, message) in _config_files(world.root / "configs").items()
@@ -244,8 +444,20 @@ def cases(world: World) -> list[Case]:
     found += [
         Case("config missing", ("generate", "--config", str(world.root / "nope.yaml"), *out), "cannot read", scene),
         Case("config a folder", ("generate", "--config", str(world.specs), *out), "cannot read config file", scene),
-        Case("config /dev/zero", ("generate", "--config", "/dev/zero", *out), "is larger than 1 MB", scene),
-        Case("config /dev/null", ("generate", "--config", "/dev/null", *out), "no prompt given", scene),
+        Case("config /dev/zero", ("generate", "--config", "/dev/zero", *out), "not a regular file", scene),
+        Case("config /dev/null", ("generate", "--config", "/dev/null", *out), "not a regular file", scene),
+        Case("config /dev/urandom", ("generate", "--config", "/dev/urandom", *out), "not a regular file", scene),
+        Case(
+            "config a FIFO", ("generate", "--config", str(fifo), *out), "not a regular file (a device or a pipe)", scene
+        ),
+        Case("config a link to a FIFO", ("generate", "--config", str(fifo_link), *out), "not a regular file", scene),
+        Case("config a socket", ("generate", "--config", str(sock), *out), "not a regular file", scene),
+        Case(
+            "reconstruct config a FIFO",
+            ("reconstruct", str(clips / "one.mp4"), "--config", str(fifo), "--out", str(c["none"])),
+            "not a regular file",
+            c["none"],
+        ),
     ]
     prompt = ("generate", PROMPT, "--preset", "preview")
     found += [
@@ -426,6 +638,97 @@ def cases(world: World) -> list[Case]:
         ),
         Case("no command", ("bogus",), "No such command 'bogus'"),
     ]
+    return found + hardening_cases(world)
+
+
+# Folders that are no scene however much they look like one: what each command says (generate and reconstruct judge
+# them as --out; the others as a scene to read). A refusal leaves every name and byte as it was (`folder_state`).
+NOT_A_SCENE = {
+    "zarr-file": ("holds no scene store", "holds no scene store"),
+    "zarr-empty": ("holds no scene store", "holds no scene store"),
+    "zarr-no-root": ("holds no scene store", "holds no scene store"),
+    "user-lock": ("not empty and holds no scene", "holds no scene store"),
+    "user-lock-json": ("not empty and holds no scene", "holds no scene store"),
+    "lock-and-file": ("not empty and holds no scene", "holds no scene store"),
+    "lock-a-folder": (f"{LOCK_NAME} is not a regular file", "holds no scene store"),
+    "lock-fifo": (f"{LOCK_NAME} is not a regular file", "holds no scene store"),
+    "only-hidden": ("not empty and holds no scene", "holds no scene store"),
+    "root-deep": ("cannot open scene store", "cannot open scene store"),
+}
+
+
+def hardening_cases(world: World) -> list[Case]:
+    """The cases of issue 40 and those found beside them: folders that look like scenes, spec names that are no folder
+    name, hostile store metadata, extending a reconstruction, credentials in URLs, invisible and reordering text,
+    bounds on run time, a file-size limit."""
+    c, scene, clips = world.copies, world.scene, world.clips
+    good_clip = str(scene / "flythrough.mp4")  # the scene's own video: a clip that passes every check
+    prompt = ("generate", PROMPT, "--preset", "preview")
+    none = ("--out", str(c["none"]))
+    found: list[Case] = []
+    for kind, (as_out, as_scene) in NOT_A_SCENE.items():
+        folder = c[kind]
+        found += [
+            Case(f"out {kind}", (*prompt, "--out", str(folder)), as_out, folder),
+            Case(f"clip out {kind}", ("reconstruct", good_clip, "--out", str(folder)), as_out, folder),
+            Case(f"extend {kind}", ("extend", str(folder), "go left"), as_scene, folder),
+        ]
+        found += [
+            Case(f"{command} {kind}", (command, str(folder)), as_scene, folder) for command in ("inspect", "report")
+        ]
+        found += [Case(f"{command} {kind}", (command, str(folder)), "no", folder) for command in ("preview", "view")]
+    found += [
+        Case(
+            "out lock fifo scene", (*prompt, "--out", str(c["lock-fifo-scene"])), "not a regular", c["lock-fifo-scene"]
+        ),
+        Case(
+            "extend lock fifo scene", ("extend", str(c["lock-fifo-scene"]), "go"), "not a regular", c["lock-fifo-scene"]
+        ),
+    ]
+    damaged = "damaged scene data in segments/s000"
+    found += [Case(f"report forged {k}", ("report", str(c[f"forged-{k}"])), damaged, c[f"forged-{k}"]) for k in FORGED]
+    found += [
+        Case(f"preview forged {k}", ("preview", str(c[f"forged-{k}"])), damaged, c[f"forged-{k}"])
+        for k in ("deep", "tiny-chunks", "huge-bytes")
+    ]
+    out = ("--out", str(c["parent"] / "out"))
+    found += [
+        Case(f"batch spec {key}", ("batch", str(world.batches[key]), *out), "cannot name a scene folder", c["parent"])
+        for key in BAD_SPEC_NAMES
+    ]
+    found += [
+        Case(f"batch {key}", ("batch", str(world.batches[key]), *out), "no scene specs", c["parent"])
+        for key in ("fifo-only", "empty")
+    ]
+    found += [
+        Case(
+            "extend a reconstruction",
+            ("extend", str(c["clip-scene"]), "go left"),
+            "reconstruction of clips",
+            c["clip-scene"],
+        ),
+        Case("dask password", (*prompt, "--dask", f"tcp://u:{SECRET}@127.0.0.1:8786", *none), "credentials", c["none"]),
+        Case(
+            "serve api password",
+            ("serve", str(world.specs), *none),
+            "PREFECT_API_URL=http://u:***@127.0.0.1:9/api",
+            c["none"],
+            env=(("PREFECT_API_URL", f"http://u:{SECRET}@127.0.0.1:9/api"),),
+        ),
+        Case("prompt RLO", ("generate", "a \u202ehouse", *none), "U+202E (RLO) at character 3", c["none"]),
+        Case("prompt LRM", ("generate", "a house\u200e", *none), "U+200E (LRM)", c["none"]),
+        Case("prompt zero-width", ("generate", "\u200b\u200d\u2060", *none), "no visible character", c["none"]),
+        Case("prompt BOM", ("generate", "\ufeff", *none), "no visible character", c["none"]),
+        Case("prompt filler", ("generate", "\u3164 \u3164", *none), "no visible character", c["none"]),
+        Case("prompt braille blank", ("generate", "\u2800", *none), "no visible character", c["none"]),
+        Case("extend zero-width", ("extend", str(scene), "\u200b\u200c"), "the extension request is empty", scene),
+        Case("extend RLO", ("extend", str(scene), "go \u202eleft"), "U+202E (RLO) at character 4", scene),
+        Case("extend PDI", ("extend", str(scene), "go \u2069left"), "U+2069 (PDI)", scene),
+        Case("clip RLO name", ("reconstruct", str(clips / "\u202ex.mp4"), *none), "\\u202ex.mp4", c["none"]),
+        Case("clip a pipe", ("reconstruct", str(clips / "pipe.mp4"), *none), "pipe.mp4: not a video file", c["none"]),
+        Case("file-size limit", (*prompt, *none), "ulimit -f", c["none"], fsize_bytes=1 << 20),
+        Case("file-size limit scene", (*prompt, "--out", str(scene)), "ulimit -f", scene, fsize_bytes=1 << 20),
+    ]
     return found
 
 
@@ -450,25 +753,39 @@ def call(case: Case, engine: str, env: dict[str, str], scratch: Path) -> subproc
         script = FULL_DISK if case.full_disk else READ_ONLY
         digest_file = scratch / f"{case.name}.digest"
         command = ["unshare", "-m", "sh", "-c", script, "sh", str(case.read_only), source, str(digest_file), *command]
+    limit = case.fsize_bytes
+
+    def preexec() -> None:
+        if limit is not None:
+            import resource
+
+            resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit))
+
     return subprocess.run(
         command,
         capture_output=True,
         text=True,
         timeout=CALL_TIMEOUT_S,
-        env={**os.environ, "PYTHONUNBUFFERED": "1", **env},
+        env={**os.environ, "PYTHONUNBUFFERED": "1", **env, **dict(case.env)},
         cwd=ROOT,
+        preexec_fn=preexec if limit is not None else None,
     )
 
 
+BIDI = frozenset("\u061c\u200e\u200f\u202a\u202b\u202c\u202d\u202e\u2066\u2067\u2068\u2069")
+
+
 def _raw_controls(text: str) -> list[str]:
-    return [f"U+{ord(ch):04X}" for ch in text if (ord(ch) < 32 and ch not in "\n\t") or 0x7F <= ord(ch) < 0xA0]
+    return [
+        f"U+{ord(ch):04X}" for ch in text if (ord(ch) < 32 and ch not in "\n\t") or 0x7F <= ord(ch) < 0xA0 or ch in BIDI
+    ]
 
 
 def check(case: Case, engine: str, env: dict[str, str], scratch: Path) -> str | None:
     """Run one case; None when it was refused as promised, else what went wrong."""
     target = case.target
     existed = target is not None and target.exists()
-    before = tree_digest(target) if existed and target.is_dir() else None
+    before = folder_state(target) if existed and target.is_dir() else None
     try:
         r = call(case, engine, env, scratch)
     except subprocess.TimeoutExpired:
@@ -494,8 +811,10 @@ def check(case: Case, engine: str, env: dict[str, str], scratch: Path) -> str | 
             problems.append(f"the scene on the full disk changed: {digests}")
     elif target is not None and not existed and target.exists():
         problems.append(f"{target} was created")
-    elif before is not None and tree_digest(target) != before:
+    elif before is not None and folder_state(target) != before:
         problems.append(f"{target} changed")
+    if SECRET in r.stderr + r.stdout:
+        problems.append("the password of a URL was printed")
     if not problems:
         return None
     return f"{case.name} ({engine}): {', '.join(problems)}\n  stderr: {r.stderr[-1500:]!r}"
@@ -518,13 +837,13 @@ def run_all(world: World, engine: str, tmp_path: Path) -> list[Case]:
 @pytest.mark.e2e
 def test_every_bad_input_is_one_error_line_exit_2_and_changes_nothing_local(world: World, tmp_path: Path):
     done = run_all(world, "local", tmp_path)
-    assert len({c.name for c in done}) == len(done) >= 135
+    assert len({c.name for c in done}) == len(done) >= 250
 
 
 @pytest.mark.e2e
 def test_every_bad_input_is_one_error_line_exit_2_and_changes_nothing_prefect(world: World, tmp_path: Path):
     done = run_all(world, "prefect", tmp_path)
-    assert len(done) >= 110
+    assert len(done) >= 170
 
 
 def _run(*args: str, env: dict[str, str] | None = None, timeout: float = 300) -> subprocess.CompletedProcess:

@@ -183,7 +183,7 @@ def array_meta_problem(meta: Any, declared: Any = None) -> str | None:
         itemsize = np.dtype(dtype).itemsize if isinstance(dtype, str) else 0
     except TypeError:
         itemsize = 0
-    if not 0 < itemsize <= 16:
+    if not 0 < itemsize <= 16 or np.dtype(dtype).kind not in "biufc":
         return f"its data type {str(dtype)[:40]!r} is not a number's"
     n_chunks = 1
     for n, c in zip(shape, chunks, strict=True):
