@@ -5,8 +5,8 @@
   until the view shows the new splats (the iframe reloaded with the new splats' key and drawn 3 frames) and until
   the job is done (the outputs step and the report after the splats).
 - Frame rate: the 3D view of that (largest) scene in headless Chromium, software WebGL (SwiftShader, no GPU), while
-  the mouse orbits (the view draws every animation frame then) and while idle (the studio's view then draws 2 frames
-  a second); the view's canvas size is stated.
+  the mouse orbits (the view draws every animation frame then) and while idle (the studio's view then draws a frame
+  every 2 s); the view's canvas size is stated.
 - Memory: the resident memory of the idle studio (the server process and its supervisor) before any scene is opened,
   and after the 3D view was served (the live splats read the store: torch is loaded then).
 
@@ -171,7 +171,7 @@ def main() -> None:
                 after = httpx.get(f"{base}/api/scenes/bench", headers=auth, timeout=60).json()
                 frame = _view(page, page.evaluate("window.studio.viewLoads"))
                 time.sleep(2.5)  # idle from here on
-                fps_idle = _fps(page, frame, orbit=False)
+                fps_idle = _fps(page, frame, orbit=False, seconds=10.0)
                 fps_orbit = _fps(page, frame, orbit=True)
                 size = frame.evaluate(
                     "[document.getElementById('wv-canvas').width, document.getElementById('wv-canvas').height]"
