@@ -493,9 +493,8 @@ def _quiet_libraries() -> None:
     import logging
     import warnings
 
-    if not sys.warnoptions:
-        warnings.simplefilter("ignore")
-        warnings.filterwarnings("default", module=r"(wonderverse|flows|tasks)(\.|$)")
+    if not sys.warnoptions:  # ours keep Python's default filters
+        warnings.filterwarnings("ignore", module=r"(?!(wonderverse|flows|tasks)(\.|$))")
     logging.getLogger().addHandler(logging.NullHandler())
 
 

@@ -47,6 +47,7 @@ from wonderverse.text import (  # noqa: F401 (re-exported: where callers have al
     plain_words,
     redact_urls,
     url_credentials,
+    visible,
     words_problem,
 )
 from wonderverse.video.diffusion import DiffusionParams, size_problem
@@ -187,7 +188,8 @@ class SceneSpec(Model):
         for name in ("intents", "added"):
             for i, words in enumerate(getattr(self.extensions, name)):
                 try:
-                    plain_words(words, "the extension")
+                    if not visible(plain_words(words, "the extension")) and words:
+                        raise ValueError("the extension holds no visible character (only invisible ones)")
                 except ValueError as e:
                     raise field_error(("extensions", name, str(i)), str(e), words) from None
         return self

@@ -98,16 +98,19 @@ def read_regular(path: Path | str, what: str, max_bytes: int) -> bytes:
     """At most `max_bytes` + 1 bytes of the regular file `path` (a config, a spec): opened without blocking and
     refused in one line when it is anything else (a pipe, a device, a socket: a FIFO would block the command
     forever, a device never ends), as clips are. WonderError naming `what` and the path."""
-    try:
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
-    except OSError as e:
-        raise WonderError(f"cannot read {what} {path}: {e.strerror or e}") from None
-    try:
-        mode = os.fstat(fd).st_mode
+    def judged(mode: int) -> None:
         if stat.S_ISDIR(mode):
             raise WonderError(f"cannot read {what} {path}: Is a directory")
         if not stat.S_ISREG(mode):
             raise WonderError(f"{what} {path}: not a regular file (a device or a pipe)")
+
+    try:
+        judged(os.stat(path).st_mode)  # before opening: a socket cannot be opened, a device may act on open
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK)
+    except OSError as e:
+        raise WonderError(f"cannot read {what} {path}: {e.strerror or e}") from None
+    try:
+        judged(os.fstat(fd).st_mode)  # what was opened, should the name have been swapped meanwhile
         os.set_blocking(fd, True)
         with os.fdopen(fd, "rb", closefd=False) as f:
             return f.read(max_bytes + 1)

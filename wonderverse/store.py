@@ -753,12 +753,13 @@ def scene_lock(
     scene locked.
 
     Judged before anything is written: the folder (`check_scene_dir`: a foreign folder, a user's own file named
-    `.wonderverse.lock`, a `scene.zarr` that is no store are refused) and `judge()` (the caller's own refusals: a
-    newer store, a run that would replace segments) run before the folder is created or the lock file opened, and
-    again once the lock is held (nothing can change under it then); a refusal leaves every byte and every name as
-    it was (a folder this call created for the lock is removed again). Only then does the holder write its details
-    into `.wonderverse.lock` (what a refused run quotes; it also marks the folder as a scene's), emptied again on
-    release. What it does not stop: a process that writes the store without taking the lock, or a scene folder
+    `.wonderverse.lock`, a `scene.zarr` that is no store are refused) before the lock is tried (a lock on a folder's
+    descriptor writes nothing; a busy scene is refused as such), then, under the lock (nothing can change under it),
+    the folder again and `judge()` (the caller's own refusals: a newer store, a run that would replace segments),
+    and only then is the lock file opened; a folder that does not exist yet is judged whole before it is created
+    for the lock. A refusal leaves every byte and every name as it was (folders made for the lock are removed). Only
+    then does the holder write its details into `.wonderverse.lock` (what a refused run quotes; it also marks the
+    folder as a scene's), emptied again on release. What it does not stop: a process that writes the store without taking the lock, or a scene folder
     renamed or replaced as a whole while a run holds it.
     """
     import fcntl
@@ -771,7 +772,9 @@ def scene_lock(
         if judge is not None:
             judge()
 
-    judged()
+    check_scene_dir(scene_dir)
+    if not scene_dir.is_dir():  # nothing to lock yet: the whole judgement before the folder is made
+        judged()
     created = [p for p in (scene_dir, *scene_dir.absolute().parents) if not p.exists()]  # deepest first
     try:
         scene_dir.mkdir(parents=True, exist_ok=True)

@@ -147,6 +147,8 @@ def scene_name_problem(name: str) -> str | None:
     bad = control_character(name) or control_character(norm)
     if bad is not None:
         return f"it holds the control character {bad}"
+    if any(c in ALLOWED_CONTROLS for c in norm):
+        return "it holds a tab or a line break"
     if not norm or not visible(norm):
         return "it is empty or shows nothing"
     if norm in (".", ".."):

@@ -9,6 +9,7 @@ exponentially).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -26,7 +27,10 @@ class _StrictLoader(yaml.SafeLoader):
     """PyYAML's safe loader, refusing a key given twice in one mapping (PyYAML keeps the last without a word)."""
 
 
-def _mapping(loader: _StrictLoader, node: yaml.MappingNode, deep: bool = False) -> dict[Any, Any]:
+def _mapping(loader: _StrictLoader, node: yaml.MappingNode) -> Iterator[dict[Any, Any]]:
+    """PyYAML's mapping constructor (a generator: recursive aliases still resolve), refusing a key given twice."""
+    data: dict[Any, Any] = {}
+    yield data
     seen: dict[Any, yaml.Mark] = {}
     for key_node, _ in node.value:
         if key_node.tag == _MERGE:  # `<<: *base` merges a mapping whose keys the explicit ones override: allowed
@@ -41,7 +45,7 @@ def _mapping(loader: _StrictLoader, node: yaml.MappingNode, deep: bool = False) 
                 None, None, f"duplicate key {shown(key)} (first given at line {first.line + 1})", key_node.start_mark
             )
         seen[key] = key_node.start_mark
-    return yaml.SafeLoader.construct_mapping(loader, node, deep=deep)
+    data.update(loader.construct_mapping(node))
 
 
 _StrictLoader.add_constructor(yaml.resolver.BaseResolver.DEFAULT_MAPPING_TAG, _mapping)
