@@ -759,8 +759,8 @@ def scene_lock(
     and only then is the lock file opened; a folder that does not exist yet is judged whole before it is created
     for the lock. A refusal leaves every byte and every name as it was (folders made for the lock are removed). Only
     then does the holder write its details into `.wonderverse.lock` (what a refused run quotes; it also marks the
-    folder as a scene's), emptied again on release. What it does not stop: a process that writes the store without taking the lock, or a scene folder
-    renamed or replaced as a whole while a run holds it.
+    folder as a scene's), emptied again on release. What it does not stop: a process that writes the store without
+    taking the lock, or a scene folder renamed or replaced as a whole while a run holds it.
     """
     import fcntl
 
