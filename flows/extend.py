@@ -14,12 +14,12 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from flows.engine import Engine
-from wonderverse.config import RunConfig, plain_words, scene_config, validate_config
 from wonderverse.errors import WonderError
-from wonderverse.text import visible
+from wonderverse.text import plain_words, visible
 
-if TYPE_CHECKING:  # the CLI imports this module to judge a request: the steps load only when a run starts
+if TYPE_CHECKING:  # the CLI judges a request with this module: the config and the steps load only once it passes
     from tasks import StepResult
+    from wonderverse.config import RunConfig
 
 MAX_WORDS_CHARS = 500
 
@@ -46,6 +46,8 @@ def extended_config(cfg: RunConfig, words: str) -> RunConfig:
 
 def with_extensions(cfg: RunConfig, added: tuple[str, ...]) -> RunConfig:
     """`cfg` whose scene has the extensions `added` (the user's words, oldest first)."""
+    from wonderverse.config import validate_config
+
     ext = cfg.scene.extensions
     scene = cfg.scene.model_copy(update={"extensions": ext.model_copy(update={"added": tuple(added)})})
     return validate_config({**cfg.model_dump(), "scene": scene.model_dump()})
@@ -55,6 +57,9 @@ def extension_config(scene_dir: Path | str, words: str) -> RunConfig:
     """The configuration of the scene in `scene_dir` with one more extension, `words` (or, when the last extension
     of a run that stopped before completing had these words, that configuration: the run resumes); WonderError when
     there is no scene, no completed run, or the words are unusable."""
+    checked_words(words)  # the cheapest refusal first, before the config loads
+    from wonderverse.config import scene_config
+
     cfg = scene_config(scene_dir, "config")
     if cfg is None:
         from wonderverse.store import SceneStore
