@@ -958,3 +958,58 @@ def test_control_characters_are_refused_and_tabs_and_line_breaks_become_spaces()
         with pytest.raises(WonderError, match=f"request holds the control character {where}.* at character 4"):
             extended_config(cfg, f"go {ch}left")
     assert tiny_config("une maison en été, 雪の家 🎄").scene.prompt == "une maison en été, 雪の家 🎄"  # text is fine
+
+
+@pytest.mark.e2e
+def test_forged_metadata_that_passes_the_digests_is_damage_rebuilt_by_its_step(world: World, tmp_path: Path):
+    """A segment's frames metadata rewritten, its digest re-recorded so that only the limits can tell (an impossible
+    shape, millions of chunks, nesting beyond the parser, another shape than the schema's): the next run of the same
+    config regenerates that segment, the frames come back as they were, nothing else runs again."""
+    truth = SceneStore.open(world.scene).array(FRAMES)
+    cfg = complete_config()
+    for kind in ("huge-shape", "tiny-chunks", "deep", "schema-shape"):
+        scene = tmp_path / kind
+        shutil.copytree(world.scene, scene)
+        _forge_frames_meta(scene, kind)
+        assert "segments/s000" in SceneStore.open(scene).damaged_groups(), kind
+        results = {r.step: r.status for r in execute(scene, cfg, until="generate_segments")}
+        assert results == {"plan": "cached", "generate_segments": "ran"}, (kind, results)
+        store = SceneStore.open(scene)
+        assert store.damaged_groups() == {}, kind
+        np.testing.assert_array_equal(store.array(FRAMES), truth)
+
+
+@pytest.mark.e2e
+def test_inspect_lists_forged_metadata_as_damage_without_a_traceback(world: World):
+    for kind in ("deep", "huge-shape", "tiny-chunks"):
+        r = _run("inspect", str(world.copies[f"forged-{kind}"]), timeout=120)
+        assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr[-2000:]
+        assert "damaged: segments/s000: the metadata of array attempts/0/frames" in r.stdout, r.stdout[-2000:]
+
+
+@pytest.mark.e2e
+def test_output_files_deleted_or_altered_are_made_again(world: World, tmp_path: Path):
+    """`outputs` records every file it leaves beside the store with its digest: a deleted mesh.ply, a truncated
+    splats.ply and a file removed inside nerfstudio/ make the products that wrote them run again; then all is
+    cached."""
+    from tasks.outputs import altered_files
+    from wonderverse.schema import OUTPUTS
+
+    scene = tmp_path / "scene"
+    shutil.copytree(world.scene, scene)
+    recorded = {f.path: f.digest for f in SceneStore.open(scene).meta(OUTPUTS.path).files}
+    assert recorded["mesh.ply"] and recorded["splats.ply"] and recorded["nerfstudio"]
+    (scene / "mesh.ply").unlink()
+    os.truncate(scene / "splats.ply", 100)
+    image = sorted((scene / "nerfstudio" / "images").iterdir())[0]
+    image.unlink()
+    store = SceneStore.open(scene)
+    assert altered_files(store) == {"mesh.ply", "splats.ply", "nerfstudio"}
+    assert any("file mesh.ply is missing" in p for p in store.damaged_groups().get(OUTPUTS.path, []))
+    cfg = complete_config()
+    results = {r.step: r.status for r in execute(scene, cfg)}
+    assert results["outputs"] == "ran" and results["splats"] == "cached", results
+    assert (scene / "mesh.ply").is_file() and image.is_file()
+    assert (scene / "splats.ply").stat().st_size == (world.scene / "splats.ply").stat().st_size
+    assert altered_files(SceneStore.open(scene)) == set()
+    assert {r.status for r in execute(scene, cfg)} == {"cached"}
