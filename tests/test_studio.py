@@ -379,6 +379,11 @@ def test_a_stream_cut_mid_way_and_100_extends_at_once_leave_the_studio_serving(s
     assert {s["id"] for s in before["segments"]} <= {s["id"] for s in after["segments"] if s["complete"]}
     assert after["gaussians"] == before["gaussians"] and after["damaged"] == []
     assert httpx.get(f"{studio.base}/scenes/{SCENE}/files/splats.ply", params={"token": studio.token}).is_success
+    report = httpx.get(f"{studio.base}/scenes/{SCENE}/files/report.html", params={"token": studio.token})
+    assert (
+        report.status_code == 200 and report.headers["content-type"].startswith("text/html") and PROMPT in report.text
+    )
+    assert "report.html" in after["files"]
 
 
 def _extend_processes(studio: Studio) -> list[psutil.Process]:
