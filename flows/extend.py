@@ -62,9 +62,14 @@ def extension_config(scene_dir: Path | str, words: str) -> RunConfig:
 
     cfg = scene_config(scene_dir, "config")
     if cfg is None:
-        from wonderverse.store import SceneStore
+        from wonderverse import STORE_FORMAT
+        from wonderverse.folders import root_attrs
 
-        SceneStore.open(scene_dir)  # no scene at all: its own one-line error
+        fmt = (root_attrs(scene_dir) or {}).get("format")
+        if not isinstance(fmt, int) or fmt > STORE_FORMAT:  # no scene at all, or a newer one: the store's own error
+            from wonderverse.store import SceneStore
+
+            SceneStore.open(scene_dir)
         raise WonderError(f"{scene_dir} holds no completed run; run `wonderverse generate` first")
     done = cfg.scene.extensions.added
     made = scene_config(scene_dir, "segments_config") or cfg  # kept: an extension whose run failed after its segment
