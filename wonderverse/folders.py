@@ -98,6 +98,7 @@ def read_regular(path: Path | str, what: str, max_bytes: int) -> bytes:
     """At most `max_bytes` + 1 bytes of the regular file `path` (a config, a spec): opened without blocking and
     refused in one line when it is anything else (a pipe, a device, a socket: a FIFO would block the command
     forever, a device never ends), as clips are. WonderError naming `what` and the path."""
+
     def judged(mode: int) -> None:
         if stat.S_ISDIR(mode):
             raise WonderError(f"cannot read {what} {path}: Is a directory")
