@@ -39,9 +39,11 @@ def test_ate_is_zero_for_a_similarity_copy(seed: int, log10_scale: float) -> Non
     T = Sim3(10.0**log10_scale, Rotation.random(random_state=rng).as_matrix(), rng.normal(size=3) * 100)
     est = T.transform_w2c(gt)  # what an SfM run in another frame and scale would return
     r = ate_metric(est, gt, align="sim3")
+    # est's numbers carry float64 rounding of their own size; seen in gt's units that rounding grows by 1 / scale
+    rounding = np.finfo(float).eps * np.abs(est).max() / T.s
     assert r["n"] == 12
-    assert r["rmse"] < 1e-9
-    assert r["rmse_frac"] < 1e-9
+    assert r["rmse"] < 1e-9 + 1e5 * rounding
+    assert r["rmse_frac"] < 1e-9 + 1e5 * rounding
     if abs(log10_scale) > 0.1:  # a rigid fit cannot undo a scale change
         assert ate_metric(est, gt, align="se3")["rmse"] > 1e-3
     rigid = Sim3(1.0, T.R, T.t).transform_w2c(gt)
