@@ -19,6 +19,7 @@ import pytest
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from plyfile import PlyData
 
 from wonderverse.camera import matrix_from_quat
 from wonderverse.splats.model import SH_C0, eval_sh
@@ -224,6 +225,36 @@ def test_splat_transform_decodes_every_spz_attribute_to_our_values(files, tmp_pa
     assert _rotation_error_rad(theirs["quats"], ours["quats"]).max() < 0.01
     np.testing.assert_allclose(theirs["shN"][:, :3], ours["shN"][:, :3], atol=4 / 128 + 1 / 256 + 1e-4)
     np.testing.assert_allclose(theirs["shN"][:, 3:], ours["shN"][:, 3:], atol=8 / 128 + 1 / 256 + 1e-4)
+
+
+def test_opaque_and_invisible_splats_decode_to_finite_opacities(tmp_path: Path):
+    """SPZ's decoders take the logit of byte / 255: Niantic's library does not clamp it, so bytes 0 and 255 decode to
+    -inf and +inf. Fully opaque and fully transparent splats are written as bytes 1..254: the spec's logit of every
+    stored byte is finite, and splat-transform's decoding (SPZ -> PLY and its --stats) has no inf or NaN opacity."""
+    import gzip
+
+    logits = np.array([-40.0, -12.0, -6.0, 0.0, 6.0, 12.0, 40.0], np.float32)
+    g = _gaussians(len(logits), 1, seed=3)
+    g["logit_opacities"] = logits
+    path = write_spz(tmp_path / "ends.spz", g)
+    raw = gzip.decompress(path.read_bytes())
+    n = int.from_bytes(raw[8:12], "little")
+    alpha = np.frombuffer(raw, np.uint8, n, 16 + 9 * n)  # the header, then 3 x 24-bit positions per splat
+    assert n == len(logits) and alpha.min() >= 1 and alpha.max() <= 254, alpha
+    spec = np.log((alpha / 255.0) / (1.0 - alpha / 255.0))  # the library's invSigmoid, unclamped
+    assert np.isfinite(spec).all()
+    assert _sigmoid(spec[-1]) > 0.99 and _sigmoid(spec[0]) < 0.005  # opaque stays opaque, invisible nearly so
+    out = tmp_path / "ends.ply"
+    run = _node(SPLAT_TRANSFORM, "-q", "-w", str(path), str(out))
+    assert run.returncode == 0, run.stderr
+    theirs = PlyData.read(str(out))["vertex"]["opacity"].astype(np.float64)
+    assert np.isfinite(theirs).all()
+    np.testing.assert_allclose(theirs, spec, atol=1e-5)  # what splat-transform decodes is the spec's value
+    run = _node(SPLAT_TRANSFORM, "-q", str(path), "--stats", "json", "null")
+    assert run.returncode == 0, run.stderr
+    stats = json.loads(run.stdout)["stats"][0]
+    col = stats["columns"].index("opacity")
+    assert stats["data"]["infCount"][col] == 0 and stats["data"]["nanCount"][col] == 0
 
 
 def test_three_reads_our_glb_with_our_count_bounds_shapes_and_colours(files):

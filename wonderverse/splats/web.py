@@ -8,15 +8,16 @@ the SH bands (`rotate_gaussians`). Lengths stay in world units.
 
 - **SPZ** (Niantic's format, written from its specification in github.com/nianticlabs/spz, README and
   `load-spz.cc`, version 3): a gzip stream of a 16-byte header (magic "NGSP", version, count, SH degree,
-  fractional bits, flags) then, attribute by attribute, 24-bit fixed-point positions, uint8 opacities
-  (sigmoid · 255), uint8 DC colours (dc · 0.15 · 255 + 127.5), uint8 log-scales ((ln σ + 10) · 16), rotations
-  as the smallest three components of the unit xyzw quaternion (2 + 3 × 10 bits) and uint8 SH coefficients
-  (coefficient-major, channel-minor; round(128 x) + 128 snapped to 5 bits for degree 1 and 4 bits above, as
-  the library's defaults). SPZ's own axes are RUB (x right, y up, z back: OpenGL/three.js), which the
-  turned world frame is. Niantic's library has Python bindings but none installable from PyPI (built from
-  its git repository), and the PyPI name `spz` is an unrelated Rust package that needs crates.io to build, so
-  the format is written here and checked by independent readers in the tests (`@playcanvas/splat-transform`,
-  which decodes SPZ with Adobe's build of Niantic's library, and Spark in Chromium).
+  fractional bits, flags) then, attribute by attribute, 24-bit fixed-point positions, uint8 opacities (sigmoid ·
+  255, within 1..254 so that the decoder's logit stays finite), uint8 DC colours (dc · 0.15 · 255 + 127.5), uint8
+  log-scales ((ln σ + 10) · 16), rotations as the smallest three components of the unit xyzw quaternion (2 + 3 ×
+  10 bits) and uint8 SH coefficients (coefficient-major, channel-minor; round(128 x) + 128 snapped to 5 bits for
+  degree 1 and 4 bits above, as the library's defaults). SPZ's own axes are RUB (x right, y up, z back:
+  OpenGL/three.js), which the turned world frame is. Niantic's library has Python bindings but none installable
+  from PyPI (built from its git repository), and the PyPI name `spz` is an unrelated Rust package that needs
+  crates.io to build, so the format is written here and checked by independent readers in the tests
+  (`@playcanvas/splat-transform`, which decodes SPZ with Adobe's build of Niantic's library, and Spark in
+  Chromium).
 - **GLB** with the ratified `KHR_gaussian_splatting` extension (Khronos glTF repository,
   extensions/2.0/Khronos/KHR_gaussian_splatting): one POINTS primitive with POSITION, COLOR_0 (the DC colour
   and opacity, the fallback for viewers without the extension), `KHR_gaussian_splatting:ROTATION` (unit xyzw),
@@ -47,6 +48,9 @@ SPZ_MAGIC = 0x5053474E  # "NGSP", little-endian
 SPZ_VERSION = 3
 SPZ_COLOR_SCALE = 0.15  # the library's DC scale: leaves room for base colours a little outside [0, 1]
 SPZ_MAX_FRACTIONAL_BITS = 12  # the library's choice (~0.24 mm at metre scale)
+# Opacity bytes written: the decoder's logit(byte / 255) is -inf at 0 and +inf at 255 (Niantic's library does not
+# clamp; splat-transform 3.7 clamps to 1e-6 off the ends), so the ends are never written: opacity 1/255 .. 254/255.
+SPZ_MIN_ALPHA, SPZ_MAX_ALPHA = 1, 254
 SH_C0 = 0.28209479177387814
 GLB_MAGIC = 0x46546C67  # "glTF"
 GLB_JSON, GLB_BIN = 0x4E4F534A, 0x004E4942
@@ -150,7 +154,8 @@ def write_spz(path: str | Path, gaussians: dict[str, np.ndarray], params: SpzPar
     """Write world-frame Gaussians (GaussianModel.to_numpy layout, +z up) as an SPZ v3 file in SPZ's RUB axes
     (+Y up: `Y_UP_FROM_WORLD`). Lossy as the format is: positions to 2^-12 units (fewer fractional bits past
     2048 units), log-scales to 1/16 within [-10, 5.94] (σ from 4.5e-5 to 380 units: clamped outside), opacity
-    and DC colour to 8 bits, SH to `params`' bits. Returns the path."""
+    to 8 bits within 1..254 (finite when decoded: `SPZ_MAX_ALPHA`), DC colour to 8 bits, SH to `params`' bits.
+    Returns the path."""
     params = params or SpzParams()
     g = rotate_gaussians(_checked(gaussians), Y_UP_FROM_WORLD)
     n, shn = len(g["means"]), g["shN"]
@@ -158,7 +163,8 @@ def write_spz(path: str | Path, gaussians: dict[str, np.ndarray], params: SpzPar
     bits = spz_fractional_bits(g["means"])
     fixed = np.round(g["means"] * (1 << bits)).astype(np.int64).reshape(-1)
     positions = np.stack([(fixed >> s) & 0xFF for s in (0, 8, 16)], axis=1).astype(np.uint8)  # two's complement
-    alphas = _u8(_sigmoid(g["logit_opacities"]) * 255.0)
+    # 1..254: the spec's decoder takes the logit of byte/255, infinite at 0 and 255 (Niantic's `invSigmoid`)
+    alphas = np.clip(_u8(_sigmoid(g["logit_opacities"]) * 255.0), SPZ_MIN_ALPHA, SPZ_MAX_ALPHA)
     colors = _u8(g["sh0"].reshape(n, 3) * (SPZ_COLOR_SCALE * 255.0) + 0.5 * 255.0)
     scales = _u8((g["log_scales"] + 10.0) * 16.0)
     rotations = _pack_smallest_three(unit_quats_xyzw(g["quats"]))
