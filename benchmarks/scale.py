@@ -7,7 +7,8 @@
   Gaussians, held-out PSNR (the splats step's), the global poses' ATE against the procedural world's true path (a
   share of its length) and whether the whole stitched path passes the check's jump test (no seam where the world
   was grown: `wonderverse.check.check_trajectory` over the global poses, the scene's own rules).
-- Then the final world is built from scratch (one `generate` with every extension's words) in a fresh process, and,
+- Then the final world is built from scratch (one `generate` with every extension's words) in a fresh process (its
+  held-out PSNR tells how much of a fall is the world getting harder rather than the growing), and,
   with `--dask`, once more on a real Dask cluster the benchmark starts (`dask scheduler` and two `dask worker`
   processes on 127.0.0.1): the speedup of the steps that run segments on Dask (check, priors).
 - A plot of the seconds of every extension, stacked by step, is written to `--out` (default: a temporary folder);
@@ -17,8 +18,9 @@ Usage: `python -m benchmarks.scale [--quick] [--extensions N] [--dask] [--out DI
 Last line (JSON): `extensions`; `growth` (seconds of the last extension / of the first); `extend_ratio` (seconds
 of the last extension / of building the final world from scratch); `rss_growth` (peak RSS of the last extension /
 of the first) with `frames_growth` (stitched frames after the last / after the first) to compare it with;
-`ate_frac_first`, `ate_frac_last`; `psnr_first`, `psnr_last` (dB); `seams` (extensions whose stitched path failed the
-jump test); `scratch_seconds`; `last_extension_seconds`; with `--dask`: `dask_speedup` (segment-parallel steps'
+`ate_frac_first`, `ate_frac_last`; `psnr_start` (the world before its first extension), `psnr_first`, `psnr_last`
+(dB), `psnr_scratch` (the final world built from scratch: its held-out PSNR when nothing was grown); `seams`
+(extensions whose stitched path failed the jump test); `scratch_seconds`; `last_extension_seconds`; with `--dask`: `dask_speedup` (segment-parallel steps'
 seconds in one process / on the cluster).
 """
 
@@ -189,6 +191,7 @@ def main() -> None:
     out.mkdir(parents=True, exist_ok=True)
     scene = tmp / "grown"
     start = _child(["generate", str(scene), json.dumps([[], None])])
+    start |= measure(scene)
     rows = []
     for k, w in enumerate(words, 1):
         r = _child(["extend", str(scene), w])
@@ -198,6 +201,7 @@ def main() -> None:
         steps = ", ".join(f"{step} {sec:.1f}" for step, sec in r["steps"].items())
         print(f"extension {k}: {r['wall_s']:.1f} s ({steps}), {rows[-1]['frames']} frames", file=sys.stderr, flush=True)
     scratch = _child(["generate", str(tmp / "scratch"), json.dumps([list(words), None])])
+    scratch |= measure(tmp / "scratch")  # the same world trained whole: how hard it is, apart from growing it
     head: dict[str, Any] = {}
     if a.dask:
         with dask_cluster(tmp) as address:
@@ -233,8 +237,10 @@ def main() -> None:
         "frames_growth": round(last["frames"] / first["frames"], 3),
         "ate_frac_first": round(first["ate_frac"], 5),
         "ate_frac_last": round(last["ate_frac"], 5),
+        "psnr_start": round(start["psnr"], 3),
         "psnr_first": round(first["psnr"], 3),
         "psnr_last": round(last["psnr"], 3),
+        "psnr_scratch": round(scratch["psnr"], 3),
         "seams": sum(r["seam"] for r in rows),
         "scratch_seconds": round(scratch["wall_s"], 1),
         "last_extension_seconds": round(last["seconds"], 1),
