@@ -20,8 +20,8 @@ of the last extension / of building the final world from scratch); `rss_growth` 
 of the first) with `frames_growth` (stitched frames after the last / after the first) to compare it with;
 `ate_frac_first`, `ate_frac_last`; `psnr_start` (the world before its first extension), `psnr_first`, `psnr_last`
 (dB), `psnr_scratch` (the final world built from scratch: its held-out PSNR when nothing was grown); `seams`
-(extensions whose stitched path failed the jump test); `scratch_seconds`; `last_extension_seconds`; with `--dask`: `dask_speedup` (segment-parallel steps'
-seconds in one process / on the cluster).
+(extensions whose stitched path failed the jump test); `scratch_seconds`; `last_extension_seconds`; with `--dask`:
+`dask_speedup` (segment-parallel steps' seconds in one process / on the cluster).
 """
 
 from __future__ import annotations
