@@ -197,13 +197,31 @@ def _run_with_progress(
         console.print(f"wonderverse: {note}", highlight=False)
     if eng == "prefect":
         quiet_prefect()
+    from flows.pipeline import StepFailed
+
     token = progress.current.set(progress.make_reporter(console, n_steps or len(STEPS)))
     try:
         results = run(eng)
+    except StepFailed:
+        _report_failure(scene_dir)  # the run stopped: the report says where and why, then the `error:` line
+        raise
     finally:
         progress.current.reset(token)
     console.print(progress.results_table(results))
     _finish(scene_dir, results)
+
+
+def _report_failure(scene_dir: Path) -> None:
+    """Write report.html for a run that stopped on a failed step (the store records where and why) and say where it
+    is; a report that cannot be written is a warning, never a second error."""
+    from flows.report import write_report
+
+    try:
+        report = write_report(scene_dir)
+    except Exception as e:  # the step's failure is the error to report
+        console.print(f"warning: no report.html for the failed run: {error_line(str(e))}", highlight=False)
+        return
+    out.print(f"report: {report}", highlight=False)
 
 
 def _finish(scene_dir: Path, results: list[Any]) -> None:
@@ -365,7 +383,7 @@ def inspect(
     from rich.table import Table
 
     from flows.inspect import damaged_lines, guide_words, scene_spec, scene_summary
-    from wonderverse.report import CLIP_VERDICTS
+    from wonderverse.report import CLIP_VERDICTS, STEP_STATE_WORDS
     from wonderverse.store import SceneStore
 
     store = SceneStore.open(scene_dir)
@@ -387,8 +405,11 @@ def inspect(
     for c in ("step", "status", "cache key"):
         t.add_column(c)
     for s in info.steps:
-        t.add_row(s.name, s.status, (s.cache_key or "-")[:12])
+        t.add_row(s.name, STEP_STATE_WORDS.get(s.status, s.status), (s.cache_key or "-")[:12])
     out.print(t)
+    failed = failed_run_line(store)
+    if failed:
+        out.print(failed, highlight=False)
     if clips:
         t = Table(title="clips (in the order given; each is one segment)")
         columns: tuple[str, ...] = ("segment", "clip", "frames", "K", "check", "MB")
@@ -439,6 +460,18 @@ def inspect(
     for line in damaged_lines(info):
         out.print(line, highlight=False)
     out.print(f"store size: {info.size_bytes / 1e6:.1f} MB")
+
+
+def failed_run_line(store: Any) -> str:
+    """'last run failed at step poses (2026-12-05T18:40:00+00:00): <why>; it completed plan, check', or "" when the
+    scene's last run did not fail."""
+    from flows.inspect import root_meta
+
+    f = root_meta(store).failed_run
+    if f is None:
+        return ""
+    done = f"; it completed {', '.join(f.completed)} first" if f.completed else "; it completed no step first"
+    return f"last run failed at step {f.step} ({f.finished}): {f.error}{done}"
 
 
 def _clip_label(name: str, kind: str) -> str:

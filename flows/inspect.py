@@ -31,8 +31,10 @@ class Record(BaseModel):
 
 
 class StepStatus(Record):
-    """A pipeline step in the store: complete (its key matches the stored config's), stale (complete under another
-    key) or missing."""
+    """A pipeline step in the store: `complete` (its key matches the stored config's), `stale` (complete under
+    another key), `missing` (not run), and after a run that stopped on a failed step (`RootAttrs.failed_run`):
+    `failed` (the step it stopped at) and `ran_then_failed` (complete under that run's key: that run completed it,
+    then failed at a later step; a re-run reuses it)."""
 
     name: str
     group: str
@@ -392,12 +394,18 @@ def expected_keys(store: SceneStore) -> dict[str, str]:
 
 
 def step_statuses(store: SceneStore) -> list[StepStatus]:
-    """Every pipeline step with its status against the stored config and its cache key."""
+    """Every pipeline step with its status (`StepStatus`) against the stored config, the last run's failure, and its
+    cache key."""
     expected = expected_keys(store)
+    failed = root_meta(store).failed_run
     out = []
     for s in STEPS:
         key = store.cache_key_of(s.group)
         status = "missing" if key is None else ("complete" if key == expected.get(s.name) else "stale")
+        if failed is not None and s.name == failed.step:
+            status = "failed"
+        elif failed is not None and status == "stale" and key == failed.keys.get(s.name):
+            status = "ran_then_failed"
         out.append(StepStatus(name=s.name, group=s.group, status=status, cache_key=key))
     return out
 

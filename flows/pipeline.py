@@ -7,6 +7,7 @@ the last complete step (and, inside a step, from the last complete segment).
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager, nullcontext
@@ -17,10 +18,11 @@ from typing import Any, Literal
 from flows.engine import Engine, resolve_engine
 from tasks import STEPS, Step, StepResult, progress, step_keys, steps_until
 from tasks.base import StepContext
+from tasks.wording import run_description
 from wonderverse.config import RunConfig
 from wonderverse.errors import WonderError, shown
 from wonderverse.schema import ROOT, SEGMENT, SEGMENTS
-from wonderverse.schema.attrs import RunRecord
+from wonderverse.schema.attrs import FailedRun, RunRecord
 from wonderverse.store import STORE_NAME, SceneStore, scene_lock
 
 Call = Callable[[Step, str, Any, StepContext], str]
@@ -30,16 +32,33 @@ OnCached = Callable[[Step, str], None]
 # (every step it ran finished; a failed or stopped run never replaces it), and `segments_config`, the configuration
 # the scene's segments were last generated under, written when the segments step starts, so it holds even after a
 # run that failed later (what `refuse_replacing_segments` compares with, and whose extensions a re-run continues).
+log = logging.getLogger("wonderverse.pipeline")
 SEGMENTS_STEP = "generate_segments"
 MAX_RUNS = 500  # runs kept in a scene's history
 
 
 class StepFailed(WonderError):
-    """A step raised; `results` holds what ran before it (the store keeps their output)."""
+    """A step raised; `results` holds what ran before it (the store keeps their output). Its message is the user's
+    line: `step <step> failed: <why>` (`failure_words`: no Python class name)."""
 
     def __init__(self, step: str, cause: BaseException, results: list[StepResult]):
-        super().__init__(f"step {step} failed: {type(cause).__name__}: {cause}")
+        super().__init__(f"step {step} failed: {failure_words(cause)}")
         self.step, self.cause, self.results = step, cause, results
+
+
+def failure_words(cause: BaseException) -> str:
+    """Why a step failed, in words for the user: a WonderError's own message; a file-system error's file and reason;
+    anything else (a bug, or a library's error) its message marked unexpected. Never a Python class name."""
+    if isinstance(cause, WonderError):
+        return str(cause) or "failed with no message"
+    if isinstance(cause, MemoryError):
+        return "out of memory" + (f" ({cause})" if str(cause) else "")
+    if isinstance(cause, OSError) and cause.strerror:
+        return f"{cause.filename}: {cause.strerror}" if cause.filename else cause.strerror
+    text = " ".join(str(cause).split())
+    if isinstance(cause, KeyError) and text:
+        text = f"missing entry {text}"
+    return f"unexpected error: {text}" if text else "unexpected error (no message)"
 
 
 def _direct(step: Step, scene_dir: str, params: Any, ctx: StepContext) -> str:
@@ -90,21 +109,41 @@ def _execute(
         else:
             if step.name == SEGMENTS_STEP:
                 store.update_attrs(ROOT.path, segments_config=cfg.model_dump(mode="json"))
-            reporter.started(step.name, step.description)
+            reporter.started(step.name, run_description(step, cfg))
             t0 = time.perf_counter()
             try:
                 detail = call(step, str(scene_dir), step.params(cfg), StepContext(key, cfg.execution))
             except Exception as e:
-                result = StepResult(step.name, "failed", time.perf_counter() - t0, key, str(e))
+                result = StepResult(step.name, "failed", time.perf_counter() - t0, key, failure_words(e))
                 reporter.finished(result)
-                raise StepFailed(step.name, e, [*results, result]) from e
+                failure = StepFailed(step.name, e, [*results, result])
+                _record_failure(store, failure, {s.name: keys[s.name] for s in steps})
+                raise failure from e
             result = StepResult(step.name, "ran", time.perf_counter() - t0, key, detail)
             store.update_attrs(step.group, seconds=result.seconds)  # for inspect and the report
         reporter.finished(result)
         results.append(result)
-    store.update_attrs(ROOT.path, config=cfg.model_dump(mode="json"))  # the run completed: the scene's config now
+    # the run completed: its config is the scene's now, and no failure stands
+    store.update_attrs(ROOT.path, config=cfg.model_dump(mode="json"), failed_run=None)
     _record_run(store, cfg, results)
     return results
+
+
+def _record_failure(store: SceneStore, failure: StepFailed, keys: dict[str, str]) -> None:
+    """Keep where and why the run stopped (`RootAttrs.failed_run`: what `inspect` and the report say), with the keys
+    of the steps it needed, so that what it completed reads as such. Best effort: a store that cannot take it (a full
+    disk) must not hide the step's own failure."""
+    record = FailedRun(
+        finished=datetime.now(UTC).isoformat(timespec="seconds"),
+        step=failure.step,
+        error=failure_words(failure.cause),
+        completed=[r.step for r in failure.results if r.status != "failed"],
+        keys=keys,
+    )
+    try:
+        store.update_attrs(ROOT.path, failed_run=record.model_dump(mode="json"))
+    except Exception as e:  # the failure being recorded is the one to report
+        log.warning("could not record the failed run in %s: %s", store.scene_dir, failure_words(e))
 
 
 def _record_run(store: SceneStore, cfg: RunConfig, results: list[StepResult]) -> None:

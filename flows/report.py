@@ -35,7 +35,9 @@ from flows.inspect import clips as clip_rows
 from flows.inspect import expected_keys, global_k, guide, priors, root_meta, run_config, scene_spec, step_statuses
 from tasks import STEPS
 from tasks.segments import accepted_attempt, attempt_ids, attempt_path, segment_ids, stitched
+from tasks.wording import RunFacts, describe
 from wonderverse import __version__
+from wonderverse.config import scene_config
 from wonderverse.report import (
     CLIP_VERDICTS,
     STATE_META,
@@ -72,11 +74,6 @@ _REPORT_CODE = (
     "wonderverse/mesh_view.py",
 )
 
-# What the first steps do for the user's clips (their own descriptions speak of planning and generating).
-CLIP_STEPS = {
-    "plan": "one segment per clip, in the order given (nothing planned)",
-    "generate_segments": "read every clip (nothing generated)",
-}
 # Files other steps write beside the store (whatever exists is linked), with what they are.
 KNOWN_FILES: dict[str, str] = {  # files no step describes (the outputs step lists its own files with what they hold)
     "preview.mp4": "the stitched video (wonderverse preview)",
@@ -417,14 +414,28 @@ def _growth(store: SceneStore) -> Picture | None:
     return Picture(png, f"{len(runs)} runs: the scene as made, then every run after an extension, by step")
 
 
+def _run_facts(store: SceneStore, clips: bool) -> RunFacts:
+    """What the steps' wording depends on (`tasks.wording`), read from the scene: its priors (unknown: as configured
+    by default, with both) and the check's rule for a failing clip (from the stored config, else the one the
+    segments were made under)."""
+    pr = priors(store)
+    cfg = run_config(store) or scene_config(store.scene_dir, "segments_config")
+    return RunFacts(
+        clips=clips,
+        depth=pr.depth_backend != "none",
+        normals=pr.normal_backend != "none",
+        on_failure=cfg.steps.check.on_failure if cfg is not None else "keep_best",
+    )
+
+
 def _timings(store: SceneStore, clips: bool = False) -> list[StepTiming]:
     status = {s.name: s.status for s in step_statuses(store)}
+    facts = _run_facts(store, clips)
     out = []
     for s in STEPS:
         meta = store.meta(s.group)  # None unless complete (missing)
         seconds = meta.seconds if meta is not None else None
-        what = CLIP_STEPS.get(s.name, s.description) if clips else s.description
-        out.append(StepTiming(s.name, status[s.name], seconds, what))
+        out.append(StepTiming(s.name, status[s.name], seconds, describe(s.name, s.description, facts)))
     return out
 
 
@@ -761,6 +772,23 @@ def _priors_note(store: SceneStore) -> str:
     return NO_PRIORS_NOTE if (pr.depth_backend, pr.normal_backend) == ("none", "none") else ""
 
 
+def failure_note(store: SceneStore) -> str:
+    """Where and why the scene's last run stopped, what it completed first and what it did not reach, in words; ""
+    when its last run did not fail (`RootAttrs.failed_run`)."""
+    f = root_meta(store).failed_run
+    if f is None:
+        return ""
+    needed = list(f.keys) or [s.name for s in STEPS]
+    done = ", ".join(f.completed) if f.completed else "no step"
+    after = needed[needed.index(f.step) + 1 :] if f.step in needed else []
+    later = f" It did not reach {', '.join(after)}." if after else ""
+    when = f.finished.replace("T", " ").replace("+00:00", " UTC")
+    return (
+        f"The last run failed at step {f.step} ({when}): {f.error}. It completed {done} first (kept: a re-run "
+        f"resumes from there).{later}"
+    )
+
+
 def gather(store: SceneStore, params: ReportParams | None = None) -> ReportContent:
     """Everything the report shows, read from the store (nothing is written)."""
     p = params or ReportParams()
@@ -781,8 +809,12 @@ def gather(store: SceneStore, params: ReportParams | None = None) -> ReportConte
         notes.append(
             f"Stale steps (made with other settings than the stored config, shown as they are): {', '.join(stale)}."
         )
-    if not any(t.status == "complete" for t in timings):
-        notes.append("Nothing has completed yet: run `wonderverse generate` on this scene.")
+    failure = failure_note(store)
+    if failure:
+        notes.insert(0, failure)
+    elif not any(t.status == "complete" for t in timings):
+        command = "reconstruct" if clips is not None else "generate"
+        notes.append(f"Nothing has completed yet: run `wonderverse {command}` on this scene.")
     facts = _facts(store, clips) | headline
     if clips is not None:
         prompt = f"Reconstruction of {_clip_count(clips)}: {', '.join(c.label for c in clips)}"

@@ -36,7 +36,7 @@ def run(store: SceneStore, p: CheckParams, ctx: StepContext) -> str:
         workers=ctx.execution.segment_workers,
         address=ctx.execution.dask_address,
         step="check",
-        progress=callback("segments checked"),
+        progress=callback("clips checked" if p.source.video.backend == "files" else "segments checked"),
     )
     results = [done[s] if s in done else fresh[todo.index(s)] for s in segs]
     decisions = [r.decision for r in results]
@@ -48,10 +48,20 @@ def run(store: SceneStore, p: CheckParams, ctx: StepContext) -> str:
     ):
         pass
     cached = sum(r.cached for r in results)
+    if p.source.video.backend == "files":  # the user's clips: checked, never regenerated
+        return _clips_summary(len(segs), cached, dropped, failing)
     msg = f"{len(segs)} segments" + (f" ({cached} cached)" if cached else "")
     msg += f", {sum(r.regenerated for r in results)} regenerated this run"
     msg += f", dropped {', '.join(dropped)}" if dropped else ""
     return msg + (f", kept failing {', '.join(failing)}" if failing else "")
+
+
+def _clips_summary(n: int, cached: int, dropped: list[str], failing: list[str]) -> str:
+    """'2 clips checked (1 unchanged): 1 passed, kept failing s001 (warned)'."""
+    passed = n - len(dropped) - len(failing)
+    msg = f"{n} clip{'s' * (n != 1)} checked" + (f" ({cached} unchanged)" if cached else "") + f": {passed} passed"
+    msg += f", dropped {', '.join(dropped)}" if dropped else ""
+    return msg + (f", kept failing {', '.join(failing)} (warned)" if failing else "")
 
 
 # 3: a guessed K is self-calibrated with its pixel aspect held; too little parallax stops SfM before mapping

@@ -54,6 +54,8 @@ def _run_unguided(
     keys: dict[str, str],
 ) -> str:
     todo = [seg for seg in paths if not store.is_complete(SEGMENT.at(seg=seg), keys[seg])]
+    clips = p.source.video.backend == "files"  # the user's clips are read, not rendered
+    unit = "clips read" if clips else "segments rendered"
     done = 0
     for wave in waves(paths):
         batch = [seg for seg in wave if seg in todo]
@@ -61,7 +63,7 @@ def _run_unguided(
         def rendered(k: int, n: int, seg: str, before: int = done) -> None:
             """One count over every wave: a wave's k-th segment is the (earlier waves' + k)-th of the step."""
             if k or not before:
-                advance(before + k, len(todo), "segments rendered", seg)
+                advance(before + k, len(todo), unit, seg)
 
         fan_out(
             "generate_segments",
@@ -71,6 +73,8 @@ def _run_unguided(
             progress=rendered,
         )
         done += len(batch)
+    if clips:
+        return f"{len(todo)} read, {len(paths) - len(todo)} unchanged since the last run"
     return f"{len(todo)} rendered, {len(paths) - len(todo)} cached"
 
 

@@ -44,7 +44,8 @@ def run(store: SceneStore, p: Params, ctx: StepContext) -> str:
         plan = clip_plan(p.clips)
         with store.staged(PLAN.path, ctx.key, plan=plan.model_dump(mode="json"), moves=[], intents=list(p.clips)):
             pass
-        return f"{len(plan.segments)} segments, one per clip"
+        n = len(plan.segments)
+        return f"{n} clip{'s' * (n != 1)}, one segment each, in the order given"
     planner = make_planner(p.planner)
     first = p.extensions.model_copy(update={"added": ()})
     plan = planner.plan_scene(p.prompt, first, p.plan, fov_deg=p.fov_deg)

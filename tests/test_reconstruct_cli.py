@@ -4,8 +4,11 @@ exit 2, with no scene folder made. A step that fails is one `error:` line under 
 
 from __future__ import annotations
 
+import html
 import json
 import os
+import re
+import subprocess
 from pathlib import Path
 
 import imageio.v2 as imageio
@@ -16,6 +19,7 @@ from conftest import TINY_VIDEO, run_cli
 from plyfile import PlyData
 
 from flows.pipeline import stored_config
+from flows.progress import JSON_PREFIX
 
 pytestmark = pytest.mark.e2e  # the CLI in a subprocess
 
@@ -67,9 +71,31 @@ def test_a_bad_clip_is_one_line_naming_it_and_makes_no_scene(bad_clips, tmp_path
     assert not out.exists()
 
 
+CLASS_NAME = re.compile(r"\b[A-Z]\w*(Error|Exception|Failed)\b")  # a Python class name in a line for the user
+
+
+def assert_failure_reported(scene: Path, r: subprocess.CompletedProcess, step: str, completed: list[str]) -> None:
+    """A run that stopped at `step` wrote report.html saying where and why, and `inspect` (text and JSON) says which
+    steps that run completed (`ran_then_failed`), which failed and which it never ran."""
+    report = scene / "report.html"
+    assert f"report: {report}" in r.stdout.splitlines(), r.stdout
+    why = error_lines(r.stderr)[0].removeprefix(f"error: step {step} failed: ")
+    text = html.unescape(report.read_text())
+    assert f"The last run failed at step {step}" in text and why in text, why
+    assert f"It completed {', '.join(completed)} first" in text
+    info = json.loads(run_cli("inspect", str(scene), "--json").stdout)
+    status = {s["name"]: s["status"] for s in info["steps"]}
+    assert [n for n, v in status.items() if v == "ran_then_failed"] == completed, status
+    assert status[step] == "failed" and status["outputs"] == "missing", status
+    shown = run_cli("inspect", str(scene)).stdout
+    assert "ran, then the run failed" in shown and "not run" in shown
+    assert f"last run failed at step {step}" in " ".join(shown.split()), shown
+
+
 def test_a_failed_step_is_one_error_line_under_either_engine(tmp_path):
     """A segment failing its check with on_failure=fail: the step raises a WonderError; the user sees the step
-    lines and exactly one `error:` line, no traceback, exit 2 (Prefect's own logs stay in its UI)."""
+    lines and exactly one `error:` line, no traceback, no class name, exit 2 (Prefect's own logs stay in its UI);
+    report.html says where and why, and `inspect` tells the steps that run completed from those it never ran."""
     spec = tmp_path / "fail.yaml"
     video = {**TINY_VIDEO, "options": {"fault_probability": 1.0}}
     steps = {"check": {"max_attempts": 1, "on_failure": "fail"}}
@@ -83,6 +109,8 @@ def test_a_failed_step_is_one_error_line_under_either_engine(tmp_path):
         assert r.returncode == 2 and len(errors) == 1, r.stderr[-3000:]
         assert "step check failed" in errors[0] and "failed all 1 attempts" in errors[0]
         assert "Traceback" not in r.stderr and r.stderr.rstrip().endswith(errors[0])
+        assert not CLASS_NAME.search(errors[0]), errors[0]
+        assert_failure_reported(tmp_path / f"scene-{engine}", r, "check", ["plan", "generate_segments"])
 
 
 def test_a_real_estate_clip_reconstructs_to_outputs_with_no_weights(data_dir: Path, tmp_path: Path):
@@ -132,3 +160,38 @@ def test_a_near_static_ai_clip_stops_in_one_line_for_too_little_parallax(data_di
     assert clip_row["verdict"] == "kept_failing" and clip_row["k_source"] == "guessed", clip_row
     assert len(clip_row["reasons"]) == 1 and clip_row["reasons"][0].startswith("too little parallax")
     assert "jump" not in clip_row["reasons"][0]
+
+
+def test_a_failed_reconstruction_speaks_of_clips_and_reports_where_it_stopped(tmp_path: Path):
+    """A clip no SfM can register (flat grey), with --on-failure fail: the step lines (here the studio's progress
+    JSON) speak of reading and checking clips, not of planning or regenerating; the run stops at the check with one
+    `error:` line and report.html; a later run that completes clears the failure."""
+    flat = tmp_path / "flat"
+    flat.mkdir()
+    for i in range(6):
+        imageio.imwrite(flat / f"{i:03d}.png", np.full((64, 96, 3), 128, np.uint8))
+    out = tmp_path / "scene"
+    args = ("reconstruct", str(flat), "--out", str(out), "--until", "check", "--engine", "local")
+    r = run_cli(*args, "--on-failure", "fail", env={"WONDERVERSE_PROGRESS": "json"})
+    assert r.returncode == 2 and len(error_lines(r.stderr)) == 1, r.stderr[-3000:]
+    events = [json.loads(ln.removeprefix(JSON_PREFIX)) for ln in r.stderr.splitlines() if ln.startswith(JSON_PREFIX)]
+    started = {e["step"]: e["description"] for e in events if e["event"] == "started"}
+    assert started == {
+        "plan": "one segment per clip, in the order given (nothing planned)",
+        "generate_segments": "read every clip (nothing generated)",
+        "check": "SfM check of each clip; a clip that fails it stops the run",
+    }
+    units = {e["unit"] for e in events if e["event"] == "progress"}
+    assert units == {"clips read", "clips checked"}, units
+    finished = {e["step"]: e for e in events if e["event"] == "finished"}
+    assert finished["plan"]["detail"] == "1 clip, one segment each, in the order given"
+    assert finished["check"]["status"] == "failed" and not CLASS_NAME.search(finished["check"]["detail"])
+    assert_failure_reported(out, r, "check", ["plan", "generate_segments"])
+
+    r = run_cli(*args)  # keep_best: the same clip is kept, warned, and the run completes
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "check: ran" in r.stderr and "1 clip checked: 0 passed, kept failing s000 (warned)" in r.stderr
+    status = {s["name"]: s["status"] for s in json.loads(run_cli("inspect", str(out), "--json").stdout)["steps"]}
+    assert status == {**dict.fromkeys(("plan", "generate_segments", "check"), "complete"),
+                      **dict.fromkeys(("poses", "priors", "splats", "outputs"), "missing")}  # fmt: skip
+    assert "The last run failed" not in html.unescape((out / "report.html").read_text())

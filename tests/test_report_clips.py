@@ -133,8 +133,19 @@ def test_a_reconstruction_has_no_rounds_moves_plan_or_users_words(scene: Path):
         assert words not in text, words
     assert '<section id="plan">' not in text and 'href="#plan"' not in text
     assert "Segments and their attempts" not in text and "Clips and their checks" in text
-    steps = section(text, "steps")
+    steps = text_of(section(text, "steps"))
     assert "one segment per clip, in the order given (nothing planned)" in steps and "read every clip" in steps
+    # every step line speaks of what this run did: clips checked (a failing one dropped, as configured), no priors
+    said = (
+        "SfM check of each clip; a clip that fails it is dropped",
+        "one camera path through the frames of every clip",
+        "no priors (no depth model named): nothing to compute",
+        "splatting on colours alone (no priors)",
+    )
+    for words in said:
+        assert words in steps, (words, steps)
+    for words in ("camera moves from the prompt", "render every planned", "regenerate abnormal", "normal losses"):
+        assert words not in steps, words
 
 
 @pytest.mark.e2e

@@ -605,17 +605,22 @@ def _segment_html(seg: SegmentInfo) -> str:
     return "".join(parts)
 
 
+# A step's state (`flows.inspect.StepStatus`) as the report and `inspect` show it
+STEP_STATE_WORDS = {"missing": "not run", "ran_then_failed": "ran, then the run failed"}
+
+
 def _timings_html(timings: Sequence[StepTiming]) -> str:
     if not timings:
         return _empty("No steps recorded.")
     longest = max((t.seconds or 0.0 for t in timings), default=0.0) or 1.0
-    kinds = {"complete": "ok", "stale": "bad", "missing": "muted"}
+    kinds = {"complete": "ok", "ran_then_failed": "ok", "stale": "bad", "failed": "bad", "missing": "muted"}
     rows = []
     for t in timings:
         width = 0.0 if t.seconds is None else 100.0 * t.seconds / longest
         bar = f'<div class="bar" style="width:{width:.1f}%"></div>' if t.seconds is not None else ""
+        state = _badge(STEP_STATE_WORDS.get(t.status, t.status), kinds.get(t.status, "muted"))
         rows.append(
-            f"<tr><td>{esc(t.step)}</td><td>{_badge(t.status, kinds.get(t.status, 'muted'))}</td>"
+            f"<tr><td>{esc(t.step)}</td><td>{state}</td>"
             f'<td class="num">{esc(fmt_seconds(t.seconds))}</td><td style="width:35%">{bar}</td>'
             f"<td>{esc(t.description)}</td></tr>"
         )
@@ -728,7 +733,7 @@ def _summary_rows(c: ReportContent) -> dict[str, Value]:
     if attempts and c.clips is None:
         rejected = sum(a.accepted is False for a in attempts)
         rows["attempts"] = f"{len(attempts)} ({rejected} rejected by the check)"
-    done = [t for t in c.timings if t.status == "complete"]
+    done = [t for t in c.timings if t.status in ("complete", "ran_then_failed")]
     if c.timings:
         rows["steps complete"] = f"{len(done)} of {len(c.timings)}"
         rows["recorded run time"] = fmt_seconds(sum(t.seconds for t in c.timings if t.seconds is not None))

@@ -57,6 +57,20 @@ class RunRecord(Attrs):
     seconds: dict[str, float] = Field(default_factory=dict, description="seconds of each step it ran")
 
 
+class FailedRun(Attrs):
+    """The scene's last run, when it stopped on a failed step (`flows.pipeline`): where, why, and what it had done."""
+
+    finished: str = Field(description="when it stopped (ISO 8601, UTC)")
+    step: str = Field(description="the step that failed")
+    error: str = Field(description="what went wrong, the line the user saw after `error: step <step> failed: `")
+    completed: list[str] = Field(
+        default_factory=list, description="the steps that run completed before it (ran or found complete), in order"
+    )
+    keys: dict[str, str] = Field(
+        default_factory=dict, description="the cache key of every step that run needed (the failed one included)"
+    )
+
+
 class RootAttrs(Attrs):
     """The scene (the root group)."""
 
@@ -71,6 +85,9 @@ class RootAttrs(Attrs):
     )
     runs: list[RunRecord] = Field(
         default_factory=list, description="the runs that completed, oldest first (at most 500)"
+    )
+    failed_run: FailedRun | None = Field(
+        None, description="the last run, when it stopped on a failed step; None once a later run completes"
     )
 
 
