@@ -87,6 +87,12 @@ ReplaceSegments = Annotated[
         "--replace-segments", help="allow this run to regenerate the scene's existing segments (other prompt or video)"
     ),
 ]
+Strict = Annotated[
+    bool,
+    typer.Option(
+        "--strict", help="exit 2 (an error line) when the final camera poses fail the quality gates (else a warning)"
+    ),
+]
 
 
 def _choose_preset(preset: str | None, config: Path | None, stored: Any) -> tuple[str, str]:
@@ -117,6 +123,7 @@ def generate(
         str | None, typer.Option(help="existing Dask scheduler for per-segment work (tcp://host:8786)")
     ] = None,
     replace_segments: ReplaceSegments = False,
+    strict: Strict = False,
 ) -> None:
     """Plan, render and reconstruct a scene; cached steps are skipped, the scene's extensions are kept."""
     from wonderverse.folders import check_scene_dir
@@ -160,6 +167,7 @@ def generate(
             len(steps),
             folder_note,
             config_notes(cfg),
+            strict=strict,
         )
 
 
@@ -182,10 +190,12 @@ def _run_with_progress(
     n_steps: int | None = None,
     folder_note: str = "",
     notes: list[str] | None = None,
+    strict: bool = False,
 ) -> None:
     """The first line (preset, engine, scene, and `folder_note`: why the scene folder is not the default one) and
     `notes` (a line each), `run(engine)` with the progress display (`n_steps` steps, all by default) and the
-    closing table, then the derived files and the list of what the run wrote."""
+    closing table, then the derived files and the list of what the run wrote; last, when this run's final poses
+    fail the quality gates, a `warning:` line naming the figures (with `strict`: a WonderError, exit 2)."""
     from flows import progress
     from flows.engine import quiet_prefect, resolve_engine
     from tasks import STEPS
@@ -209,6 +219,25 @@ def _run_with_progress(
         progress.current.reset(token)
     console.print(progress.results_table(results))
     _finish(scene_dir, results)
+    _judge_poses(scene_dir, results, strict)
+
+
+def _judge_poses(scene_dir: Path, results: list[Any], strict: bool) -> None:
+    """The closing line when the poses this run ran or found current fail the quality gates
+    (`flows.scene_quality`): one `warning:` line on stderr, or with `strict` one `error:` line and exit 2."""
+    from flows.inspect import run_config
+    from flows.scene_quality import gate_line, gates_of, pose_quality
+    from wonderverse.store import SceneStore
+
+    if "poses" not in {r.step for r in results}:
+        return
+    store = SceneStore.open(scene_dir)
+    line = gate_line(pose_quality(store, gates_of(run_config(store))))
+    if line is None:
+        return
+    if strict:
+        raise WonderError(f"{line} (--strict)")
+    print(f"warning: {error_line(line)}", file=sys.stderr)
 
 
 def _report_failure(scene_dir: Path) -> None:
@@ -264,7 +293,12 @@ def reconstruct(
     on_failure: Annotated[
         str, typer.Option(help="a clip that fails its check: keep_best (keep it, warned), drop, or fail")
     ] = "keep_best",
-    fov_deg: Annotated[float | None, typer.Option(help="horizontal field of view when known (else estimated)")] = None,
+    fov_deg: Annotated[
+        float | None, typer.Option(help="horizontal field of view when known (else estimated); held in every output")
+    ] = None,
+    refine_intrinsics: Annotated[
+        bool, typer.Option(help="refine the --fov-deg camera in the global solve instead of holding it")
+    ] = False,
     shutter: Annotated[
         float | None,
         typer.Option(help="motion-blurred clips: the share of a frame's interval the shutter was open (0.5: 180°)"),
@@ -272,6 +306,7 @@ def reconstruct(
     until: Annotated[str | None, typer.Option(help="run only the steps this step needs")] = None,
     engine: Engine = "auto",
     replace_segments: ReplaceSegments = False,
+    strict: Strict = False,
 ) -> None:
     """Reconstruct your own clips (any video generator or a phone): check, poses, priors, splats, outputs."""
     from wonderverse.folders import check_scene_dir
@@ -294,6 +329,8 @@ def reconstruct(
         "scene": {"video": {"backend": "files", "clips": paths, "options": options}, "extensions": {"rounds": 0}},
         "steps": {"check": {"on_failure": on_failure}},
     }
+    if refine_intrinsics:
+        overrides["steps"]["poses"] = {"refine_intrinsics": True}
     if shutter is not None:  # the splats then smear their renders like the camera did (motion_blur_shutter)
         overrides["steps"]["splats"] = {"train": {"motion_blur_shutter": shutter}}
     if depth_model is not None:
@@ -322,6 +359,7 @@ def reconstruct(
             len(steps),
             folder_note=folder_note,
             notes=config_notes(cfg),
+            strict=strict,
         )
 
 
@@ -449,12 +487,24 @@ def inspect(
     for line in unguided:
         out.print(line, highlight=False)
     for c in clips.values():
+        if c.verdict == "recovered" and c.check_registered and c.poses_registered:
+            (a, n), (b, m) = c.check_registered, c.poses_registered
+            out.print(
+                f"{c.segment} {_clip_label(c.name, c.kind)}: recovered: its check registered {a} of {n} frames, "
+                f"the global solve {b} of {m}",
+                highlight=False,
+            )
         if c.reasons:
             out.print(f"{c.segment} {_clip_label(c.name, c.kind)}: {'; '.join(c.reasons)}", highlight=False)
     if info.global_k is not None:
         k = info.global_k
         fov = f", {k.fov_deg:.1f}° horizontal field of view" if k.fov_deg is not None else ""
-        out.print(f"global camera path: K {k.k_source}{fov}", highlight=False)
+        why = f" ({k.reason})" if k.reason else ""
+        out.print(f"camera every output uses: K {k.k_source}{fov}{why}", highlight=False)
+        if clips and k.held is False and any(c.fov_deg is not None for c in clips.values()):
+            out.print("  (the clips' K column is their own check's; the outputs use this one)", highlight=False)
+    for line in _quality_lines(info.quality):
+        out.print(line, highlight=False)
     for e in info.extensions:
         out.print(f"extension {e.segment}: {e.words!r}", highlight=False)
     for line in damaged_lines(info):
@@ -472,6 +522,27 @@ def failed_run_line(store: Any) -> str:
         return ""
     done = f"; it completed {', '.join(f.completed)} first" if f.completed else "; it completed no step first"
     return f"last run failed at step {f.step} ({f.finished}): {f.error}{done}"
+
+
+def _quality_lines(q: Any) -> list[str]:
+    """The poses against their gates and the splats' PSNR/SSIM, a line each (`flows.scene_quality.Quality`)."""
+    lines = []
+    if q.poses is not None:
+        p = q.poses
+        gates = {True: "passes the quality gates", False: "FAILS the quality gates: " + "; ".join(p.problems)}
+        ate = f", ATE {100 * p.ate_frac:.2f} % of the path" if p.ate_frac is not None else ", ATE not available"
+        lines.append(
+            f"poses: {p.registered} of {p.frames_used} views registered, {p.points} points{ate}; "
+            + gates.get(p.passed, "taken from the conditioning path (no SfM to judge)")
+        )
+    if q.splats is not None:
+        s = q.splats
+        if s.psnr_label == "held-out":
+            lines.append(f"splats: held-out PSNR {s.held_out_psnr_db:.2f} dB, SSIM {s.held_out_ssim or 0:.3f} "
+                         f"({s.held_out_views} views held out)")  # fmt: skip
+        elif s.training_psnr_db is not None:
+            lines.append(f"splats: training PSNR {s.training_psnr_db:.2f} dB (no view held out)")
+    return lines
 
 
 def _clip_label(name: str, kind: str) -> str:

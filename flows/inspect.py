@@ -2,8 +2,10 @@
 
 Every attribute is read through the schema's models (`SceneStore.meta`). A scene made from the user's clips (video
 backend `files`) is described as what it is: `clips` lists each clip in order with the frames used, where its K came
-from and its check's verdict; `priors` says which priors every scene has (none: the splats train on colours
-alone)."""
+from and its verdict (the check's, or `recovered` where the global solve registered a clip the check had failed,
+with both figures); `priors` says which priors every scene has (none: the splats train on colours alone);
+`global_k` which K every output uses and why; `quality` the poses against their gates and the splats' PSNR/SSIM
+(`flows.scene_quality`)."""
 
 from __future__ import annotations
 
@@ -15,6 +17,7 @@ import numpy as np
 import zarr
 from pydantic import BaseModel, ConfigDict, ValidationError
 
+from flows.scene_quality import Quality, gates_of, quality, registration
 from tasks import STEPS, step_keys
 from tasks.segments import accepted_attempt, attempt_ids, segment_ids, segment_meta
 from wonderverse.config import RunConfig, SceneSpec, validate_config
@@ -91,7 +94,8 @@ class Extension(Record):
 
 
 class ClipRow(Record):
-    """One of the user's clips (see `clips`)."""
+    """One of the user's clips (see `clips`). check_registered, poses_registered: [frames registered, frames given]
+    by the check's SfM and by the global solve (None: not run)."""
 
     segment: str
     source: str
@@ -103,6 +107,8 @@ class ClipRow(Record):
     fov_deg: float | None = None
     verdict: str = "unread"
     reasons: list[str] = []
+    check_registered: list[int] | None = None
+    poses_registered: list[int] | None = None
 
 
 class PriorsInfo(Record):
@@ -116,10 +122,15 @@ class PriorsInfo(Record):
 
 
 class GlobalK(Record):
-    """Where the global solve's K came from and its horizontal field of view (degrees)."""
+    """The K every output uses (the global solve's): where it came from, its horizontal field of view (degrees), the
+    matrix (pixels of the frames), whether the given K was held fixed (None: recorded before it was) and why, in
+    words."""
 
     k_source: str
     fov_deg: float | None
+    K: list[list[float]] | None = None
+    held: bool | None = None
+    reason: str = ""
 
 
 class DamagedGroup(Record):
@@ -141,6 +152,7 @@ class SceneSummary(Record):
     clips: list[ClipRow] | None
     priors: PriorsInfo
     global_k: GlobalK | None
+    quality: Quality
     size_bytes: int
     damaged: list[DamagedGroup]
 
@@ -251,8 +263,16 @@ def _k_source(store: SceneStore, seg: str, sfm: str, width: int) -> tuple[str, f
         return source, None
 
 
-def _verdict(store: SceneStore, seg: str, check: AttemptCheckAttrs | None) -> tuple[str, list[str]]:
-    """The check's verdict on a clip (`accepted`, `kept_failing`, `dropped`, `unchecked`) and its reasons."""
+def _verdict(
+    store: SceneStore,
+    seg: str,
+    check: AttemptCheckAttrs | None,
+    registered: tuple[tuple[int, int] | None, tuple[int, int] | None] = (None, None),
+    min_frac: float = 0.8,
+) -> tuple[str, list[str]]:
+    """A clip's verdict (`accepted`, `kept_failing`, `recovered`, `dropped`, `unchecked`) and the check's reasons.
+    `recovered`: kept although its check failed, and the global solve registered more of its frames than the check
+    did, at least `min_frac` of those it was given (`registered`: the check's and the global solve's figures)."""
     acc = store.meta(SEGMENT.at(seg=seg).accepted)
     if acc is None:
         return "unchecked", []
@@ -260,6 +280,10 @@ def _verdict(store: SceneStore, seg: str, check: AttemptCheckAttrs | None) -> tu
     if acc.dropped:
         return "dropped", reasons
     if acc.reasons:
+        by_check, by_poses = registered
+        registers = by_poses is not None and by_poses[1] > 0 and by_poses[0] / by_poses[1] >= min_frac
+        if registers and (by_check is None or by_poses[0] > by_check[0]):  # type: ignore[index]
+            return "recovered", reasons
         return "kept_failing", reasons
     return "accepted", []
 
@@ -281,6 +305,7 @@ def clips(store: SceneStore) -> list[ClipRow] | None:
     if spec is None or spec.video.backend != "files":
         return None
     given = list(spec.video.clips)
+    min_frac = gates_of(run_config(store)).min_registered_frac
     segs = segment_ids(store)
     n = max(len(given), max((int(s.lstrip("s")) + 1 for s in segs if s.lstrip("s").isdigit()), default=0))
     out = []
@@ -298,7 +323,9 @@ def clips(store: SceneStore) -> list[ClipRow] | None:
             if shape:
                 row["frames"], row["size"] = shape[0], [shape[2], shape[1]]
                 row["k_source"], row["fov_deg"] = _k_source(store, seg, ap.sfm, shape[2])
-            row["verdict"], row["reasons"] = _verdict(store, seg, store.meta(ap.check))
+            figures = registration(store, seg)
+            row["check_registered"], row["poses_registered"] = (list(f) if f else None for f in figures)
+            row["verdict"], row["reasons"] = _verdict(store, seg, store.meta(ap.check), figures, min_frac)
         out.append(ClipRow(segment=seg, source=source, name=Path(source).name or source, kind=clip_kind(source), **row))
     return out
 
@@ -351,7 +378,8 @@ def global_k(store: SceneStore) -> GlobalK | None:
         fov = fov_deg(a.K if a.K is not None else store.array(SFM.K), shape[2])
     if fov is None and a.fov_deg is not None:
         fov = float(a.fov_deg)
-    return GlobalK(k_source=a.k_source, fov_deg=fov)
+    K = a.K if a.K is not None else (store.array(SFM.K).tolist() if _shape(store, SFM.K) else None)
+    return GlobalK(k_source=a.k_source, fov_deg=fov, K=K, held=a.k_held, reason=a.k_reason)
 
 
 def guide(store: SceneStore, seg: str, k: int) -> GuideInfo | None:
@@ -464,6 +492,7 @@ def scene_summary(store: SceneStore) -> SceneSummary:
         clips=clips(store),
         priors=priors(store),
         global_k=global_k(store),
+        quality=quality(store, gates_of(run_config(store))),
         size_bytes=store.size_bytes(),
         damaged=damaged(store),
     )

@@ -33,6 +33,7 @@ import numpy as np
 
 from flows.inspect import clips as clip_rows
 from flows.inspect import expected_keys, global_k, guide, priors, root_meta, run_config, scene_spec, step_statuses
+from flows.scene_quality import gates_of, pose_quality, registration, splat_quality
 from tasks import STEPS
 from tasks.segments import accepted_attempt, attempt_ids, attempt_path, segment_ids, stitched
 from tasks.wording import RunFacts, describe
@@ -381,7 +382,7 @@ def _segments(store: SceneStore, p: ReportParams, clips: list[ClipInfo] | None =
 def _clip_segments(store: SceneStore, p: ReportParams, clips: list[ClipInfo]) -> list[SegmentInfo]:
     """One segment per clip, in the order given, with its attempts, verdict and previews."""
     params = _check_params(store)
-    ok = {"accepted": True, "kept_failing": False, "dropped": False}
+    ok = {"accepted": True, "recovered": True, "kept_failing": False, "dropped": False}
     out = []
     for clip in clips:
         seg = clip.segment
@@ -398,6 +399,15 @@ def _clip_segments(store: SceneStore, p: ReportParams, clips: list[ClipInfo]) ->
         info.previews = _previews(store, seg, p)
         out.append(info)
     return out
+
+
+def _recovered_words(store: SceneStore, seg: str, clips: dict[str, str]) -> str:
+    """A recovered clip with both figures: "fox/ (check 26 of 49 frames registered, global solve 49 of 49)"."""
+    check, poses = registration(store, seg)
+    if check is None or poses is None:
+        return clips.get(seg, seg)
+    figures = f"check {check[0]} of {check[1]} frames registered, global solve {poses[0]} of {poses[1]}"
+    return f"{clips.get(seg, seg)} ({figures})"
 
 
 def _growth(store: SceneStore) -> Picture | None:
@@ -613,9 +623,13 @@ def _metrics(store: SceneStore, segments: list[SegmentInfo]) -> tuple[dict[str, 
     check = store.meta(CHECK.path)
     clips = {s.id: s.clip.label for s in segments if s.clip is not None}
     if check is not None and clips:  # a clip cannot be regenerated: no extra trials to count
+        verdicts = {s.id: s.clip.verdict for s in segments if s.clip is not None}
+        recovered = [s for s in check.kept_failing if verdicts.get(s) == "recovered"]
         metrics["Geometric correction"] = {
             "dropped clips": ", ".join(clips.get(s, s) for s in check.dropped) or "none",
-            "kept although failing": ", ".join(clips.get(s, s) for s in check.kept_failing) or "none",
+            "kept although failing": ", ".join(clips.get(s, s) for s in check.kept_failing if s not in recovered)
+            or "none",
+            "recovered by the global solve": ", ".join(_recovered_words(store, s, clips) for s in recovered) or "none",
         }
     elif check is not None:
         metrics["Geometric correction"] = {
@@ -641,7 +655,15 @@ def _metrics(store: SceneStore, segments: list[SegmentInfo]) -> tuple[dict[str, 
         k = global_k(store)
         if k is not None:
             fov = f", {k.fov_deg:.1f}° horizontal field of view" if k.fov_deg is not None else ""
-            metrics["Global camera path"]["intrinsics (K)"] = f"{k.k_source}{fov}"
+            why = f": {k.reason}" if k.reason else ""
+            metrics["Global camera path"]["intrinsics (K) every output uses"] = f"{k.k_source}{fov}{why}"
+        q = pose_quality(store, gates_of(run_config(store)))
+        if q is not None and q.passed is not None:
+            metrics["Global camera path"]["quality gates"] = (
+                "passed" if q.passed else "FAILED: " + "; ".join(q.problems)
+            )
+            if not q.passed:
+                headline["camera poses"] = "fail the quality gates: " + "; ".join(q.problems)
     pair = _global_gt(store)
     if pair is not None:
         from wonderverse.camera import camera_centers, umeyama
@@ -675,8 +697,9 @@ def _metrics(store: SceneStore, segments: list[SegmentInfo]) -> tuple[dict[str, 
             "training time (s)": m.seconds,
             "skipped steps (non-finite)": m.skipped_steps,
         }
-        if m.test_psnr is not None:
-            headline["held-out PSNR"] = f"{m.test_psnr:.2f} dB"
+        sq = splat_quality(store)
+        if sq is not None and sq.psnr_db is not None:  # held-out only where views were held out
+            headline[f"{sq.psnr_label} PSNR"] = f"{sq.psnr_db:.2f} dB"
     outputs = store.meta(OUTPUTS.path)
     if outputs is not None and "quality" in outputs.model_fields_set:  # older outputs scored nothing
         q = outputs.quality

@@ -9,7 +9,8 @@ The `sfm` group keeps the COLMAP workspace (`colmap_database`, `colmap_model/<fi
 `global_poses.image_names`) and, in its attrs, what it was made from (`segment_sources`, `workspace_key`), the
 Sim(3) from the COLMAP model to the world frame (`model_to_world`), the solve (`solve`: incremental | full,
 `incremental_problems`, `segment_disagreement`, `solves`, `seed_offset`), where K came from (`k_source`,
-`K`, `fov_deg`, `pixel_aspect`) and the SfM's own report.
+`K`, `fov_deg`, `pixel_aspect`), whether it was held fixed and why, in words (`k_held`, `k_reason`: the user's
+camera is held unless `refine_intrinsics`) and the SfM's own report.
 """
 
 from __future__ import annotations
@@ -40,10 +41,15 @@ def params(cfg: RunConfig) -> PosesParams:
     return cfg.steps.poses
 
 
-def _workspace_key(p: PosesParams) -> str:
+def _workspace_key(p: PosesParams, held: bool = False) -> str:
     """What must not change for a reconstruction to be extended rather than re-solved."""
     # 2: image names sort in stitched order (`image_names`)
-    return cache_key("sfm_workspace", 2, {"sfm": p.sfm, "frame_stride": p.frame_stride})
+    return cache_key("sfm_workspace", 2, {"sfm": p.sfm, "frame_stride": p.frame_stride} | _held_key(held))
+
+
+def _held_key(held: bool) -> dict[str, bool]:
+    """A workspace made with the camera held differs from one that refined it (absent: refined, as before)."""
+    return {"held_camera": True} if held else {}
 
 
 def image_names(store: SceneStore, keys: list[tuple[str, int]]) -> list[str]:
@@ -100,13 +106,37 @@ def _own_poses(store: SceneStore, segs: list[str]) -> dict[str, np.ndarray]:
 
 def _check_mapper(store: SceneStore, segs: list[str]) -> tuple[str, bool] | None:
     """For a video of one segment: the mapper its check's SfM kept and whether that model passed its gates
-    (None: several segments, or the check mapped nothing). Only for a guessed K: the check holds a known one,
-    the global solve refines it, and the mapper that suits one does not suit the other (RealEstate10K
-    `0c11` with its FOV given: incremental first here ended 9.4 % of the path off, global first 0.37 %)."""
+    (None: several segments, or the check mapped nothing). Only where both handle K alike: a guessed K, or the
+    user's camera held in both; where the check holds a K the global solve refines, the mapper that suits one does
+    not suit the other (RealEstate10K `0c11` with its FOV given: incremental first here ended 9.4 % of the path
+    off, global first 0.37 %)."""
     if len(segs) != 1:
         return None
     a = store.meta(attempt_path(store, segs[0]).sfm)
     return (a.mapper, not a.problems) if a is not None and a.mapper else None
+
+
+def users_camera(store: SceneStore, segs: list[str]) -> bool:
+    """Whether every segment is one of the user's clips (video backend `files`, recorded on its attempt) with the
+    camera the user gave (`--fov-deg`): a camera to hold, where a generated video's K is refined."""
+    for seg in segs:
+        attempt = store.meta(attempt_path(store, seg), complete=False)
+        if attempt is None or attempt.source != "files" or not camera_prior(store, seg).given:
+            return False
+    return True
+
+
+def k_reason(prior_source: str, users: bool, held: bool, source: str) -> str:
+    """Why the outputs use the K they use, in words (the `k_reason` attribute; `inspect` and the report show it)."""
+    if source == "conditioning":
+        return "the K the video was generated with; poses from the conditioning path, no SfM"
+    if held:
+        return "the field of view you gave with --fov-deg, held fixed through the global solve"
+    if users:
+        return "refined by the global solve from the field of view you gave, as --refine-intrinsics asks"
+    if prior_source == "given":
+        return "the generated video's K, refined by the global solve"
+    return "no field of view given: self-calibrated by the global solve"
 
 
 def _load_workspace(store: SceneStore) -> SfmWorkspace:
@@ -137,6 +167,8 @@ def run(store: SceneStore, p: PosesParams, ctx: StepContext) -> str:
     K = store.array(SEGMENT.at(seg=index[0][0]).K)
     guessed = not all(camera_prior(store, s).given for s in segs)  # a guess anywhere: self-calibrate
     prior = CameraPrior(K, "guessed" if guessed else "given")
+    users = users_camera(store, segs)
+    held = users and not p.refine_intrinsics and p.source == "sfm"
     n = len(frames)
     frame_index = np.array([(segs.index(s), i) for s, i in index], dtype=np.int32)
     points = np.zeros((0, 3))
@@ -156,15 +188,18 @@ def run(store: SceneStore, p: PosesParams, ctx: StepContext) -> str:
             p,
             names=image_names(store, [index[k] for k in select_frames(index, p.frame_stride)]),
             sources=_sources(store, segs),
-            workspace_key=_workspace_key(p),
+            workspace_key=_workspace_key(p, held),
             own=_own_poses(store, segs),
             previous=_previous(store),
             progress=lambda done, total, note: advance(done, total, UNIT, note, eta=False),  # stages: no pace
-            check_mapper=_check_mapper(store, segs) if guessed else None,  # a known K was held there, not here
+            # the check's mapper only where the check handled K as this solve does: a guess, or a held K
+            check_mapper=_check_mapper(store, segs) if guessed or held else None,
+            hold_given=held,
         )
         poses, registered, points, colors = solved.poses, solved.registered, solved.points, solved.colors
         K, workspace = solved.K, solved.workspace
         attrs |= solved.attrs
+    attrs |= {"k_held": held, "k_reason": k_reason(prior.source, users, held, p.source)}
     with store.staged(SFM.path, ctx.key, **attrs) as g:
         write_array(g, SFM.poses, poses)
         write_array(g, SFM.registered, registered)
@@ -184,4 +219,5 @@ def run(store: SceneStore, p: PosesParams, ctx: StepContext) -> str:
 # 3: image names in stitched order; full solves checked against each segment's own SfM
 # 4: the step contract
 # 5: a guessed K is self-calibrated; k_source recorded; one segment: its check's mapper first
-STEP = Step("poses", 5, ("check",), params, run, "one camera path for the stitched video", group=SFM.path)
+# 6: the user's camera (a clip's given field of view) held unless refine_intrinsics; k_held, k_reason recorded
+STEP = Step("poses", 6, ("check",), params, run, "one camera path for the stitched video", group=SFM.path)

@@ -181,8 +181,11 @@ def run(store: SceneStore, p: SplatsStepParams, ctx: StepContext) -> str:
         for name, arr in arrays.items():
             write_array(g, getattr(SPLATS, name), arr)
     store.remove(CHECKPOINT)
-    psnr = metrics.get("test_psnr", metrics.get("train_psnr", float("nan")))
-    return f"{metrics['n_gaussians']} Gaussians, held-out PSNR {psnr:.2f} dB, {renderer.__class__.__name__}"
+    if metrics.get("test_views") and "test_psnr" in metrics:  # held-out only where views were held out
+        label = f"held-out PSNR {metrics['test_psnr']:.2f} dB ({len(metrics['test_views'])} views)"
+    else:
+        label = f"training PSNR {metrics.get('train_psnr', float('nan')):.2f} dB"
+    return f"{metrics['n_gaussians']} Gaussians, {label}, {renderer.__class__.__name__}"
 
 
 # 5: the step contract

@@ -242,6 +242,12 @@ class PosesParams(Model):
         0.05, gt=0, description="a segment's poses this far (ATE, share of its path) from its own SfM: re-solve"
     )
     disagreement_retries: int = Field(2, ge=0, le=10, description="re-solves (next seeds) while a segment disagrees")
+    refine_intrinsics: bool = Field(
+        False,
+        description="a camera the user gave (a clip's field of view: reconstruct --fov-deg) is held fixed through "
+        "the global solve, so every output uses it; true refines it from there (reconstruct --refine-intrinsics). A "
+        "guessed K is always estimated, a generated video's K always refined (wonderverse.sfm module notes)",
+    )
 
 
 class PriorsStepParams(Model):

@@ -269,19 +269,21 @@ def solve_global_poses(
     previous: PreviousSolve | None,
     progress: ProgressFn,
     check_mapper: tuple[str, bool] | None = None,
+    hold_given: bool = False,
 ) -> GlobalPoses:
     """Global SfM over the stitched video: registered into the previous reconstruction when this solve only
     adds segments to it (old frames keep their exact poses, `can_extend`), else solved from scratch (and again
     while a segment disagrees with `own`, its own SfM); mapped into the previous world frame.
 
     frames (N,H,W,3) uint8 and index (N keys) in stitched order; prior: the video's intrinsics, a guess
-    (self-calibrated, `wonderverse.sfm.reconstruct`) or given (refined from, never held: over a stitched video
+    (self-calibrated, `wonderverse.sfm.reconstruct`) or given: held fixed with `hold_given` (the user's camera:
+    the returned K is then the prior's, exactly), else refined from (a generated video's: over a stitched video
     refining was right where holding was not, `wonderverse.sfm` module notes); names: the COLMAP image name
     of each frame `select_frames(index, params.frame_stride)` picks; sources: per segment, what its frames
     are; workspace_key: what must not change for a reconstruction to be extended; own: per segment whose
     check passed, its own SfM poses (generation order); previous: the last solve or None; check_mapper: when
     the video is one segment, the mapper its check's SfM kept and whether that model passed its gates
-    (`mappers_after_check`).
+    (`mappers_after_check`; only where the check handled K as this solve does: a guess, or a held K).
     Raises WonderError when no frame could be posed."""
     from wonderverse.sfm import k_record, reconstruct
     from wonderverse.sfm_extend import extend_reconstruction
@@ -310,7 +312,7 @@ def solve_global_poses(
 
         def solve(seed_offset: int, note: str) -> SfmResult:
             seed = p.sfm.random_seed + seed_offset
-            sfm = p.sfm.model_copy(update={"random_seed": seed, "hold_known_intrinsics": False, **order})
+            sfm = p.sfm.model_copy(update={"random_seed": seed, "hold_known_intrinsics": hold_given, **order})
             return reconstruct(
                 frames[sel],
                 sfm,
@@ -340,9 +342,11 @@ def solve_global_poses(
             index, poses, res.points, None if previous is None else previous.poses
         )
         attrs |= {"solve": "full", "kept_frame": kept, "model_to_world": sim.to_dict()}
-    if attrs["solve"] == "incremental":
-        res.k_source = "estimated"  # the kept camera: the full solve that made the workspace refined it
+    held = hold_given and prior.given
+    if attrs["solve"] == "incremental":  # the kept camera: the full solve that made the workspace held or refined it
+        res.k_source = "given" if held else "estimated"  # (whether it held K is part of the workspace key)
     attrs |= k_record(res, prior)
+    K = prior.K.copy() if held and res.k_source == "given" else res.K  # held: the K given, not COLMAP's copy of it
     attrs |= {
         "mapper": res.mapper,
         "reproj_error_px": res.reproj_error_px,
@@ -353,4 +357,4 @@ def solve_global_poses(
         "segment_sources": dict(sources),
         "workspace_key": workspace_key,
     }
-    return GlobalPoses(poses, registered, points, res.colors, res.K, res.workspace, attrs)
+    return GlobalPoses(poses, registered, points, res.colors, K, res.workspace, attrs)

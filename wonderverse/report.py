@@ -86,6 +86,7 @@ class AttemptInfo:
 CLIP_VERDICTS = {
     "accepted": "accepted",
     "kept_failing": "kept although it failed its check",
+    "recovered": "recovered by the global solve (its check failed)",
     "dropped": "dropped by its check",
     "unchecked": "not checked yet",
     "unread": "not read yet",
@@ -652,7 +653,7 @@ def _clips_html(c: ReportContent) -> str:
     """The user's clips in order: name, frames used, size, where K came from, the check's verdict."""
     if not c.clips:
         return _empty("No clips given.")
-    kinds = {"accepted": "ok", "kept_failing": "bad", "dropped": "bad"}
+    kinds = {"accepted": "ok", "recovered": "ok", "kept_failing": "bad", "dropped": "bad"}
     head = "<tr><th>segment</th><th>clip</th><th>frames</th><th>size</th><th>K</th><th>check</th></tr>"
     rows = []
     for clip in c.clips:

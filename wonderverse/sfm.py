@@ -28,9 +28,12 @@ held, incremental's worst rotation step was 0.03-0.62 deg off on every fault-fre
 held global was 4.8 deg off on the low-parallax turn (unheld, that turn needed the third mapper, 11 s).
 Over a stitched video of several segments the opposite held (names in stitched order, 2 seeds each, the
 flows benchmark's 3- and 4-segment scenes): refined, global was right in 4 of 4 (ATE 0.09-0.11 % of the
-path); held, with incremental first, wrong in 3 of 4 (10-23 %). So the global `poses` step refines a given K
-(`global_poses`: `hold_known_intrinsics` off). Reproducibility: with `num_threads=1` and a fixed
-`random_seed` two runs give bit-identical poses; with 2 threads they differ slightly (measured).
+path); held, with incremental first, wrong in 3 of 4 (10-23 %). So the global `poses` step refines a generated
+video's K (`global_poses`: `hold_known_intrinsics` off). The user's camera (a clip whose field of view the user
+gave) is held there too, as in the check, so that every output uses the camera the user stated; the user may ask
+for refinement (`steps.poses.refine_intrinsics`, `reconstruct --refine-intrinsics`). Reproducibility: with
+`num_threads=1` and a fixed `random_seed` two runs give bit-identical poses; with 2 threads they differ slightly
+(measured).
 
 A guessed K (`CameraPrior(K, "guessed")`: a clip whose field of view nobody gave, assumed 60°) is not a
 prior. Measured on the seven 16-frame 384x256 RealEstate10K clips (ATE after a Sim(3), share of the path;
@@ -137,8 +140,8 @@ class SfmParams(BaseModel):
     hold_known_intrinsics: bool = Field(
         True,
         description="with a given K (the renderer's, or a clip's given field of view; not a guess), every mapper "
-        "keeps it fixed instead of refining it (the check's SfM; the global poses step always refines it: module "
-        "notes)",
+        "keeps it fixed instead of refining it (the check's SfM; the global poses step sets it itself: held for the "
+        "user's camera unless steps.poses.refine_intrinsics, refined for a generated video's: module notes)",
     )
     num_threads: int = Field(
         1, ge=1, le=256, description="every COLMAP stage; 1 is bit-reproducible with random_seed, >1 is not"

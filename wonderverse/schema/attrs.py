@@ -258,6 +258,10 @@ class SfmAttrs(StepAttrs, KRecord):
         default_factory=dict, description="per segment, what its frames are: {key, attempt}"
     )
     workspace_key: str | None = Field(None, description="what must not change for the model to be extended")
+    k_held: bool | None = Field(
+        None, description="the given K was held fixed through the solve (the user's camera); None: written before"
+    )
+    k_reason: str = Field("", description="why the outputs use this K, in words (empty: written before)")
 
 
 class PriorsAttrs(StepAttrs):
