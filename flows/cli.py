@@ -349,7 +349,7 @@ def reconstruct(
     from wonderverse.video import make_video_model
 
     steps = needed_steps(until)
-    make_video_model(cfg.scene.video_source)  # reads every clip: a bad one is refused before the store is touched
+    model = make_video_model(cfg.scene.video_source)  # reads every clip: a bad one is refused before any write
     with claimed(scene_dir, cfg, replace_segments):
         _run_with_progress(
             scene_dir,
@@ -358,7 +358,7 @@ def reconstruct(
             lambda eng: run_pipeline(scene_dir, cfg, until, engine=eng, flow_name="reconstruct", lock_held=True),
             len(steps),
             folder_note=folder_note,
-            notes=config_notes(cfg),
+            notes=config_notes(cfg) + clip_notes(model),
             strict=strict,
         )
 
@@ -377,6 +377,17 @@ def _clip_path(source: str) -> str:
     if not (path.is_file() or path.is_dir()):
         raise WonderError(f"{source}: not a video file or a folder of images (a device or a pipe)")
     return str(path)
+
+
+def clip_notes(model: Any) -> list[str]:
+    """What reading each clip did to it (`Clip.notes`: frames subsampled or left out, resizing, the frame rate or
+    field of view assumed), a line per clip: `clip NAME: note; note`."""
+    lines = []
+    for c in getattr(model, "clips", []):
+        if c.notes:
+            name = c.name + ("/" if Path(c.source).is_dir() else "")
+            lines.append(f"clip {name}: {'; '.join(c.notes)}")
+    return lines
 
 
 def config_notes(cfg: Any) -> list[str]:

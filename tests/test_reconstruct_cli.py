@@ -46,7 +46,7 @@ def bad_clips(tmp_path_factory) -> dict[str, Path]:
     os.symlink(d / "loop1", d / "loop2")
     mixed = d / "mixed"
     mixed.mkdir()
-    for i, (w, h) in enumerate([(96, 64), (96, 64), (128, 64)]):
+    for i, (w, h) in enumerate([(96, 64), (128, 64)]):  # two shapes, neither the main one: refused
         imageio.imwrite(mixed / f"f{i}.png", np.full((h, w, 3), 40 * i, np.uint8))
     return {p.name: p for p in d.iterdir()} | {"/dev/zero": Path("/dev/zero")}
 
@@ -59,7 +59,7 @@ def bad_clips(tmp_path_factory) -> dict[str, Path]:
         ("one.mp4", [], "one.mp4: only 1 frame"),
         ("loop1", [], "loop1: cannot be read (Symlink loop"),
         ("/dev/zero", [], "/dev/zero: not a video file"),
-        ("mixed", [], "f2.png: image is 128x64 but the clip's first frame f0.png is 96x64"),  # refused, not resized
+        ("mixed", [], "f1.png: image is 128x64 but the clip's first frame f0.png is 96x64"),  # refused, not resized
         ("one.mp4", ["--fov-deg", "nan"], "scene.video.options.fov_deg"),
         ("one.mp4", ["--fov-deg", "-5"], "scene.video.options.fov_deg"),
         ("one.mp4", ["--shutter", "2"], "steps.splats.train.motion_blur_shutter"),

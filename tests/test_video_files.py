@@ -272,7 +272,7 @@ def test_params_validated() -> None:
 
 
 def test_files_video_segments_and_no_regeneration(tmp_path: Path) -> None:
-    a = write_mp4(tmp_path / "a.mp4", 4)
+    a = write_mp4(tmp_path / "a.mp4", 4, w=64, h=48)  # a scene's clips have one shape (see below)
     b = write_pngs(tmp_path / "b", ["1.png", "2.png", "3.png"])
     model = FilesVideo([a, b], ClipParams(fov_deg=70.0))
     assert len(model) == 2 and [c.name for c in model.clips] == ["a.mp4", "b"]
@@ -363,3 +363,101 @@ def test_real_cogvideox_clip_default_params(data_dir: Path) -> None:
     assert clip.fps == pytest.approx(8.0)
     assert "resized 720x480 -> 480x320" in clip.notes and clip.k_is_guess
     np.testing.assert_allclose(clip.K[:2, 2], [240.0, 160.0])
+
+
+# ---------------------------------------------------------------------------------------------- shapes and bad input
+
+
+def test_a_few_images_of_another_shape_are_left_out_and_named(tmp_path: Path) -> None:
+    """A portrait shot among landscape ones: the landscape frames are kept (one camera, one shape), the portrait
+    one is left out with a note naming it and what to do; the frames kept are the main shape's, in order."""
+    sizes = [(64, 48)] * 2 + [(48, 64)] + [(64, 48)] * 2
+    folder = write_pngs(tmp_path / "m", [f"a{i}.png" for i in range(5)], sizes=sizes)
+    clip = read_clip(folder)
+    assert clip.frames.shape == (4, 48, 64, 3)
+    assert [index_of(f) for f in clip.frames] == [0, 1, 3, 4]
+    assert "1 of 5 images left out: another shape (48x64) than the 64x48 of the others (a2.png)" in clip.notes[1]
+    assert "crop them to 4:3 to use them" in clip.notes[1]
+
+
+def test_exif_rotated_photos_are_one_shape(tmp_path: Path) -> None:
+    """A phone photo stored landscape with an EXIF quarter turn is upright portrait, like the others: nothing is left
+    out, and it comes out turned (its white top-left block where the others have theirs)."""
+    folder = write_pngs(tmp_path / "p", ["a0.png", "a1.png"], sizes=[(48, 64), (48, 64)])
+    stored = np.ascontiguousarray(np.rot90(frame(2, 48, 64), k=1))  # 64x48 pixels, turned a quarter left
+    exif = Image.Exif()
+    exif[0x0112] = 6  # "rotate 90 CW to display"
+    Image.fromarray(stored).save(folder / "a2.jpg", exif=exif, quality=95)
+    clip = read_clip(folder)
+    assert clip.frames.shape == (3, 64, 48, 3) and not any("left out" in n for n in clip.notes), clip.notes
+    assert clip.frames[2][:16, :12, 0].mean() > 200 and clip.frames[2][-16:, -12:, 0].mean() < 50
+
+
+def test_clips_of_another_shape_refused_same_shape_resized_with_k(tmp_path: Path) -> None:
+    wide = write_mp4(tmp_path / "wide.mp4", 3, w=160, h=96)
+    small = write_mp4(tmp_path / "small.mp4", 3, w=80, h=48)
+    tall = write_pngs(tmp_path / "tall", ["a.png", "b.png"], sizes=[(48, 64), (48, 64)])
+    with pytest.raises(WonderError, match=r"^tall: its frames are 48x64 \(3:4\) but those of the first clip, "):
+        FilesVideo([wide, tall], ClipParams(fov_deg=60.0))
+    model = FilesVideo([wide, small], ClipParams(fov_deg=60.0))
+    first, second = model.clips
+    assert second.frames.shape == first.frames.shape == (3, 96, 160, 3)
+    np.testing.assert_allclose(second.K, first.K)  # the same field of view at the same size
+    assert "resized 80x48 -> 160x96, the size of the first clip (wide.mp4)" in second.notes
+
+
+def test_a_truncated_video_says_how_much_of_it_is_used(tmp_path: Path) -> None:
+    import imageio_ffmpeg
+
+    whole = write_mp4(tmp_path / "whole.mp4", 40, level=6)
+    fast = tmp_path / "fast.mp4"  # moov first, as phones and the web write it: a cut copy still opens
+    cmd = [imageio_ffmpeg.get_ffmpeg_exe(), "-loglevel", "error", "-i", str(whole), "-c", "copy"]
+    subprocess.run([*cmd, "-movflags", "+faststart", str(fast)], check=True)
+    cut = tmp_path / "cut.mp4"
+    cut.write_bytes(fast.read_bytes()[: fast.stat().st_size // 2])
+    clip = read_clip(cut, ClipParams(max_frames=None))
+    n = len(clip.frames)
+    assert 2 <= n < 36 and any(
+        f"the file ends after {n} of the 40 frames its header announces" in x for x in clip.notes
+    )
+    assert not any("ends after" in x for x in read_clip(whole).notes)
+    (tmp_path / "cut_head.mp4").write_bytes(whole.read_bytes()[:1000])  # no index at all: refused in one line
+    with pytest.raises(WonderError, match=r"cut_head\.mp4: cannot read video"):
+        read_clip(tmp_path / "cut_head.mp4")
+
+
+def test_other_files_of_a_folder_are_named(tmp_path: Path) -> None:
+    folder = write_pngs(tmp_path / "f", ["a.png", "b.jpg"])
+    (folder / "c.heic").write_bytes(b"not read")
+    (folder / ".DS_Store").write_bytes(b"")
+    clip = read_clip(folder)
+    assert len(clip.frames) == 2
+    assert "1 other files left out (.heic): a folder clip reads images only" in " ".join(clip.notes)
+
+
+def test_a_real_phone_set_with_two_landscape_shots_keeps_the_portrait_ones(data_dir: Path, tmp_path: Path) -> None:
+    """From the fox capture (portrait 1080x1920 photos): twelve of them, two turned landscape. The ten portrait ones
+    are read; the note names the two; with the turn written as EXIF orientation instead, all twelve are read, upright
+    (as the photos before they were turned)."""
+    src = sorted(_real(data_dir, "instant_ngp_fox/images").glob("*.jpg"))[:12]
+    plain, mixed, tagged = tmp_path / "plain", tmp_path / "mixed", tmp_path / "tagged"
+    for d in (plain, mixed, tagged):
+        d.mkdir()
+    for i, p in enumerate(src):
+        img = Image.open(p).convert("RGB").resize((135, 240))
+        img.save(plain / f"{p.stem}.png")
+        turned = i in (4, 9)
+        (img.rotate(90, expand=True) if turned else img).save(mixed / f"{p.stem}.png")
+        exif = Image.Exif()
+        if turned:
+            exif[0x0112] = 8  # stored turned clockwise, tagged "turn 90 degrees counter-clockwise to display"
+        (img.rotate(-90, expand=True) if turned else img).save(tagged / f"{p.stem}.jpg", exif=exif, quality=95)
+    clip = read_clip(mixed)
+    assert clip.frames.shape == (10, 240, 134, 3)  # 135 px wide, made even
+    left_out = next(n for n in clip.notes if "left out" in n)
+    assert left_out.startswith("2 of 12 images left out: another shape (240x135) than the 135x240")
+    assert f"({src[4].stem}.png, {src[9].stem}.png)" in left_out
+    upright, reference = read_clip(tagged), read_clip(plain)
+    assert len(upright.frames) == 12 and not any("left out" in n for n in upright.notes)
+    for i in (4, 9):  # JPEG-compressed, else the same pixels
+        assert np.abs(upright.frames[i].astype(float) - reference.frames[i]).mean() < 4.0

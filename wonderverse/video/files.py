@@ -29,6 +29,8 @@ GIF_SUFFIXES = frozenset({".gif"})
 # Read with ffmpeg; any other suffix is tried with ffmpeg too (it sniffs the container).
 VIDEO_SUFFIXES = frozenset({".mp4", ".mov", ".m4v", ".webm", ".avi", ".mkv"})
 GLOB_CHARS = frozenset("*?[")
+TRUNCATED_SHARE = 0.1  # a video missing more than this share of the frames its header announces is noted
+EXIF_ORIENTATION = 0x0112  # the EXIF tag a phone records its rotation in (5-8: turned a quarter)
 # Longest tail of a decoder's message kept in a one-line error.
 REASON_MAX_CHARS = 160
 
@@ -218,6 +220,21 @@ def _expand(source: ClipSource) -> tuple[str, Path | list[Path]]:
     raise WonderError(f"{path}: no such file or folder")
 
 
+def _other_files(name: str, images: list[Path]) -> list[str]:
+    """A note naming the files of a folder clip that are not images it reads (HEIC photos, videos, sidecar files;
+    hidden files aside), [] when there are none or the clip is not a folder."""
+    folder = Path(name)
+    if not folder.is_dir():
+        return []
+    used = {p.name for p in images}
+    other = sorted(p for p in folder.iterdir() if p.is_file() and p.name not in used and not p.name.startswith("."))
+    if not other:
+        return []
+    kinds = ", ".join(sorted({p.suffix.lower() or "no suffix" for p in other}))
+    readable = ", ".join(sorted(s.lstrip(".") for s in IMAGE_SUFFIXES))
+    return [f"{len(other)} other files left out ({kinds}): a folder clip reads images only ({readable})"]
+
+
 def _window_indices(times: np.ndarray, params: ClipParams) -> np.ndarray:
     """Indices of the frames (at times `times`, seconds) inside [start_s, end_s]."""
     lo = params.start_s if params.start_s is not None else -np.inf
@@ -258,16 +275,71 @@ class _Raw:
     kind: Literal["images", "gif", "video"]
 
 
+def _upright_size(path: Path) -> tuple[int, int]:
+    """(width, height) of an image file as `_read_image` returns it (EXIF orientation applied), from its header."""
+    from PIL import Image
+
+    try:
+        with Image.open(path) as img:
+            w, h = img.size
+            turned = img.getexif().get(EXIF_ORIENTATION) in (5, 6, 7, 8)  # a quarter turn: width and height swap
+    except Exception as e:  # decoders raise many types; all mean "unreadable"
+        raise WonderError(f"{path}: cannot read image ({_short_reason(e)})") from e
+    return (h, w) if turned else (w, h)
+
+
+def _same_shape(a: tuple[int, int], b: tuple[int, int], tolerance: float) -> bool:
+    """Whether sizes (w, h) a and b have one shape: aspect ratios within `tolerance` (relative) of b's."""
+    return abs(a[0] / a[1] - b[0] / b[1]) <= tolerance * b[0] / b[1]
+
+
+def _main_shape(files: list[Path], window: np.ndarray, params: ClipParams) -> tuple[np.ndarray, str]:
+    """The images of `window` that have the shape most of them have (ties: the first image's), and a note naming
+    those left out ("" when none is). One camera needs one shape: a frame of another shape cannot be resized to it
+    without stretching, and SfM, the priors, the splats and every export hold one camera of one size."""
+    sizes = [_upright_size(files[i]) for i in window]
+    groups: list[tuple[tuple[int, int], list[int]]] = []  # (the shape's first size, positions in window)
+    for k, size in enumerate(sizes):
+        group = next((g for g in groups if _same_shape(size, g[0], params.max_aspect_mismatch)), None)
+        if group is None:
+            groups.append((size, [k]))
+        else:
+            group[1].append(k)
+    main = max(groups, key=lambda g: len(g[1]))  # max keeps the first of equals: the first image's shape
+    if len(main[1]) == len(window):
+        return window, ""
+    other = [k for k in range(len(window)) if k not in set(main[1])]
+    w, h = main[0]
+    shapes = ", ".join(dict.fromkeys(f"{sizes[k][0]}x{sizes[k][1]}" for k in other))
+    names = ", ".join(files[window[k]].name for k in other[:5]) + (", …" if len(other) > 5 else "")
+    note = (
+        f"{len(other)} of {len(window)} images left out: another shape ({shapes}) than the {w}x{h} of the others "
+        f"({names}); one camera needs one shape (crop them to {_ratio(w, h)} to use them)"
+    )
+    return window[main[1]], note
+
+
 def _read_images(name: str, files: list[Path], params: ClipParams) -> _Raw:
     fps = params.image_fps
     notes = [f"{len(files)} images; frame rate unknown, assumed {fps:g} fps"]
     window = _window_indices(np.arange(len(files)) / fps, params)
     if len(window) == 0:
         raise WonderError(f"{name}: no frames {_window_text(params)} ({len(files)} images at an assumed {fps:g} fps)")
-    strided = window[:: params.frame_stride]
+    usable = window
+    strided = usable[:: params.frame_stride]
     chosen = strided[_pick_evenly(len(strided), params.max_frames)]
     frames = [_read_image(files[i]) for i in chosen]
     w0, h0 = frames[0].shape[1], frames[0].shape[0]
+    if any(not _same_shape((f.shape[1], f.shape[0]), (w0, h0), params.max_aspect_mismatch) for f in frames):
+        # images of several shapes (a portrait shot among landscape ones): the main shape's, picked again
+        kept, note = _main_shape(files, window, params)
+        if len(kept) >= 2:
+            notes.append(note)
+            usable = kept
+            strided = usable[:: params.frame_stride]
+            chosen = strided[_pick_evenly(len(strided), params.max_frames)]
+            frames = [_read_image(files[i]) for i in chosen]
+            w0, h0 = frames[0].shape[1], frames[0].shape[0]
     odd = [(files[i], f.shape[1], f.shape[0]) for i, f in zip(chosen, frames, strict=True) if f.shape[:2] != (h0, w0)]
     for f, w, h in odd:
         if abs(w / h - w0 / h0) > params.max_aspect_mismatch * w0 / h0:
@@ -278,7 +350,7 @@ def _read_images(name: str, files: list[Path], params: ClipParams) -> _Raw:
     if odd:
         notes.append(f"{len(odd)} images of other sizes resized to the first frame's {w0}x{h0}")
     size = (frames[0].shape[1], frames[0].shape[0])
-    return _Raw(frames, chosen, chosen / fps, fps, size, len(window), notes, kind="images")
+    return _Raw(frames, chosen, chosen / fps, fps, size, len(usable), notes, kind="images")
 
 
 def _gif_frames(path: Path) -> Iterator[tuple[float, Any]]:
@@ -394,10 +466,28 @@ def _read_video(path: Path, params: ClipParams) -> _Raw:
         dur = meta.get("duration")
         length = f"; the video is {dur:g} s long" if isinstance(dur, int | float) and math.isfinite(dur) else ""
         raise WonderError(f"{path}: no frames {_window_text(params)}{length}")
+    short = _ends_early(meta, fps, n_window, params)
+    if short:
+        notes.append(short)
     idx = np.array([i for i, _ in thin.items])
     keep = _pick_evenly(len(idx), params.max_frames)
     frames = [thin.items[k][1] for k in keep]
     return _Raw(frames, idx[keep], start + idx[keep] / fps, fps, (width, height), n_window, notes, kind="video")
+
+
+def _ends_early(meta: dict, fps: float, decoded: int, params: ClipParams) -> str:
+    """A note when a whole video decoded to fewer frames than its header announces (duration x fps): a truncated
+    file (a copy cut short) whose frames before the cut are used; "" otherwise, or when a time window was asked."""
+    duration = meta.get("duration")
+    if params.start_s is not None or params.end_s is not None or not isinstance(duration, int | float):
+        return ""
+    expected = round(float(duration) * fps) if math.isfinite(duration) and duration > 0 else 0
+    if expected - decoded < max(2, TRUNCATED_SHARE * expected):
+        return ""
+    return (
+        f"the file ends after {decoded} of the {expected} frames its header announces ({decoded / fps:.1f} of "
+        f"{duration:g} s; truncated?): those {decoded} are used"
+    )
 
 
 # ---------------------------------------------------------------------------------------------- public
@@ -419,6 +509,7 @@ def read_clip(source: ClipSource, params: ClipParams | None = None) -> Clip:
     name, what = _expand(source)
     if isinstance(what, list):
         raw = _read_images(name, what, params)
+        raw.notes.extend(_other_files(name, what))
     elif what.suffix.lower() in IMAGE_SUFFIXES:
         raise WonderError(f"{what}: a single image; a clip needs at least 2 frames (pass a folder or a video)")
     elif what.suffix.lower() in GIF_SUFFIXES:
@@ -488,6 +579,33 @@ def pixel_aspect(kind: str, width: int, height: int, setting: float | Literal["a
     return 1.0
 
 
+def _ratio(w: int, h: int) -> str:
+    """'4:3' for 4032x3024."""
+    d = math.gcd(w, h)
+    return f"{w // d}:{h // d}"
+
+
+def _to_size(clip: Clip, first: Clip, params: ClipParams) -> Clip:
+    """`clip` at the frame size of the scene's first clip: the stitched video, the global solve (one camera), the
+    priors, the splats and every export hold one size. A clip of the same shape (aspect within
+    `max_aspect_mismatch`) is resized, its K scaled with it, and says so; another shape raises WonderError naming
+    both clips (stretching would bend the geometry)."""
+    h, w = clip.frames.shape[1:3]
+    h0, w0 = first.frames.shape[1:3]
+    if (w, h) == (w0, h0):
+        return clip
+    if not _same_shape((w, h), (w0, h0), params.max_aspect_mismatch):
+        raise WonderError(
+            f"{clip.name}: its frames are {w}x{h} ({_ratio(w, h)}) but those of the first clip, {first.name}, are "
+            f"{w0}x{h0} ({_ratio(w0, h0)}); a scene's clips need one shape (one camera): crop them to one shape, "
+            "or reconstruct them apart"
+        )
+    frames = np.stack([_resize(f, (w0, h0)) for f in clip.frames])
+    K = np.diag([w0 / w, h0 / h, 1.0]) @ clip.K
+    notes = [*clip.notes, f"resized {w}x{h} -> {w0}x{h0}, the size of the first clip ({first.name})"]
+    return Clip(frames, clip.fps, clip.source, K, clip.k_is_guess, clip.times_s, notes)
+
+
 def group_sources(args: Sequence[str | Path]) -> list[ClipSource]:
     """Clip sources from command-line arguments: runs of consecutive image files (what a shell makes of
     `frames/*.png`) become one image-sequence clip; every other argument is a clip of its own."""
@@ -531,6 +649,7 @@ class FilesVideo:
                 self.skipped.append((str(s if isinstance(s, str | Path) else s[0]), str(e)))
         if not self._clips:
             raise WonderError(f"none of the {len(sources)} clips could be read: {self.skipped[0][1]}")
+        self._clips = [_to_size(c, self._clips[0], self.params) for c in self._clips]
 
     @property
     def clips(self) -> list[Clip]:
