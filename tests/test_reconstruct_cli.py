@@ -173,6 +173,8 @@ def test_a_near_static_ai_clip_stops_in_one_line_for_too_little_parallax(data_di
     errors = error_lines(r.stderr)
     assert r.returncode == 2 and len(errors) == 1, r.stderr[-3000:]
     assert "step poses failed" in errors[0] and "too little parallax" in errors[0], errors[0]
+    assert not CLASS_NAME.search(errors[0]), errors[0]  # was `step poses failed: WonderError: …`
+    assert_failure_reported(out, r, "poses", ["plan", "generate_segments", "check"])
     info = json.loads(run_cli("inspect", str(out), "--json").stdout)
     clip_row = info["clips"][0]
     assert clip_row["verdict"] == "kept_failing" and clip_row["k_source"] == "guessed", clip_row
