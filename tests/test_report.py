@@ -403,7 +403,7 @@ def test_partial_scene_report_says_what_is_missing(partial_scene: Path, tmp_path
     assert "No mesh yet: mesh.ply is written by the outputs step." in scene_html and "<video" not in scene_html
     steps = section(text, "steps")
     for name in ("check", "poses", "priors", "splats"):
-        assert f'<td>{name}</td><td><span class="badge muted">missing</span>' in steps
+        assert f'<td>{name}</td><td><span class="badge muted">not run</span>' in steps  # state `missing`
     assert '<td>plan</td><td><span class="badge ok">complete</span></td><td class="num">–</td>' in steps
     assert "not recorded" in steps
     files_html = section(text, "files")
