@@ -327,9 +327,16 @@ def _clip_infos(store: SceneStore) -> list[ClipInfo] | None:
                 fov_deg=r.fov_deg,
                 verdict=r.verdict,
                 reasons=tuple(r.reasons),
+                notes=tuple(_read_notes(store, r.segment)),
             )
         )
     return out
+
+
+def _read_notes(store: SceneStore, seg: str) -> list[str]:
+    """What reading a clip did to it, as its segment recorded (`SegmentAttrs.read_notes`; [] before it did)."""
+    meta = store.meta(SEGMENT.at(seg=seg), complete=False)
+    return list(meta.read_notes) if meta is not None else []
 
 
 def _segments(store: SceneStore, p: ReportParams, clips: list[ClipInfo] | None = None) -> list[SegmentInfo]:

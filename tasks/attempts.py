@@ -81,6 +81,8 @@ def generate_segment(
         "repeats_reference": sp.ref_idx is not None,  # a generated extension's frame 0 is its reference
         "k_is_guess": video.K is None or video.k_is_guess,  # the check's SfM holds a known K
     }
+    if v.backend == "files":  # what reading the clip did to it, for the report
+        seg_attrs["read_notes"] = list(model.clips[int(seg.lstrip("s"))].notes)
     if record is not None:  # regenerations (the check's) render the same guide, from the same geometry
         seg_attrs["guide_geometry_key"] = record["geometry_key"]
         seg_attrs["guide_params"] = guide_params.model_dump(mode="json")

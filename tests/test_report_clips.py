@@ -8,6 +8,7 @@ what a failing clip does), and intrinsics it writes into the store itself."""
 
 from __future__ import annotations
 
+import html
 import json
 import os
 import re
@@ -114,6 +115,10 @@ def test_clips_table_lists_each_clip_in_order(scene: Path, clips):
     reasons = SceneStore.open(scene).meta("segments/s002/accepted").reasons
     assert reasons and any("texture" in r for r in reasons)
     assert flat == f"s002 flat/ {clips['flat'].parent} {KEEP} {W}×{H} px {k} dropped by its check " + " ".join(reasons)
+    # below the table, what reading each clip did to it (as the run's clip lines said)
+    read = html.unescape(text_of(re.search(r'<ul class="read-notes">(.*?)</ul>', table, re.S).group(1)))
+    assert f"s000 first.mp4: subsampled {T} -> {KEEP} frames" in read
+    assert f"s001 second/: {T} images; frame rate unknown, assumed 8 fps; subsampled {T} -> {KEEP} frames" in read
     # the segments below name their clip, not a role and a move
     segments = section(text, "segments")
     assert "s000 · first.mp4" in segments and "s001 · second/" in segments and "s002 · flat/" in segments

@@ -121,6 +121,7 @@ class ClipInfo:
     fov_deg: float | None = None
     verdict: str = "unread"
     reasons: tuple[str, ...] = ()
+    notes: tuple[str, ...] = ()  # what reading it did to it (subsampled, images left out, resized, assumed)
 
     @property
     def label(self) -> str:
@@ -672,7 +673,13 @@ def _clips_html(c: ReportContent) -> str:
         "<p>Each clip is one segment, in the order given; nothing was planned or generated, and a clip that "
         "fails its check cannot be regenerated.</p>"
     )
-    return f'{note}<table class="clips">{head}{"".join(rows)}</table>'
+    read = "".join(
+        f"<li>{esc(clip.segment)} {esc(clip.label)}: {esc('; '.join(clip.notes))}</li>"
+        for clip in c.clips
+        if clip.notes
+    )
+    how = f'<h3>How the clips were read</h3><ul class="read-notes">{read}</ul>' if read else ""
+    return f'{note}<table class="clips">{head}{"".join(rows)}</table>{how}'
 
 
 def _metrics_html(metrics: Mapping[str, Mapping[str, Value]]) -> str:

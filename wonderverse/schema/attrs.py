@@ -112,6 +112,10 @@ class SegmentAttrs(Attrs):
         None, description="frame 0 is the parent's frame (None: as its role says, for older stores)"
     )
     k_is_guess: bool = Field(True, description="K guessed rather than known (the renderer's, or a given FOV)")
+    read_notes: list[str] = Field(
+        default_factory=list,
+        description="a user's clip: what reading it did to it (frames subsampled or left out, resizing, assumptions)",
+    )
     guide_geometry_key: str | None = Field(
         None, description="guided extensions: the key of the parent's geometry its guide was rendered from"
     )
