@@ -107,6 +107,40 @@ def child_main(what: str, scene: str, payload: str) -> None:
     print(json.dumps({"steps": {r.step: r.seconds for r in results if r.status == "ran"}}), flush=True)
 
 
+def psnr_by_segment(scene: Path) -> dict[str, float]:
+    """Held-out PSNR of the stored splats per segment (dB): the views the splats step held out, rendered again
+    and grouped by the segment they come from, so that a segment can be followed from the extension that added
+    it to the last one (does what was built hold?) and compared with the world built from scratch."""
+    import torch
+
+    from tasks.splats import load_views, stored_sky
+    from wonderverse.splats.data import downscale_views
+    from wonderverse.splats.model import GaussianModel, normalization_from_dict
+    from wonderverse.splats.renderer import make_renderer
+    from wonderverse.splats.trainer import evaluate, normalize_views
+
+    store = SceneStore.open(scene)
+    meta = store.meta(SPLATS.path)
+    p = config().steps.splats
+    model = GaussianModel.from_numpy({k: store.array(getattr(SPLATS, k)) for k in GaussianModel.PARAM_NAMES})
+    views, names = load_views(store)
+    at = {n: i for i, n in enumerate(names)}
+    trained = [at[n] for n in meta.frames]  # the frames the splats were trained on, in their order
+    views = normalize_views(
+        downscale_views(views.subset(trained), p.max_side_px), normalization_from_dict(meta.normalization)
+    )
+    groups: dict[str, list[int]] = {}
+    for i in meta.metrics.test_views:
+        groups.setdefault(meta.frames[i].split("_")[0], []).append(i)
+    sky = stored_sky(store)
+    sky = torch.from_numpy(np.asarray(np.zeros(3) if sky is None else sky, np.float32))
+    renderer = make_renderer("auto")
+    return {
+        seg: round(evaluate(model, views, ids, renderer, p.train, sky)["psnr"], 3)
+        for seg, ids in sorted(groups.items())
+    }
+
+
 def measure(scene: Path) -> dict[str, Any]:
     """Figures of the scene as it stands: its size, frames, Gaussians, held-out PSNR, pose ATE and seams."""
     from wonderverse.check import check_trajectory
@@ -122,6 +156,7 @@ def measure(scene: Path) -> dict[str, Any]:
         "store_mb": size / 2**20,
         "gaussians": splats.metrics.n_gaussians,
         "psnr": splats.metrics.test_psnr,
+        "psnr_by_segment": psnr_by_segment(scene),
         "ate_frac": pose_error(scene),
         "seam": not seams.accepted,
         "seam_reasons": seams.reasons,
