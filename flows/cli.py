@@ -154,10 +154,12 @@ def generate(
     made = scene_config(scene_dir, "segments_config") or stored
     if made is not None and not replace_segments and not cfg.scene.extensions.added:
         cfg = with_extensions(cfg, made.scene.extensions.added)  # extensions are part of the scene
+    read: list[str] = []
     if cfg.scene.video.backend == "files":
         from wonderverse.video import make_video_model
 
-        make_video_model(cfg.scene.video_source)  # reads every clip: a bad one is refused before the store is touched
+        # reads every clip: a bad one is refused before the store is touched; what reading did is said
+        read = clip_notes(make_video_model(cfg.scene.video_source))
     with claimed(scene_dir, cfg, replace_segments):  # a busy, newer or read-only scene is refused in one line
         _run_with_progress(
             scene_dir,
@@ -166,7 +168,7 @@ def generate(
             lambda eng: run_pipeline(scene_dir, cfg, until, engine=eng, lock_held=True),
             len(steps),
             folder_note,
-            config_notes(cfg),
+            config_notes(cfg) + read,
             strict=strict,
         )
 
