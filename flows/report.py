@@ -437,10 +437,13 @@ def _run_facts(store: SceneStore, clips: bool) -> RunFacts:
     segments were made under)."""
     pr = priors(store)
     cfg = run_config(store) or scene_config(store.scene_dir, "segments_config")
+    depth, normals = pr.depth_backend, pr.normal_backend
+    if not pr.computed and cfg is not None:  # a run that failed before the priors step: as it was configured
+        depth, normals = cfg.steps.priors.models.depth_backend, cfg.steps.priors.models.normal_backend
     return RunFacts(
         clips=clips,
-        depth=pr.depth_backend != "none",
-        normals=pr.normal_backend != "none",
+        depth=depth != "none",
+        normals=normals != "none",
         on_failure=cfg.steps.check.on_failure if cfg is not None else "keep_best",
     )
 

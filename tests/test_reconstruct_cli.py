@@ -207,6 +207,8 @@ def test_a_failed_reconstruction_speaks_of_clips_and_reports_where_it_stopped(tm
     assert finished["plan"]["detail"] == "1 clip, one segment each, in the order given"
     assert finished["check"]["status"] == "failed" and not CLASS_NAME.search(finished["check"]["detail"])
     assert_failure_reported(out, r, "check", ["plan", "generate_segments"])
+    steps = html.unescape((out / "report.html").read_text()).split('id="steps"')[1].split("</section>")[0]
+    assert "no priors (no depth model named)" in steps and "on colours alone (no priors)" in steps  # as configured
 
     r = run_cli(*args)  # keep_best: the same clip is kept, warned, and the run completes
     assert r.returncode == 0, r.stderr[-3000:]
