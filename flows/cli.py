@@ -298,8 +298,15 @@ def reconstruct(
     fov_deg: Annotated[
         float | None, typer.Option(help="horizontal field of view when known (else estimated); held in every output")
     ] = None,
+    intrinsics: Annotated[
+        str | None,
+        typer.Option(
+            metavar="FX,FY,CX,CY",
+            help="the camera's K when known, in pixels of the clips' frames (instead of --fov-deg); held in outputs",
+        ),
+    ] = None,
     refine_intrinsics: Annotated[
-        bool, typer.Option(help="refine the --fov-deg camera in the global solve instead of holding it")
+        bool, typer.Option(help="refine the camera given (--fov-deg, --intrinsics) in the global solve, not hold it")
     ] = False,
     shutter: Annotated[
         float | None,
@@ -326,7 +333,9 @@ def reconstruct(
         paths.append(_clip_path(source))
     if depth_model is not None and not depth_model.is_dir():
         raise WonderError(f"--depth-model {depth_model}: no such folder (a local Depth Anything V2 folder)")
-    options = {} if fov_deg is None else {"fov_deg": fov_deg}
+    options: dict[str, Any] = {} if fov_deg is None else {"fov_deg": fov_deg}
+    if intrinsics is not None:
+        options["intrinsics"] = _four_numbers(intrinsics)
     overrides: dict[str, Any] = {
         "scene": {"video": {"backend": "files", "clips": paths, "options": options}, "extensions": {"rounds": 0}},
         "steps": {"check": {"on_failure": on_failure}},
@@ -363,6 +372,19 @@ def reconstruct(
             notes=config_notes(cfg) + clip_notes(model),
             strict=strict,
         )
+
+
+def _four_numbers(text: str) -> list[float]:
+    """`--intrinsics FX,FY,CX,CY` as four numbers; WonderError in one line otherwise (the config judges their
+    values)."""
+    parts = text.replace(" ", "").split(",")
+    try:
+        values = [float(p) for p in parts]
+    except ValueError:
+        values = []
+    if len(values) != 4:
+        raise WonderError(f"--intrinsics {text}: four numbers FX,FY,CX,CY (pixels of the clips' frames)")
+    return values
 
 
 def _clip_path(source: str) -> str:

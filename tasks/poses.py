@@ -118,7 +118,7 @@ def _check_mapper(store: SceneStore, segs: list[str]) -> tuple[str, bool] | None
 
 def users_camera(store: SceneStore, segs: list[str]) -> bool:
     """Whether every segment is one of the user's clips (video backend `files`, recorded on its attempt) with the
-    camera the user gave (`--fov-deg`): a camera to hold, where a generated video's K is refined."""
+    camera the user gave (`--fov-deg`, `--intrinsics`): a camera to hold, where a generated video's K is refined."""
     for seg in segs:
         attempt = store.meta(attempt_path(store, seg), complete=False)
         if attempt is None or attempt.source != "files" or not camera_prior(store, seg).given:
@@ -131,9 +131,9 @@ def k_reason(prior_source: str, users: bool, held: bool, source: str) -> str:
     if source == "conditioning":
         return "the K the video was generated with; poses from the conditioning path, no SfM"
     if held:
-        return "the field of view you gave with --fov-deg, held fixed through the global solve"
+        return "the camera you gave (--fov-deg or --intrinsics), held fixed through the global solve"
     if users:
-        return "refined by the global solve from the field of view you gave, as --refine-intrinsics asks"
+        return "refined by the global solve from the camera you gave, as --refine-intrinsics asks"
     if prior_source == "given":
         return "the generated video's K, refined by the global solve"
     return "no field of view given: self-calibrated by the global solve"

@@ -64,6 +64,9 @@ def bad_clips(tmp_path_factory) -> dict[str, Path]:
         ("one.mp4", ["--fov-deg", "-5"], "scene.video.options.fov_deg"),
         ("one.mp4", ["--shutter", "2"], "steps.splats.train.motion_blur_shutter"),
         ("one.mp4", ["--depth-model", "/nonexistent/da"], "--depth-model /nonexistent/da: no such folder"),
+        ("one.mp4", ["--intrinsics", "180,180,96"], "--intrinsics 180,180,96: four numbers FX,FY,CX,CY"),
+        ("one.mp4", ["--intrinsics", "180,-1,96,64"], "scene.video.options.intrinsics"),
+        ("one.mp4", ["--fov-deg", "60", "--intrinsics", "180,180,96,64"], "intrinsics or fov_deg, not both"),
     ],
 )
 def test_a_bad_clip_is_one_line_naming_it_and_makes_no_scene(bad_clips, tmp_path, clip, extra, message):
@@ -253,7 +256,24 @@ def test_a_given_field_of_view_is_held_through_the_global_solve(held, data_dir: 
     assert info["clips"][0]["fov_deg"] == g["fov_deg"]  # one field of view: the check's and the outputs'
     assert _re10k_ate(out, data_dir / "cameractrl_re10k/pose_files/0bf152ef84195293.txt") < 0.015
     text = run_cli("inspect", str(out)).stdout
-    assert "the field of view you gave with --fov-deg, held fixed through the global solve" in " ".join(text.split())
+    words = "the camera you gave (--fov-deg or --intrinsics), held fixed through the global solve"
+    assert words in " ".join(text.split())
+
+
+def test_a_full_k_given_is_held_through_the_global_solve(data_dir: Path, tmp_path: Path):
+    """RealEstate10K's own K of the clip (its pose file: fx, fy, cx, cy as shares of the 384x256 frames, non-square
+    pixels) given with --intrinsics: the global poses use exactly that K, and are right against its poses."""
+    pose_file = data_dir / "cameractrl_re10k/pose_files/0bf152ef84195293.txt"
+    row = pose_file.read_text().splitlines()[1].split()
+    fx, fy, cx, cy = (float(v) * size for v, size in zip(row[1:5], (384, 256, 384, 256), strict=True))
+    out = tmp_path / "scene"
+    r = run_cli("reconstruct", str(data_dir / RE10K_CLIP), "--intrinsics", f"{fx},{fy},{cx},{cy}", "--out", str(out),
+                "--until", "poses", "--engine", "local", timeout=600)  # fmt: skip
+    assert r.returncode == 0, r.stderr[-3000:]
+    g = json.loads(run_cli("inspect", str(out), "--json").stdout)["global_k"]
+    np.testing.assert_allclose(g["K"], [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], rtol=1e-12)
+    assert (g["k_source"], g["held"]) == ("given", True)
+    assert _re10k_ate(out, pose_file) < 0.015
 
 
 def test_refine_intrinsics_refines_the_given_field_of_view(held, data_dir: Path, tmp_path: Path):

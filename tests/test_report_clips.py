@@ -109,7 +109,7 @@ def test_clips_table_lists_each_clip_in_order(scene: Path, clips):
     table = section(text, "clips")
     assert [m for m in re.findall(r'<tr id="clip-(s\d+)">', table)] == ["s000", "s001", "s002"]
     first, second, flat = (text_of(row(table, f"clip-s00{i}")) for i in range(3))
-    k = "given (--fov-deg), 60.0° horizontal field of view"
+    k = "given (--fov-deg or --intrinsics), 60.0° horizontal field of view"
     assert first == f"s000 first.mp4 {clips['mp4'].parent} {KEEP} {W}×{H} px {k} accepted"
     assert second == f"s001 second/ {clips['folder'].parent} {KEEP} {W}×{H} px {k} accepted"
     reasons = SceneStore.open(scene).meta("segments/s002/accepted").reasons
@@ -232,7 +232,7 @@ def test_the_given_field_of_view_is_held_through_the_global_solve_and_every_expo
     g = summarize(store)["global_k"]
     assert (g["k_source"], g["held"], g["fov_deg"]) == ("given", True, 60.0)
     np.testing.assert_allclose(g["K"], K, rtol=1e-12)
-    assert g["reason"] == "the field of view you gave with --fov-deg, held fixed through the global solve"
+    assert g["reason"] == "the camera you gave (--fov-deg or --intrinsics), held fixed through the global solve"
     # one field of view everywhere: each clip's check held the same K
     assert {c["fov_deg"] for c in summarize(store)["clips"]} == {60.0}
     transforms = json.loads((scene / "nerfstudio" / "transforms.json").read_text())
@@ -245,11 +245,11 @@ def test_the_given_field_of_view_is_held_through_the_global_solve_and_every_expo
     for cam in cameras:
         np.testing.assert_allclose(np.diag([W / cam.width, H / cam.height, 1]) @ cam.calibration_matrix(), K, rtol=1e-9)
     metrics = text_of(section(write_report(scene).read_text(), "metrics"))
-    assert "intrinsics (K) every output uses given, 60.0° horizontal field of view: the field of view you gave" in (
+    assert "intrinsics (K) every output uses given, 60.0° horizontal field of view: the camera you gave" in (
         metrics
     )
     r = run_cli("inspect", str(scene))
-    assert "camera every output uses: K given, 60.0° horizontal field of view (the field of view you gave" in (
+    assert "camera every output uses: K given, 60.0° horizontal field of view (the camera you gave" in (
         r.stdout.replace("\n", " ")
     )
 

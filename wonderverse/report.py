@@ -95,7 +95,7 @@ CLIP_VERDICTS = {
 CLIP_KINDS = {"video": "video file", "folder": "image folder", "pattern": "images matching a pattern"}
 # Where a clip's K came from, in words.
 K_SOURCES = {
-    "given": "given (--fov-deg)",
+    "given": "given (--fov-deg or --intrinsics)",
     "estimated": "estimated from the clip",
     "guessed": "guessed",
 }

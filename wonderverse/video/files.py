@@ -18,7 +18,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from wonderverse.camera import intrinsics
 from wonderverse.errors import WonderError
@@ -55,6 +55,12 @@ class ClipParams(BaseModel):
         None, gt=5, lt=170, description="horizontal field of view of the camera when known; None = unknown"
     )
     guess_fov_deg: float = Field(60.0, gt=5, lt=170, description="horizontal field of view assumed when unknown")
+    intrinsics: tuple[float, float, float, float] | None = Field(
+        None,
+        description="the camera's K when known: fx, fy, cx, cy in pixels of the source frames (before any resizing; "
+        "pixel centres at +0.5), instead of fov_deg and pixel_aspect; held through the global solve as a given "
+        "field of view is (steps.poses.refine_intrinsics)",
+    )
     pixel_aspect: float | Literal["auto"] = Field(
         "auto",
         description="fy/fx of the frames' pixels (1: square). auto: 32/27 for a video or GIF of 3:2 frames (no "
@@ -74,7 +80,16 @@ class ClipParams(BaseModel):
             raise ValueError(f"pixel_aspect must be between 0.25 and 4 (fy/fx), got {self.pixel_aspect}")
         if self.start_s is not None and self.end_s is not None and self.end_s <= self.start_s:
             raise ValueError(f"end_s ({self.end_s}) must be after start_s ({self.start_s})")
+        if self.intrinsics is not None and self.fov_deg is not None:
+            raise ValueError("give either intrinsics or fov_deg, not both")
         return self
+
+    @field_validator("intrinsics")
+    @classmethod
+    def _positive(cls, v: tuple[float, float, float, float] | None) -> tuple[float, float, float, float] | None:
+        if v is not None and not all(math.isfinite(x) and x > 0 for x in v):
+            raise ValueError("must be four positive numbers fx, fy, cx, cy (pixels)")
+        return v
 
 
 @dataclass
@@ -85,7 +100,7 @@ class Clip:
     fps: frame rate of the returned frames (the source rate divided by the mean step between kept frames).
     source: the path (or first image path of an image sequence) it was read from.
     K: (3,3) float64 pinhole intrinsics in pixels of the returned frames, pixel centres at +0.5.
-    k_is_guess: True when K comes from `guess_fov_deg`, not from a known field of view.
+    k_is_guess: True when K comes from `guess_fov_deg`, not from a known K or field of view.
     times_s: (T,) float64 time of each returned frame in seconds from the start of the source.
     notes: what was done to the input, in words (resizing, subsampling, guesses).
     """
@@ -499,7 +514,8 @@ def read_clip(source: ClipSource, params: ClipParams | None = None) -> Clip:
 
     Returns frames (T,H,W,3) uint8 RGB with even H, W (longer side <= max_side_px, never upscaled), T >= 2
     (at most max_frames, picked evenly after the time window and the stride), K (3,3) float64 pixels for those
-    frames (pixel centres at +0.5, cx = W/2), from `fov_deg` or else from `guess_fov_deg` (k_is_guess=True).
+    frames (pixel centres at +0.5), from `intrinsics` (the camera's own K), `fov_deg` (cx = W/2) or else from
+    `guess_fov_deg` (k_is_guess=True).
     Image folders whose frames differ in size are resized to the first frame's size when the shape (aspect
     ratio) matches within `max_aspect_mismatch`, with a note; another shape raises, since stretching would bend
     the geometry. Raises WonderError (one line naming the file) for a missing path, an empty folder, an
@@ -540,17 +556,23 @@ def _finish(name: str, raw: _Raw, params: ClipParams) -> Clip:
     if params.start_s is not None or params.end_s is not None:
         notes.append(f"frames {_window_text(params)}")
 
-    fov = params.fov_deg if params.fov_deg is not None else params.guess_fov_deg
-    if params.fov_deg is None:
-        notes.append(f"intrinsics unknown: guessed a {fov:g} deg horizontal field of view")
-    aspect = pixel_aspect(raw.kind, src_w, src_h, params.pixel_aspect)
-    if aspect != 1.0:
-        how = "set" if params.pixel_aspect != "auto" else "assumed for 3:2 video (16:9 footage resized)"
-        notes.append(f"pixels not square: fy/fx = {aspect:.4g} {how}")
+    if params.intrinsics is not None:  # the camera's own K, in the source frames' pixels
+        fx, fy, cx, cy = params.intrinsics
+        if not (cx < src_w and cy < src_h):
+            raise WonderError(f"{name}: the principal point ({cx:g}, {cy:g}) lies outside its {src_w}x{src_h} frames")
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    else:
+        fov = params.fov_deg if params.fov_deg is not None else params.guess_fov_deg
+        if params.fov_deg is None:
+            notes.append(f"intrinsics unknown: guessed a {fov:g} deg horizontal field of view")
+        aspect = pixel_aspect(raw.kind, src_w, src_h, params.pixel_aspect)
+        if aspect != 1.0:
+            how = "set" if params.pixel_aspect != "auto" else "assumed for 3:2 video (16:9 footage resized)"
+            notes.append(f"pixels not square: fy/fx = {aspect:.4g} {how}")
+        K = intrinsics(src_w, src_h, fov)
+        K[1, 1] *= aspect
     # K of the source frame, scaled to the returned size (the aspect may change by under a pixel when rounding
     # to even sizes, so fx and fy scale separately and stay exact).
-    K = intrinsics(src_w, src_h, fov)
-    K[1, 1] *= aspect
     sx, sy = target[0] / src_w, target[1] / src_h
     K = np.diag([sx, sy, 1.0]) @ K
 
@@ -561,7 +583,7 @@ def _finish(name: str, raw: _Raw, params: ClipParams) -> Clip:
         fps=float(fps),
         source=name,
         K=K,
-        k_is_guess=params.fov_deg is None,
+        k_is_guess=params.fov_deg is None and params.intrinsics is None,
         times_s=np.asarray(raw.times_s, dtype=np.float64),
         notes=notes,
     )
