@@ -330,6 +330,9 @@ def test_a_scene_the_global_solve_barely_poses_ends_with_a_warning_and_strict_re
     n = int(SceneStore.open(out).array("sfm/registered").sum())
     assert n <= 6 and f"{n} of 6 views registered (at least 8" in last
     assert len([ln for ln in r.stderr.splitlines() if ln.startswith("warning:")]) == 1 and not error_lines(r.stderr)
+    report = " ".join(re.sub(r"<[^>]+>", " ", html.unescape((out / "report.html").read_text())).split())
+    assert f"fail the quality gates: {n} of 6 views registered" in report
+    assert f"FAILS the quality gates: {n} of 6 views registered" in run_cli("inspect", str(out)).stdout
     r = run_cli(*args, "--strict", timeout=600)  # every step cached: the same poses judged again
     errors = error_lines(r.stderr)
     assert r.returncode == 2 and len(errors) == 1 and r.stderr.rstrip().endswith(errors[0]), r.stderr[-2000:]

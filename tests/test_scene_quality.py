@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import complete_config
+from conftest import complete_config, run_cli
 from test_report import section
 
 from flows.inspect import summarize
@@ -55,6 +55,9 @@ def test_no_view_held_out_is_training_psnr_everywhere(scene):
     assert "training PSNR" in lines["splats"] and "held-out" not in lines["splats"], lines["splats"]
     summary = text_of(section(write_report(d).read_text(), "summary"))
     assert "training PSNR" in summary and "held-out PSNR" not in summary
+    r = run_cli("inspect", str(d))
+    assert f"splats: training PSNR {metrics.train_psnr:.2f} dB (no view held out)" in r.stdout, r.stdout[-2000:]
+    assert "held-out" not in r.stdout
 
 
 @pytest.mark.e2e
