@@ -671,7 +671,8 @@ def _clips_html(c: ReportContent) -> str:
         )
     note = (
         "<p>Each clip is one segment, in the order given; nothing was planned or generated, and a clip that "
-        "fails its check cannot be regenerated.</p>"
+        "fails its check cannot be regenerated. K is the one each clip's own check used; every output uses the "
+        "global solve's (Metrics: intrinsics (K) every output uses).</p>"
     )
     read = "".join(
         f"<li>{esc(clip.segment)} {esc(clip.label)}: {esc('; '.join(clip.notes))}</li>"
