@@ -33,7 +33,11 @@ video's K (`global_poses`: `hold_known_intrinsics` off). The user's camera (a cl
 gave) is held there too, as in the check, so that every output uses the camera the user stated, with the global
 mapper first (the poses step's `auto_order_known_k`): on the seven RealEstate10K clips with the FOV of their pose
 files held, global first ended 0.10-0.56 % of the path off (median 0.37 %), incremental first 0.15-6.3 % (`0c11`),
-and refining the same FOV 0.09-0.77 % (median 0.37 %). The user may ask for refinement
+and refining the same FOV 0.09-0.77 % (median 0.37 %). But the global mapper holding K from its start once settled
+on a wrong path: two procedural clips (160x112, the exact K given) 9.7 % off, 0.41 % refined. So the global mapper
+always refines, and a held camera is set back afterwards and bundle-adjusted with it fixed
+(`_hold_database_camera`): that clip 0.43 %, the seven RealEstate10K clips 0.10-0.67 % (median 0.39 %). The user
+may ask for refinement
 (`steps.poses.refine_intrinsics`, `reconstruct --refine-intrinsics`). Reproducibility: with
 `num_threads=1` and a fixed `random_seed` two runs give bit-identical poses; with 2 threads they differ slightly
 (measured).
@@ -380,8 +384,8 @@ def _incremental_options(params: SfmParams, hold_camera: bool = False) -> pycolm
     return opts
 
 
-def _global_options(params: SfmParams, hold_camera: bool = False) -> pycolmap.GlobalPipelineOptions:
-    """COLMAP's global pipeline; `hold_camera` keeps the intrinsics at their initial (prior) values."""
+def _global_options(params: SfmParams) -> pycolmap.GlobalPipelineOptions:
+    """COLMAP's global pipeline (it refines the intrinsics; `_hold_database_camera` holds them afterwards)."""
     import pycolmap
 
     opts = pycolmap.GlobalPipelineOptions()
@@ -397,9 +401,6 @@ def _global_options(params: SfmParams, hold_camera: bool = False) -> pycolmap.Gl
     m.bundle_adjustment.ceres.use_gpu = False
     m.bundle_adjustment.ceres.solver_options.num_threads = params.num_threads
     m.retriangulation.random_seed = params.random_seed
-    if hold_camera:
-        ba = m.bundle_adjustment
-        ba.refine_focal_length = ba.refine_principal_point = ba.refine_extra_params = False
     return opts
 
 
@@ -519,8 +520,30 @@ def _run_mapper(
         options = _incremental_options(params, hold_camera)
         models = pycolmap.incremental_mapping(db_path, image_dir, out, options=options)
     else:
-        models = pycolmap.global_mapping(db_path, image_dir, out, options=_global_options(params, hold_camera))
-    return _largest_model(models)
+        # Held from the start, the global mapper can settle on a wrong path (a 2-clip procedural video: 9.7 % of
+        # the path off with the exact K held, 0.41 % refined); so it refines, and the camera is held afterwards.
+        models = pycolmap.global_mapping(db_path, image_dir, out, options=_global_options(params))
+    rec = _largest_model(models)
+    if hold_camera and rec is not None and kind == "global":
+        _hold_database_camera(rec, db_path, params)
+    return rec
+
+
+def _hold_database_camera(rec: Any, db_path: Path, params: SfmParams) -> None:
+    """`rec`'s cameras set back to the database's (the K held) and bundle-adjusted with them fixed, in place."""
+    import pycolmap
+
+    db = pycolmap.Database.open(db_path)
+    try:
+        held = {camera.camera_id: np.array(camera.params) for camera in db.read_all_cameras()}
+    finally:
+        db.close()
+    for camera_id, camera in rec.cameras.items():
+        camera.params = held[camera_id]
+    opts = pycolmap.BundleAdjustmentOptions()
+    opts.refine_focal_length = opts.refine_principal_point = opts.refine_extra_params = False
+    opts.ceres.solver_options.num_threads = params.num_threads
+    pycolmap.bundle_adjustment(rec, opts)
 
 
 def _extract(
