@@ -22,7 +22,7 @@ from pydantic import BaseModel, ConfigDict
 
 from tasks.segments import accepted_attempt
 from wonderverse.schema import ATTEMPT, SFM, SPLATS
-from wonderverse.store import SceneStore
+from wonderverse.store import DamagedData, SceneStore
 
 MIN_POSED_VIEWS = 8  # views the global solve must register, whatever the share
 DEFAULT_MIN_REGISTERED_FRAC = 0.8  # SfmParams' defaults, where no configuration is stored
@@ -132,16 +132,20 @@ def pose_problems(registered: int, frames_used: int, points: int, gates: PoseGat
 
 
 def pose_quality(store: SceneStore, gates: PoseGates | None = None) -> PoseQuality | None:
-    """The global poses' figures and gates (None: the poses step has not completed)."""
+    """The global poses' figures and gates (None: the poses step has not completed, or its data is damaged: the
+    damage is listed with the store's damaged groups and the poses step rebuilds it on the next run)."""
     from wonderverse.metrics import ate
 
     sfm = store.meta(SFM.path)
     if sfm is None:
         return None
     gates = gates or PoseGates()
-    poses = store.array(SFM.poses)
-    registered = int(store.array(SFM.registered).sum())
-    points = int(store.open_array(SFM.points3d).shape[0])
+    try:
+        poses = store.array(SFM.poses)
+        registered = int(store.array(SFM.registered).sum())
+        points = int(store.open_array(SFM.points3d).shape[0])
+    except DamagedData:
+        return None
     posed = int(np.isfinite(poses).all(axis=(1, 2)).sum())
     used = int(sfm.frames_used) if sfm.frames_used is not None else len(poses)
     ate_frac, note = None, "not available: no ground-truth camera path (only the procedural world has one)"
