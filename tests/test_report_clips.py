@@ -245,9 +245,7 @@ def test_the_given_field_of_view_is_held_through_the_global_solve_and_every_expo
     for cam in cameras:
         np.testing.assert_allclose(np.diag([W / cam.width, H / cam.height, 1]) @ cam.calibration_matrix(), K, rtol=1e-9)
     metrics = text_of(section(write_report(scene).read_text(), "metrics"))
-    assert "intrinsics (K) every output uses given, 60.0° horizontal field of view: the camera you gave" in (
-        metrics
-    )
+    assert "intrinsics (K) every output uses given, 60.0° horizontal field of view: the camera you gave" in metrics
     r = run_cli("inspect", str(scene))
     assert "camera every output uses: K given, 60.0° horizontal field of view (the camera you gave" in (
         r.stdout.replace("\n", " ")
