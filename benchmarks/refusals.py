@@ -58,7 +58,7 @@ def main() -> None:
         for name, call in calls.items():
             engines = ("local", "prefect") if call[0] in ("generate", "reconstruct", "extend") else ("-",)
             for engine in engines:
-                argv = [sys.executable, "-m", "flows.cli", *call] + (["--engine", engine] if engine != "-" else [])
+                argv = [sys.executable, "-m", "flows", *call] + (["--engine", engine] if engine != "-" else [])
                 times = []
                 for _ in range(args.runs):
                     t0 = time.perf_counter()

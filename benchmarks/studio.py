@@ -123,7 +123,7 @@ def main() -> None:
         config = Path(tmp) / "settings.yaml"
         config.write_text(yaml.safe_dump(settings))
         proc = subprocess.Popen(
-            [sys.executable, "-m", "flows.cli", "studio", str(Path(tmp) / "scenes"), "--config", str(config)],
+            [sys.executable, "-m", "flows", "studio", str(Path(tmp) / "scenes"), "--config", str(config)],
             stdout=subprocess.PIPE,
             text=True,
             cwd=ROOT,

@@ -152,7 +152,7 @@ class Jobs:
             proc = await asyncio.create_subprocess_exec(
                 sys.executable,
                 "-m",
-                "flows.cli",
+                "flows",
                 *job.argv,
                 stdin=asyncio.subprocess.DEVNULL,
                 stdout=asyncio.subprocess.PIPE,

@@ -1,4 +1,4 @@
-"""Ctrl-C and SIGTERM stop a `wonderverse` command at once and cleanly (`flows.cli.main` calls `run_supervised`).
+"""Ctrl-C and SIGTERM stop a `wonderverse` command at once and cleanly (`main` here is the console script).
 
 The command runs in a child process of its own session, and the parent only waits for it. A
 terminal's Ctrl-C (SIGINT), SIGTERM and SIGHUP therefore reach the parent alone: it kills the child's whole
@@ -93,10 +93,18 @@ def run_supervised(argv: list[str]) -> int:
     return rc
 
 
+def main() -> None:
+    """The `wonderverse` console script and `python -m flows`: supervise the command. This module imports only the
+    standard library, so the parent, which merely waits, starts in milliseconds (the command's own imports, typer,
+    pydantic and the rest, happen once, in the child)."""
+    sys.exit(run_supervised(sys.argv[1:]))
+
+
 def start_reaper() -> None:
     """In the child: start the reaper of this process group, reading the parent's pipe."""
     fd = os.environ.pop(_PARENT_FD_ENV, None)
     if fd is None:
         return
-    subprocess.Popen([sys.executable, "-c", _REAPER], stdin=int(fd))
+    # -I -S: no site-packages, no user paths, no .pth finders: it needs only os and signal
+    subprocess.Popen([sys.executable, "-I", "-S", "-c", _REAPER], stdin=int(fd))
     os.close(int(fd))

@@ -36,7 +36,7 @@ def run_cli(*args: str, env: dict[str, str] | None = None, timeout: float = 300)
     """Run `wonderverse ARGS` in a fresh interpreter, as a user would."""
     full_env = {**os.environ, "PYTHONUNBUFFERED": "1", **(env or {})}
     return subprocess.run(
-        [sys.executable, "-m", "flows.cli", *args],
+        [sys.executable, "-m", "flows", *args],
         capture_output=True,
         text=True,
         timeout=timeout,
@@ -144,7 +144,8 @@ E2E = "e2e"
 
 # Command lines of the CLI, a benchmark, or a server (Prefect's API runs under uvicorn, ephemeral or `prefect server`).
 _E2E_COMMAND = re.compile(
-    r"(^|[\s/])wonderverse(\s|$)|\bflows\.(cli|serve|view)\b|-m\s+benchmarks\.|\buvicorn\b|\bprefect\s+server\b"
+    r"(^|[\s/])wonderverse(\s|$)|-m\s+flows(\s|$)|\bflows\.(cli|serve|view)\b|-m\s+benchmarks\.|\buvicorn\b"
+    r"|\bprefect\s+server\b"
 )
 
 _unmarked_test: str | None = None  # node id of the test running now when it lacks the e2e marker

@@ -60,7 +60,7 @@ def made(tmp_path_factory: pytest.TempPathFactory) -> Made:
 def start(*args: str, env: dict[str, str]) -> tuple[subprocess.Popen, list[str]]:
     """`wonderverse ARGS` in its own session (a shell's job); its stderr lines gathered as they come."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "flows.cli", *args],
+        [sys.executable, "-m", "flows", *args],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
         text=True,

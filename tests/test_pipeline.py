@@ -104,7 +104,7 @@ def test_sigkill_during_generation_resumes_from_last_complete_segment(tmp_path: 
     cmd = [
         sys.executable,
         "-m",
-        "flows.cli",
+        "flows",
         "generate",
         "--config",
         str(cfg_file),

@@ -41,7 +41,7 @@ def prefect_env(tmp_path: Path) -> dict[str, str]:
 def start_cli(*args: str, env: dict[str, str] | None = None) -> subprocess.Popen:
     """`wonderverse ARGS` in its own process group, as a shell starts a foreground job."""
     return subprocess.Popen(
-        [sys.executable, "-m", "flows.cli", *args],
+        [sys.executable, "-m", "flows", *args],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,

@@ -49,7 +49,7 @@ def test_a_folder_holding_other_files_or_an_unreadable_store_is_skipped(tmp_path
 def cli_in(cwd: Path, *args: str) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONUNBUFFERED": "1"}
     return subprocess.run(
-        [sys.executable, "-m", "flows.cli", *args], capture_output=True, text=True, timeout=300, env=env, cwd=cwd
+        [sys.executable, "-m", "flows", *args], capture_output=True, text=True, timeout=300, env=env, cwd=cwd
     )
 
 

@@ -89,7 +89,7 @@ def test_sigkill_during_training_resumes_from_its_checkpoint(tmp_path: Path, tra
         [
             sys.executable,
             "-m",
-            "flows.cli",
+            "flows",
             "generate",
             "--config",
             str(cfg_file),

@@ -150,7 +150,7 @@ def studio(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Studio]:
     config.write_text(yaml.safe_dump(TINY))
     root = folder / "scenes"
     proc = subprocess.Popen(
-        [sys.executable, "-m", "flows.cli", "studio", str(root), "--config", str(config), "--engine", "local"],
+        [sys.executable, "-m", "flows", "studio", str(root), "--config", str(config), "--engine", "local"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,

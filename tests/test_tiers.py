@@ -37,7 +37,7 @@ def test_an_unmarked_test_may_not_run_a_step_on_a_store(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     "argv",
     [
-        [sys.executable, "-m", "flows.cli", "--help"],
+        [sys.executable, "-m", "flows", "--help"],
         ["wonderverse", "generate", "a room"],
         f"{sys.executable} -m benchmarks.tradeoff --quick",
         [sys.executable, "-m", "prefect", "server", "start"],

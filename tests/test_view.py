@@ -121,7 +121,7 @@ def _settled_canvas(page, timeout_s: float = 60.0) -> np.ndarray:
 def _viewing(scene_dir: Path, *args: str) -> Iterator[tuple[subprocess.Popen, str]]:
     """`wonderverse view SCENE ARGS` as a user runs it (supervised); yields (process, URL); Ctrl-C at the end."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "flows.cli", "view", str(scene_dir), *args],
+        [sys.executable, "-m", "flows", "view", str(scene_dir), *args],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
