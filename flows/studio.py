@@ -80,9 +80,9 @@ def _text(data: dict[str, Any], key: str, required: bool = True) -> str | None:
 
 
 def _one_line(e: Exception) -> str:
-    from flows.cli import error_line
+    from wonderverse.text import escaped, redact_urls
 
-    return error_line(str(e))
+    return escaped(redact_urls(str(e)))  # as the CLI's error lines (`flows.cli.error_line`)
 
 
 def create_app(root: Path, token: str, port: int, config: Path | None = None, engine: str = "auto") -> "FastAPI":

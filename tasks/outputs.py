@@ -25,7 +25,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
-from tasks import output_products as make
+import tasks.output_products as make
 from tasks.base import Step, StepContext
 from tasks.output_mesh import make_mesh
 from tasks.output_scene import Made, OutputScene
@@ -67,6 +67,12 @@ def _video(p: Params) -> dict[str, Any]:
     return {"video_frames": o.video_frames, "novel_offset_frac": o.novel_offset_frac, "size": o.render_max_side_px}
 
 
+def _dataset(p: Params, on: bool) -> dict[str, Any]:
+    """What a dataset reads: whether it is on and, for tracks projected from the point cloud (no SfM model), the
+    cloud's opacity and the rendered depth's size."""
+    return {"on": on, "min_opacity": p.outputs.mesh.points_min_opacity, "size": p.outputs.render_max_side_px}
+
+
 PRODUCTS: tuple[Product, ...] = (
     Product("frame", 1, lambda p: {}, make.make_frame),
     Product(
@@ -81,29 +87,8 @@ PRODUCTS: tuple[Product, ...] = (
     ),
     Product("splat_files", 1, lambda p: {"prune": p.outputs.prune}, make.make_splat_files, ("frame", "mesh")),
     Product("points", 1, lambda p: {"min_opacity": p.outputs.mesh.points_min_opacity}, make.make_points, ("frame",)),
-    # tracks projected from the point cloud (no SfM model) read the cloud's opacity and the rendered depth
-    Product(
-        "colmap",
-        1,
-        lambda p: {
-            "on": p.outputs.colmap,
-            "min_opacity": p.outputs.mesh.points_min_opacity,
-            "size": p.outputs.render_max_side_px,
-        },
-        make.make_colmap,
-        ("frame",),
-    ),
-    Product(
-        "nerfstudio",
-        1,
-        lambda p: {
-            "on": p.outputs.nerfstudio,
-            "min_opacity": p.outputs.mesh.points_min_opacity,
-            "size": p.outputs.render_max_side_px,
-        },
-        make.make_nerfstudio,
-        ("frame",),
-    ),
+    Product("colmap", 1, lambda p: _dataset(p, p.outputs.colmap), make.make_colmap, ("frame",)),
+    Product("nerfstudio", 1, lambda p: _dataset(p, p.outputs.nerfstudio), make.make_nerfstudio, ("frame",)),
     Product(
         "camera_paths",
         1,

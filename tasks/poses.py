@@ -43,13 +43,9 @@ def params(cfg: RunConfig) -> PosesParams:
 
 def _workspace_key(p: PosesParams, held: bool = False) -> str:
     """What must not change for a reconstruction to be extended rather than re-solved."""
-    # 2: image names sort in stitched order (`image_names`)
-    return cache_key("sfm_workspace", 2, {"sfm": p.sfm, "frame_stride": p.frame_stride} | _held_key(held))
-
-
-def _held_key(held: bool) -> dict[str, bool]:
-    """A workspace made with the camera held differs from one that refined it (absent: refined, as before)."""
-    return {"held_camera": True} if held else {}
+    # 2: image names sort in stitched order (`image_names`); a held camera's workspace differs from a refined one's
+    held_key = {"held_camera": True} if held else {}  # absent: refined, as before
+    return cache_key("sfm_workspace", 2, {"sfm": p.sfm, "frame_stride": p.frame_stride} | held_key)
 
 
 def image_names(store: SceneStore, keys: list[tuple[str, int]]) -> list[str]:
@@ -192,8 +188,6 @@ def run(store: SceneStore, p: PosesParams, ctx: StepContext) -> str:
             own=_own_poses(store, segs),
             previous=_previous(store),
             progress=lambda done, total, note: advance(done, total, UNIT, note, eta=False),  # stages: no pace
-            # the check's mapper only for a guess: a held K goes global first here (PosesParams.sfm), where the
-            # check goes incremental first
             check_mapper=_check_mapper(store, segs) if guessed else None,
             hold_given=held,
         )
@@ -220,6 +214,6 @@ def run(store: SceneStore, p: PosesParams, ctx: StepContext) -> str:
 # 3: image names in stitched order; full solves checked against each segment's own SfM
 # 4: the step contract
 # 5: a guessed K is self-calibrated; k_source recorded; one segment: its check's mapper first
-# 6: the user's camera (a clip's given field of view) held unless refine_intrinsics, global mapper first;
-#    k_held, k_reason recorded
-STEP = Step("poses", 6, ("check",), params, run, "one camera path for the stitched video", group=SFM.path)
+# 6: the user's camera (a clip's given field of view) held unless refine_intrinsics; k_held, k_reason recorded
+# 7: a held camera is held after the global mapper (set back, bundle-adjusted), not from its start
+STEP = Step("poses", 7, ("check",), params, run, "one camera path for the stitched video", group=SFM.path)
