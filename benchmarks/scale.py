@@ -2,7 +2,8 @@
 
 - One world (preview preset, procedural, the default prompt: an initial segment with one left and one right
   extension) is grown by N extensions (`--quick`: 6, else 12) with `extend`, the user's words alternating left and
-  right. Each extension runs in a fresh process (its peak RSS is its own, read from the OS when it exits).
+  right for six, then going forward. Each extension runs in a fresh process (its peak RSS is its own, read from the
+  OS when it exits).
 - Per extension: seconds per step, peak RSS (MB), the scene folder's size (MB: the store and the files beside it),
   Gaussians, held-out PSNR (the splats step's), the global poses' ATE against the procedural world's true path (a
   share of its length) and whether the whole stitched path passes the check's jump test (no seam where the world
@@ -59,6 +60,13 @@ WORDS = (
     "a snowy hill on the right",
     "a stone wall on the left",
     "a row of lanterns on the right",
+    # then forward: six more turns would take the views all the way round (a plan refuses a 360° span)
+    "further ahead, a frozen pond",
+    "further ahead, a sled by a fence",
+    "further ahead, a snowman",
+    "further ahead, an ice rink",
+    "further ahead, a market stall",
+    "further ahead, a clock tower",
 )
 PARALLEL_STEPS = ("check", "priors")  # per-segment work on Dask (map_segments)
 
