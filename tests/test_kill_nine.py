@@ -167,6 +167,9 @@ def kill_everything(proc: subprocess.Popen) -> None:
         except psutil.NoSuchProcess:
             continue
     proc.wait(timeout=10)
+    # SIGKILL is delivered at once but a large process takes a moment to be torn down: wait for those killed here, so
+    # that what `marked` finds afterwards is what escaped the kill, not what is still dying
+    psutil.wait_procs(descendants, timeout=10)
 
 
 @pytest.mark.e2e
