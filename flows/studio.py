@@ -169,7 +169,7 @@ def create_app(root: Path, token: str, port: int, config: Path | None = None, en
     async def viewer_file(name: str) -> Response:
         if name not in files:
             raise ApiError(404, "not found")
-        return FileResponse(files[name], media_type="text/javascript; charset=utf-8")
+        return Response(files[name], media_type="text/javascript; charset=utf-8")
 
     # ------------------------------------------------------------------------------------------ the API
 

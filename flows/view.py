@@ -55,7 +55,8 @@ if TYPE_CHECKING:  # numpy and http.server load when the command runs: `wonderve
     import numpy as np
 
 # The viewer's built files, copied from npm (three 0.187.0: build/three.core.js, build/three.module.js,
-# examples/jsm/...; @sparkjsdev/spark 2.2.0: dist/spark.module.min.js) with their LICENSE files
+# examples/jsm/...; @sparkjsdev/spark 2.2.0: dist/spark.module.min.js, gzipped: 2.7 MB as it is) with their
+# LICENSE files
 VIEWER_ASSETS = Path(__file__).resolve().parent / "viewer_assets"
 VIEWER_HTML = "viewer.html"
 SPLAT_FILES = ("splats.spz", "splats.ply")  # the viewer loads the first one present (SPZ: a tenth of the bytes)
@@ -65,7 +66,7 @@ VIEWER_FILES = {
     "three.module.js": "three.module.js",
     "addons/postprocessing/Pass.js": "addons/postprocessing/Pass.js",
     "addons/controls/OrbitControls.js": "addons/controls/OrbitControls.js",
-    "spark.module.js": "spark.module.js",
+    "spark.module.js": "spark.module.js.gz",
 }
 IMPORTS = {  # bare module specifiers of the page -> VIEWER_FILES key
     "three": "three.module.js",
@@ -105,17 +106,19 @@ class SceneView:
     scene_size: float
 
 
-def viewer_files() -> dict[str, Path]:
-    """The viewer's files by URL path; WonderError when the package was installed without them (package data
-    left out: a broken install, not something npm should repair)."""
-    files = {name: VIEWER_ASSETS / rel for name, rel in VIEWER_FILES.items()}
-    missing = [str(p) for p in files.values() if not p.is_file()]
+def viewer_files() -> dict[str, bytes]:
+    """The viewer's files by URL path, their contents (a `.gz` one decompressed); WonderError when the package was
+    installed without them (package data left out: a broken install, not something npm should repair)."""
+    import gzip
+
+    paths = {name: VIEWER_ASSETS / rel for name, rel in VIEWER_FILES.items()}
+    missing = [str(p) for p in paths.values() if not p.is_file()]
     if missing:
         raise WonderError(
             f"the splat viewer is not installed ({missing[0]} is missing): this wonderverse package was installed "
             "without its package data; reinstall it with `pip install -e .` (or `pip install .`)"
         )
-    return files
+    return {name: gzip.decompress(p.read_bytes()) if p.suffix == ".gz" else p.read_bytes() for name, p in paths.items()}
 
 
 def _c2w_gl(w2c: np.ndarray) -> list[float]:
@@ -467,7 +470,7 @@ def _script_text(source: str) -> str:
     return source.replace("</script", "<\\/script").replace("<!--", "<\\!--")
 
 
-def page_html(view: SceneView, title: str, inline: dict[str, Path] | None = None, studio: bool = False) -> str:
+def page_html(view: SceneView, title: str, inline: dict[str, bytes] | None = None, studio: bool = False) -> str:
     """The viewer page. `inline` None: the modules are imported from /_viewer/ (the server's page); else the
     files of `viewer_files()` are inlined and loaded from blob URLs (the self-contained viewer.html).
     `studio`: as `scene_json`."""
@@ -478,8 +481,8 @@ def page_html(view: SceneView, title: str, inline: dict[str, Path] | None = None
         app = f'<script type="module">{APP_JS}</script>'
     else:
         sources = [
-            f'<script type="text/plain" id="wv-src-{name}">{_script_text(path.read_text(encoding="utf-8"))}</script>'
-            for name, path in inline.items()
+            f'<script type="text/plain" id="wv-src-{name}">{_script_text(data.decode("utf-8"))}</script>'
+            for name, data in inline.items()
         ]
         loader = INLINE_LOADER.replace("NAMES", json.dumps(list(inline))).replace("IMPORTS", json.dumps(IMPORTS))
         modules = ""
@@ -487,7 +490,7 @@ def page_html(view: SceneView, title: str, inline: dict[str, Path] | None = None
     return PAGE.format(title=title, modules=modules, scene=scene_json(view, studio), app=app)
 
 
-def write_viewer_html(scene_dir: Path, view: SceneView, files: dict[str, Path]) -> Path:
+def write_viewer_html(scene_dir: Path, view: SceneView, files: dict[str, bytes]) -> Path:
     """Write SCENE_DIR/viewer.html (self-contained but for the splat file beside it) atomically; WonderError
     when the scene folder cannot be written."""
     path = Path(scene_dir) / VIEWER_HTML
@@ -523,7 +526,7 @@ def scene_file(scene_dir: Path, url_path: str) -> Path | None:
     return path if path.is_file() and path.is_relative_to(root) else None
 
 
-def make_server(scene_dir: Path, view: SceneView, files: dict[str, Path], host: str, port: int) -> ThreadingHTTPServer:
+def make_server(scene_dir: Path, view: SceneView, files: dict[str, bytes], host: str, port: int) -> ThreadingHTTPServer:
     """The viewer's HTTP server (not started); WonderError when the address cannot be bound."""
     import socket
     from http import HTTPStatus
@@ -567,7 +570,7 @@ def make_server(scene_dir: Path, view: SceneView, files: dict[str, Path], host: 
             if path in ("/", "/index.html"):
                 return self._send(HTTPStatus.OK, index, CONTENT_TYPES[".html"], head)
             if path.startswith("/_viewer/") and path[len("/_viewer/") :] in files:
-                return self._file(files[path[len("/_viewer/") :]], head)
+                return self._send(HTTPStatus.OK, files[path[len("/_viewer/") :]], CONTENT_TYPES[".js"], head)
             found = scene_file(scene_dir, path)
             if found is None:
                 return self._send(HTTPStatus.NOT_FOUND, b"not found\n", "text/plain", head)
