@@ -22,6 +22,7 @@ from flows.engine import check_engine
 from flows.serve import batch_command, serve_command
 from flows.view import view_command
 from wonderverse.errors import WonderError
+from wonderverse.text import error_line
 
 # Before torch loads: idle OpenMP threads sleep instead of spinning (measured 3-10x faster CPU splat
 # training on a shared 2-core machine).
@@ -651,15 +652,6 @@ def _judge_engine(engine: str) -> None:
     soft, _ = resource.getrlimit(resource.RLIMIT_FSIZE)
     if soft != resource.RLIM_INFINITY and soft < MIN_FILE_SIZE_LIMIT:
         raise WonderError(f"files may be at most {soft} bytes here: {FSIZE_ADVICE}")
-
-
-def error_line(message: str) -> str:
-    """`message` as one line for a terminal: every run of whitespace one space, any other control character (a
-    terminal escape or a bidirectional override in a file name or a setting's name) written as its escape, never
-    sent as it is, and the password of any URL in it redacted."""
-    from wonderverse.text import escaped, redact_urls
-
-    return escaped(redact_urls(message))
 
 
 def main() -> None:

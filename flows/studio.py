@@ -80,9 +80,9 @@ def _text(data: dict[str, Any], key: str, required: bool = True) -> str | None:
 
 
 def _one_line(e: Exception) -> str:
-    from wonderverse.text import escaped, redact_urls
+    from wonderverse.text import error_line
 
-    return escaped(redact_urls(str(e)))  # as the CLI's error lines (`flows.cli.error_line`)
+    return error_line(str(e))
 
 
 def create_app(root: Path, token: str, port: int, config: Path | None = None, engine: str = "auto") -> "FastAPI":

@@ -109,6 +109,13 @@ def escaped(text: str) -> str:
     return "".join(c.encode("unicode_escape").decode() if _is_control(c) else c for c in text)
 
 
+def error_line(message: str) -> str:
+    """`message` as one line for a terminal: every run of whitespace one space, any other control character (a
+    terminal escape or a bidirectional override in a file name or a setting's name) written as its escape, never
+    sent as it is, and the password of any URL in it redacted (the CLI's `error:` lines, the studio's errors)."""
+    return escaped(redact_urls(message))
+
+
 def redact_urls(text: str) -> str:
     """`text` with the password of every `scheme://user:password@host` in it replaced by ***: what every message,
     log line and report shows of a URL that carries credentials."""
