@@ -202,8 +202,8 @@ def test_folder_of_mixed_sizes_same_shape_resized_with_note(tmp_path: Path) -> N
 
 
 def test_folder_of_another_shape_refused_naming_the_file(tmp_path: Path) -> None:
-    folder = write_pngs(tmp_path / "m", ["a1.png", "a2.png"], sizes=[(64, 48), (48, 64)])
-    with pytest.raises(WonderError, match=r"a2\.png: image is 48x64 but .*a1\.png is 64x48"):
+    folder = write_pngs(tmp_path / "m", ["a1.png", "a2.png"], sizes=[(64, 48), (64, 64)])
+    with pytest.raises(WonderError, match=r"a2\.png: image is 64x64 but .*a1\.png is 64x48"):
         read_clip(folder)
 
 
@@ -369,14 +369,15 @@ def test_real_cogvideox_clip_default_params(data_dir: Path) -> None:
 
 
 def test_a_few_images_of_another_shape_are_left_out_and_named(tmp_path: Path) -> None:
-    """A portrait shot among landscape ones: the landscape frames are kept (one camera, one shape), the portrait
-    one is left out with a note naming it and what to do; the frames kept are the main shape's, in order."""
-    sizes = [(64, 48)] * 2 + [(48, 64)] + [(64, 48)] * 2
+    """A square crop among 4:3 shots: the 4:3 frames are kept (one camera, one shape), the square one is left out
+    with a note naming it and what to do; the frames kept are the main shape's, in order. (A portrait shot among
+    landscape ones is turned instead: tests/test_mixed_shapes.py.)"""
+    sizes = [(64, 48)] * 2 + [(48, 48)] + [(64, 48)] * 2
     folder = write_pngs(tmp_path / "m", [f"a{i}.png" for i in range(5)], sizes=sizes)
     clip = read_clip(folder)
     assert clip.frames.shape == (4, 48, 64, 3)
     assert [index_of(f) for f in clip.frames] == [0, 1, 3, 4]
-    assert "1 of 5 images left out: another shape (48x64) than the 64x48 of the others (a2.png)" in clip.notes[1]
+    assert "1 of 5 images left out: another shape (48x48) than the 64x48 of the others (a2.png)" in clip.notes[1]
     assert "crop them to 4:3 to use them" in clip.notes[1]
 
 
@@ -435,10 +436,11 @@ def test_other_files_of_a_folder_are_named(tmp_path: Path) -> None:
     assert "1 other files left out (.heic): a folder clip reads images only" in " ".join(clip.notes)
 
 
-def test_a_real_phone_set_with_two_landscape_shots_keeps_the_portrait_ones(data_dir: Path, tmp_path: Path) -> None:
-    """From the fox capture (portrait 1080x1920 photos): twelve of them, two turned landscape. The ten portrait ones
-    are read; the note names the two; with the turn written as EXIF orientation instead, all twelve are read, upright
-    (as the photos before they were turned)."""
+def test_a_real_phone_set_with_two_landscape_shots_turns_them_to_portrait(data_dir: Path, tmp_path: Path) -> None:
+    """From the fox capture (portrait 1080x1920 photos): twelve of them, two turned landscape. All twelve are read,
+    the two turned a quarter counter-clockwise (so upside down against the originals here), and the note names
+    them; with the turn written as EXIF orientation instead, all twelve are read upright (as the photos before
+    they were turned), nothing said."""
     src = sorted(_real(data_dir, "instant_ngp_fox/images").glob("*.jpg"))[:12]
     plain, mixed, tagged = tmp_path / "plain", tmp_path / "mixed", tmp_path / "tagged"
     for d in (plain, mixed, tagged):
@@ -452,12 +454,15 @@ def test_a_real_phone_set_with_two_landscape_shots_keeps_the_portrait_ones(data_
         if turned:
             exif[0x0112] = 8  # stored turned clockwise, tagged "turn 90 degrees counter-clockwise to display"
         (img.rotate(-90, expand=True) if turned else img).save(tagged / f"{p.stem}.jpg", exif=exif, quality=95)
-    clip = read_clip(mixed)
-    assert clip.frames.shape == (10, 240, 134, 3)  # 135 px wide, made even
-    left_out = next(n for n in clip.notes if "left out" in n)
-    assert left_out.startswith("2 of 12 images left out: another shape (240x135) than the 135x240")
-    assert f"({src[4].stem}.png, {src[9].stem}.png)" in left_out
-    upright, reference = read_clip(tagged), read_clip(plain)
-    assert len(upright.frames) == 12 and not any("left out" in n for n in upright.notes)
+    clip, reference = read_clip(mixed), read_clip(plain)
+    assert clip.frames.shape == (12, 240, 134, 3)  # 135 px wide, made even
+    said = next(n for n in clip.notes if "turned" in n)
+    assert said.startswith("2 of 12 images turned a quarter counter-clockwise to the 135x240 of the others")
+    assert f"({src[4].stem}.png, {src[9].stem}.png)" in said and not any("left out" in n for n in clip.notes)
+    for i in range(12):  # the same pixels, the two turned ones half a turn from where they were
+        want = np.rot90(reference.frames[i], 2) if i in (4, 9) else reference.frames[i]
+        np.testing.assert_array_equal(clip.frames[i], want)
+    upright = read_clip(tagged)
+    assert len(upright.frames) == 12 and not any("left out" in n or "turned" in n for n in upright.notes)
     for i in (4, 9):  # JPEG-compressed, else the same pixels
         assert np.abs(upright.frames[i].astype(float) - reference.frames[i]).mean() < 4.0

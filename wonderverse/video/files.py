@@ -2,8 +2,10 @@
 
 Every clip comes out as (T,H,W,3) uint8 RGB at an even size no longer than `max_side_px`, at most
 `max_frames` frames picked evenly over the chosen time window, with a pinhole K in pixels (pixel
-centres at +0.5, cx = W/2). Everything done to the input is written in `Clip.notes` so the user sees
-it. Anything unreadable raises `WonderError` with one line naming the file and the problem.
+centres at +0.5, cx = W/2). An image folder's photos are turned upright per their EXIF orientation; those
+whose shape is the main shape transposed (a landscape shot among portrait ones) are turned a quarter to it,
+those of another shape left out (`_main_shape`). Everything done to the input is written in `Clip.notes` so
+the user sees it. Anything unreadable raises `WonderError` with one line naming the file and the problem.
 """
 
 from __future__ import annotations
@@ -308,30 +310,93 @@ def _same_shape(a: tuple[int, int], b: tuple[int, int], tolerance: float) -> boo
     return abs(a[0] / a[1] - b[0] / b[1]) <= tolerance * b[0] / b[1]
 
 
-def _main_shape(files: list[Path], window: np.ndarray, params: ClipParams) -> tuple[np.ndarray, str]:
-    """The images of `window` that have the shape most of them have (ties: the first image's), and a note naming
-    those left out ("" when none is). One camera needs one shape: a frame of another shape cannot be resized to it
-    without stretching, and SfM, the priors, the splats and every export hold one camera of one size."""
-    sizes = [_upright_size(files[i]) for i in window]
-    groups: list[tuple[tuple[int, int], list[int]]] = []  # (the shape's first size, positions in window)
+def _transposed(size: tuple[int, int]) -> tuple[int, int]:
+    return size[1], size[0]
+
+
+@dataclass
+class _Shapes:
+    """Which images of a folder clip are used, and how (`_main_shape`)."""
+
+    kept: np.ndarray  # indices into the files, in order: the main shape's and the turned ones
+    turned: frozenset[int]  # indices into the files of images turned a quarter to the main shape
+    notes: list[str]
+
+
+def _shape_groups(sizes: list[tuple[int, int]], tolerance: float) -> list[tuple[tuple[int, int], list[int]]]:
+    """The images' sizes (w, h) grouped by shape: (the shape's first size, positions in `sizes`), first seen first."""
+    groups: list[tuple[tuple[int, int], list[int]]] = []
     for k, size in enumerate(sizes):
-        group = next((g for g in groups if _same_shape(size, g[0], params.max_aspect_mismatch)), None)
+        group = next((g for g in groups if _same_shape(size, g[0], tolerance)), None)
         if group is None:
             groups.append((size, [k]))
         else:
             group[1].append(k)
-    main = max(groups, key=lambda g: len(g[1]))  # max keeps the first of equals: the first image's shape
-    if len(main[1]) == len(window):
-        return window, ""
-    other = [k for k in range(len(window)) if k not in set(main[1])]
+    return groups
+
+
+def _main_shape(files: list[Path], window: np.ndarray, params: ClipParams) -> _Shapes:
+    """The images of `window` one camera can take: those of the main shape, and those of the main shape transposed
+    (aspect within `max_aspect_mismatch` of it), to be turned a quarter. The main shape is the one keeping the
+    most images (ties: the one most images have as they are, then the first image's). Notes name the images
+    turned and those left out.
+
+    One camera needs one shape: a frame of another shape cannot be resized to it without stretching, and SfM,
+    the priors, the splats and every export hold one camera of one size. A landscape shot among portrait ones
+    is the same sensor turned a quarter about its optical axis, so turned back to portrait it is a frame of
+    that one camera: with square pixels and the principal point in the centre, its K is the others' (the
+    pose takes the quarter roll)."""
+    tol = params.max_aspect_mismatch
+    sizes = [_upright_size(files[i]) for i in window]
+    groups = _shape_groups(sizes, tol)
+
+    def turnable(g: tuple[tuple[int, int], list[int]]) -> list[int]:
+        """Positions of the images whose shape is g's transposed (a square shape has none)."""
+        if _same_shape(g[0], _transposed(g[0]), tol):
+            return []
+        return [k for o in groups if o is not g and _same_shape(_transposed(o[0]), g[0], tol) for k in o[1]]
+
+    main = max(groups, key=lambda g: (len(g[1]) + len(turnable(g)), len(g[1])))  # max keeps the first of equals
+    turn = sorted(turnable(main))
+    keep = sorted(main[1] + turn)
     w, h = main[0]
-    shapes = ", ".join(dict.fromkeys(f"{sizes[k][0]}x{sizes[k][1]}" for k in other))
-    names = ", ".join(files[window[k]].name for k in other[:5]) + (", …" if len(other) > 5 else "")
-    note = (
-        f"{len(other)} of {len(window)} images left out: another shape ({shapes}) than the {w}x{h} of the others "
-        f"({names}); one camera needs one shape (crop them to {_ratio(w, h)} to use them)"
-    )
-    return window[main[1]], note
+    notes = []
+    if turn:
+        notes.append(
+            f"{len(turn)} of {len(window)} images turned a quarter counter-clockwise to the {w}x{h} of the others "
+            f"({_names(files, window, turn)}): they are {_sizes(sizes, turn)}, the others' shape transposed, "
+            "so the same camera turned on its side (one camera, one K)"
+        )
+    other = [k for k in range(len(window)) if k not in set(keep)]
+    if other:
+        notes.append(
+            f"{len(other)} of {len(window)} images left out: another shape ({_sizes(sizes, other)}) than the {w}x{h} "
+            f"of the others ({_names(files, window, other)}); one camera needs one shape (crop them to "
+            f"{_ratio(w, h)} to use them)"
+        )
+    return _Shapes(window[keep], frozenset(int(window[k]) for k in turn), notes)
+
+
+def _names(files: list[Path], window: np.ndarray, positions: list[int]) -> str:
+    """'a.png, b.png' for the images at `positions` of `window`, the first five."""
+    return ", ".join(files[window[k]].name for k in positions[:5]) + (", …" if len(positions) > 5 else "")
+
+
+def _sizes(sizes: list[tuple[int, int]], positions: list[int]) -> str:
+    """'320x180, 300x170': the distinct sizes at `positions`."""
+    return ", ".join(dict.fromkeys(f"{sizes[k][0]}x{sizes[k][1]}" for k in positions))
+
+
+def _read_chosen(
+    files: list[Path], usable: np.ndarray, turned: frozenset[int], params: ClipParams
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    """(the indices into `files` picked from `usable` by the stride and the max_frames cap, their frames), images
+    in `turned` turned a quarter counter-clockwise."""
+    strided = usable[:: params.frame_stride]
+    chosen = strided[_pick_evenly(len(strided), params.max_frames)]
+    frames = [_read_image(files[i]) for i in chosen]
+    frames = [np.ascontiguousarray(np.rot90(f)) if i in turned else f for i, f in zip(chosen, frames, strict=True)]
+    return chosen, frames
 
 
 def _read_images(name: str, files: list[Path], params: ClipParams) -> _Raw:
@@ -341,19 +406,15 @@ def _read_images(name: str, files: list[Path], params: ClipParams) -> _Raw:
     if len(window) == 0:
         raise WonderError(f"{name}: no frames {_window_text(params)} ({len(files)} images at an assumed {fps:g} fps)")
     usable = window
-    strided = usable[:: params.frame_stride]
-    chosen = strided[_pick_evenly(len(strided), params.max_frames)]
-    frames = [_read_image(files[i]) for i in chosen]
+    chosen, frames = _read_chosen(files, usable, frozenset(), params)
     w0, h0 = frames[0].shape[1], frames[0].shape[0]
     if any(not _same_shape((f.shape[1], f.shape[0]), (w0, h0), params.max_aspect_mismatch) for f in frames):
-        # images of several shapes (a portrait shot among landscape ones): the main shape's, picked again
-        kept, note = _main_shape(files, window, params)
-        if len(kept) >= 2:
-            notes.append(note)
-            usable = kept
-            strided = usable[:: params.frame_stride]
-            chosen = strided[_pick_evenly(len(strided), params.max_frames)]
-            frames = [_read_image(files[i]) for i in chosen]
+        # images of several shapes (a landscape shot among portrait ones): the main shape's, picked again
+        shapes = _main_shape(files, window, params)
+        if len(shapes.kept) >= 2:
+            notes.extend(shapes.notes)
+            usable = shapes.kept
+            chosen, frames = _read_chosen(files, usable, shapes.turned, params)
             w0, h0 = frames[0].shape[1], frames[0].shape[0]
     odd = [(files[i], f.shape[1], f.shape[0]) for i, f in zip(chosen, frames, strict=True) if f.shape[:2] != (h0, w0)]
     for f, w, h in odd:
@@ -517,9 +578,12 @@ def read_clip(source: ClipSource, params: ClipParams | None = None) -> Clip:
     frames (pixel centres at +0.5), from `intrinsics` (the camera's own K), `fov_deg` (cx = W/2) or else from
     `guess_fov_deg` (k_is_guess=True).
     Image folders whose frames differ in size are resized to the first frame's size when the shape (aspect
-    ratio) matches within `max_aspect_mismatch`, with a note; another shape raises, since stretching would bend
-    the geometry. Raises WonderError (one line naming the file) for a missing path, an empty folder, an
-    unreadable or corrupt file, and a clip with fewer than 2 frames.
+    ratio) matches within `max_aspect_mismatch`, with a note. In a folder of several shapes, images of the main
+    shape transposed (landscape shots among portrait ones) are turned a quarter counter-clockwise and kept (the
+    same camera on its side), images of any other shape are left out, each with a note naming them; a folder
+    with no two images one camera can take raises, since stretching would bend the geometry.
+    Raises WonderError (one line naming the file) for a missing path, an empty folder, an unreadable or corrupt
+    file, and a clip with fewer than 2 frames.
     """
     params = params or ClipParams()
     name, what = _expand(source)

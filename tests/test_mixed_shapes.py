@@ -1,0 +1,153 @@
+"""Photo folders of several shapes (issue 39, item 4): a landscape shot among portrait ones is the same camera turned
+a quarter about its optical axis, so it is turned back to the main shape and kept with the others' K; an image of
+another shape (a square crop among 4:3) is left out, named. End to end: a procedural orbit written as photos, two
+of them stored landscape, is posed frame for frame by `reconstruct`.
+
+Ground truth: the pixels the test writes (np.rot90 of them for turned images) and the procedural camera path."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from wonderverse.errors import WonderError
+from wonderverse.video.files import ClipParams, read_clip
+
+
+def _noise(i: int, w: int, h: int) -> np.ndarray:
+    """(h,w,3) uint8 random pixels (seeded by i): any turn or flip of them is told apart from the original."""
+    return np.random.default_rng(i).integers(0, 256, (h, w, 3), dtype=np.uint8)
+
+
+def _folder(root: Path, images: list[np.ndarray]) -> Path:
+    root.mkdir()
+    for i, a in enumerate(images):
+        Image.fromarray(a).save(root / f"p{i}.png")
+    return root
+
+
+def test_a_landscape_photo_among_portrait_ones_is_turned_a_quarter_and_named(tmp_path: Path) -> None:
+    images = [_noise(i, 48, 64) for i in range(5)]
+    images[3] = _noise(3, 64, 48)  # a landscape shot: the portrait 48x64 transposed
+    clip = read_clip(_folder(tmp_path / "f", images), ClipParams(fov_deg=60.0))
+    assert clip.frames.shape == (5, 64, 48, 3)
+    np.testing.assert_array_equal(clip.frames[3], np.rot90(images[3]))  # turned counter-clockwise, nothing else
+    for i in (0, 1, 2, 4):
+        np.testing.assert_array_equal(clip.frames[i], images[i])
+    turned = [n for n in clip.notes if "turned" in n]
+    assert len(turned) == 1 and not any("left out" in n for n in clip.notes), clip.notes
+    assert turned[0].startswith("1 of 5 images turned a quarter counter-clockwise to the 48x64 of the others (p3.png)")
+    # one camera: the K of the portrait frames, as a folder of portrait photos alone has it
+    alone = read_clip(_folder(tmp_path / "g", [images[i] for i in (0, 1, 2, 4)]), ClipParams(fov_deg=60.0))
+    np.testing.assert_array_equal(clip.K, alone.K)
+
+
+def test_a_square_crop_among_4_3_photos_is_left_out_and_named(tmp_path: Path) -> None:
+    images = [_noise(i, 64, 48) for i in range(4)]
+    images[1] = _noise(1, 48, 48)
+    clip = read_clip(_folder(tmp_path / "f", images))
+    assert clip.frames.shape == (3, 48, 64, 3)
+    for got, i in zip(clip.frames, (0, 2, 3), strict=True):
+        np.testing.assert_array_equal(got, images[i])
+    assert not any("turned" in n for n in clip.notes), clip.notes
+    assert (
+        "1 of 4 images left out: another shape (48x48) than the 64x48 of the others (p1.png); one camera needs one "
+        "shape (crop them to 4:3 to use them)"
+    ) in clip.notes
+
+
+def test_turned_and_left_out_together_and_a_turned_photo_of_another_size_is_resized(tmp_path: Path) -> None:
+    """Portrait 48x64 photos, one landscape of twice the size (128x96: turned, then resized like any photo of the
+    main shape) and one square one (left out): both notes, the frames in order."""
+    images = [_noise(i, 48, 64) for i in range(5)]
+    images[1] = _noise(1, 128, 96)
+    images[4] = _noise(4, 50, 50)
+    clip = read_clip(_folder(tmp_path / "f", images))
+    assert clip.frames.shape == (4, 64, 48, 3)
+    np.testing.assert_array_equal(clip.frames[2], images[2])
+    big = np.asarray(Image.fromarray(np.rot90(images[1]).copy()).resize((48, 64), Image.Resampling.LANCZOS))
+    np.testing.assert_array_equal(clip.frames[1], big)
+    said = " | ".join(clip.notes)
+    assert "1 of 5 images turned a quarter counter-clockwise to the 48x64 of the others (p1.png)" in said
+    assert "1 of 5 images left out: another shape (50x50) than the 48x64 of the others (p4.png)" in said
+    assert "1 images of other sizes resized to the first frame's 48x64" in said
+
+
+def test_the_main_shape_is_the_one_keeping_most_photos(tmp_path: Path) -> None:
+    """Three square photos, two 4:3 and two 3:4: the 4:3 (first of the two orientations) with the 3:4 turned keeps
+    four, more than the three squares; given K (--intrinsics) of the main shape is the K of every frame."""
+    sizes = [(48, 48), (64, 48), (48, 48), (48, 64), (48, 48), (64, 48), (48, 64)]
+    images = [_noise(i, w, h) for i, (w, h) in enumerate(sizes)]
+    clip = read_clip(_folder(tmp_path / "f", images), ClipParams(intrinsics=(50.0, 50.0, 32.0, 24.0)))
+    assert clip.frames.shape == (4, 48, 64, 3)
+    np.testing.assert_array_equal(clip.frames[1], np.rot90(images[3]))
+    np.testing.assert_array_equal(clip.K, [[50.0, 0, 32.0], [0, 50.0, 24.0], [0, 0, 1]])
+    said = " | ".join(clip.notes)
+    assert "2 of 7 images turned a quarter counter-clockwise to the 64x48 of the others (p3.png, p6.png)" in said
+    assert "3 of 7 images left out: another shape (48x48) than the 64x48 of the others (p0.png, p2.png, p4.png)" in said
+
+
+def test_two_photos_one_camera_cannot_take_are_refused_in_one_line(tmp_path: Path) -> None:
+    folder = _folder(tmp_path / "f", [_noise(0, 64, 48), _noise(1, 64, 64)])
+    with pytest.raises(WonderError, match=r"p1\.png: image is 64x64 but the clip's first frame p0\.png is 64x48"):
+        read_clip(folder)
+
+
+# ---------------------------------------------------------------------------------------------- end to end
+
+W, H, N = 112, 160, 14  # portrait frames, as a phone shoots them
+
+
+@pytest.mark.e2e  # SfM over the whole clip through the CLI, tens of seconds
+def test_a_procedural_orbit_with_two_photos_stored_landscape_is_posed_frame_for_frame(tmp_path: Path) -> None:
+    """An orbit rendered portrait and written as photos, two of them stored landscape (one turned each way, as a
+    phone held either way stores them): `reconstruct` turns both back, registers all 14, follows the true path,
+    and the two turned frames come out as the true cameras rolled a quarter about their optical axes."""
+    from conftest import run_cli
+
+    from wonderverse.camera import move_path
+    from wonderverse.metrics import ate
+    from wonderverse.store import SceneStore
+    from wonderverse.video import initial_pose
+    from wonderverse.video.procedural import ProceduralVideo
+
+    model = ProceduralVideo("a small house decorated for Christmas", 0, W, H, 50.0, {"fault_probability": 0.0})
+    truth = move_path(initial_pose(model), np.radians(-30), 0.0, 1.0, -0.8, N)
+    frames = model.generate("orbit", truth, 0, None).frames
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    stored = {4: -1, 9: 1}  # np.rot90's k: stored turned clockwise (read back upright) and counter-clockwise
+    for i, f in enumerate(frames):
+        Image.fromarray(np.ascontiguousarray(np.rot90(f, stored[i])) if i in stored else f).save(
+            photos / f"IMG_{i:04d}.png"
+        )
+    out = tmp_path / "scene"
+    r = run_cli(
+        "reconstruct", str(photos), "--out", str(out), "--until", "poses", "--engine", "local", "--fov-deg", "50",
+        timeout=600,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr[-3000:]
+    line = next(ln for ln in r.stderr.splitlines() if ln.startswith("wonderverse: clip photos/:"))
+    assert "2 of 14 images turned a quarter counter-clockwise to the 112x160 of the others" in line, line
+    assert "(IMG_0004.png, IMG_0009.png)" in line and "left out" not in line, line
+    info = json.loads(run_cli("inspect", str(out), "--json").stdout)
+    assert (info["clips"][0]["frames"], info["clips"][0]["size"]) == (N, [W, H])
+    poses = SceneStore.open(out).array("sfm/poses")
+    assert poses.shape == (N, 4, 4) and np.isfinite(poses).all(), "every frame posed"
+    assert ate(poses, truth)["rmse_frac"] < 0.02
+    # Rotations relative to frame 0 (upright in both): an upright frame's matches the truth; a turned frame's is the
+    # truth's preceded by a quarter roll about the camera's optical axis (z).
+    for i in range(1, N):
+        est = poses[i, :3, :3] @ poses[0, :3, :3].T
+        true = truth[i, :3, :3] @ truth[0, :3, :3].T
+        roll = est @ true.T
+        axis_z = abs(roll[2, 2])  # 1 when the rotation is about z
+        angle = np.degrees(np.arccos(np.clip((np.trace(roll) - 1) / 2, -1, 1)))
+        if i in stored:
+            assert axis_z > 0.99 and abs(angle - 90) < 3, (i, angle, roll)
+        else:
+            assert angle < 3, (i, angle)
