@@ -1,5 +1,5 @@
 """Awkward and bad input to `wonderverse reconstruct`, as users bring it (issue 39): a phone set whose photos are not
-all one shape reconstructs from its main shape, saying which photos it left out; clips of two shapes, a folder of
+all one shape reconstructs, its landscape shots turned to the portrait shape and named; clips of two shapes, a folder of
 one image, a video cut short and a clip of 10 000 frames each end in one `error:` line (exit 2, no scene folder) or
 a stated line, and nothing is written outside the scene folder.
 
@@ -29,8 +29,9 @@ def error_lines(stderr: str) -> list[str]:
 
 
 def test_a_phone_set_with_two_landscape_shots_among_portrait_ones_reconstructs(data_dir: Path, tmp_path: Path):
-    """16 photos of the fox capture (portrait), two of them turned landscape: the 14 portrait ones are posed with one
-    camera of their size; the run's clip line names the two left out."""
+    """16 photos of the fox capture (portrait), two of them turned landscape: the two are turned back a quarter
+    (upside down against the originals) and all 16 are posed with one camera of the portrait size; the run's clip
+    line names the two turned."""
     src = sorted((data_dir / "instant_ngp_fox" / "images").glob("*.jpg"))[:16]
     if len(src) < 16:
         pytest.skip("the fox capture has fewer than 16 images here")
@@ -45,12 +46,15 @@ def test_a_phone_set_with_two_landscape_shots_among_portrait_ones_reconstructs(d
     assert r.returncode == 0, r.stderr[-3000:]
     line = next(ln for ln in r.stderr.splitlines() if ln.startswith("wonderverse: clip mixed/:"))
     names = ", ".join(f"{s}.png" for s in sorted(turned))
-    assert f"2 of 16 images left out: another shape (320x180) than the 180x320 of the others ({names})" in line
+    assert f"2 of 16 images turned a quarter counter-clockwise to the 180x320 of the others ({names})" in line
+    assert "left out" not in line, line
     info = json.loads(run_cli("inspect", str(out), "--json").stdout)
-    assert (info["clips"][0]["frames"], info["clips"][0]["size"]) == (14, [180, 320])
+    assert (info["clips"][0]["frames"], info["clips"][0]["size"]) == (16, [180, 320])
     assert {s["name"]: s["status"] for s in info["steps"]}["poses"] == "complete"
     store = SceneStore.open(out)
-    assert store.array("sfm/poses").shape == (14, 4, 4)  # one camera path over the frames kept
+    poses = store.array("sfm/poses")
+    assert poses.shape == (16, 4, 4)  # one camera path over every photo
+    assert np.isfinite(poses).all(), "the turned photos register like the others"
     assert store.array("sfm/K")[0, 2] == pytest.approx(90.0)  # one camera of their size: cx = W / 2
 
 
