@@ -33,7 +33,7 @@ import torch
 import torch.nn.functional as F
 from torch import Tensor
 
-from wonderverse.splats.params import LossParams
+from wonderverse.splats.params import LossParams, RobustLossParams
 
 
 def _gaussian_window(size: int, sigma: float, dtype: torch.dtype, device: torch.device) -> Tensor:
@@ -70,6 +70,31 @@ def ssim(img: Tensor, ref: Tensor, window: int = 11, sigma: float = 1.5) -> Tens
 
 
 @torch.no_grad()
+def robust_weights(rgb: Tensor, gt_rgb: Tensor, params: RobustLossParams) -> tuple[Tensor, Tensor]:
+    """Per-pixel photometric weights (H,W) of a render against its frame, both (H,W,3) in [0,1] (no gradient), and
+    the outlier mask (H,W) bool they give up on. Everything is of this one view, so no state crosses steps.
+
+    A pixel is a candidate when its residual r = mean_c |rgb - gt| exceeds max(`residual_ratio` x the view's
+    median r, `min_residual`): the median stands for how well the static scene fits this view, and a mover covers
+    well under half of it. Candidates count only in dense patches (more than `patch_share` of the `patch_px` square
+    around the pixel), so the thin lines where fine texture is not yet resolved stay in, while a person's or a car's
+    blob goes; the blob then grows by `dilate_px` to take its soft edges. A view whose outliers are fewer than
+    `min_outlier_share` of its pixels keeps them all (static footage leaves such stray specks). Outliers weigh
+    `outlier_weight`, the rest 1. Fixed shapes and no host sync, like the rest of the loss."""
+    r = (rgb.detach() - gt_rgb).abs().mean(-1)
+    tau = torch.clamp_min(params.residual_ratio * r.median(), params.min_residual)
+    cand = (r > tau).to(r.dtype)[None, None]
+    k = params.patch_px
+    density = F.avg_pool2d(cand, k, stride=1, padding=k // 2, count_include_pad=False)
+    out = (density > params.patch_share).to(r.dtype)
+    if params.dilate_px > 0:
+        d = params.dilate_px
+        out = F.max_pool2d(out, 2 * d + 1, stride=1, padding=d)
+    mask = out[0, 0] > 0.5
+    mask = mask & (mask.to(r.dtype).mean() >= params.min_outlier_share)
+    return torch.where(mask, params.outlier_weight, 1.0).to(r.dtype), mask
+
+
 def fit_scale_shift(prior: Tensor, target: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:
     """(a, b) minimising Σ_mask (a prior + b - target)², as float64 0-d tensors (closed form, no host sync).
 
@@ -235,6 +260,7 @@ def total_loss(
     prior_weight: Tensor | None = None,
     prior_scale: Tensor | float = 1.0,
     prior_aligned: Tensor | bool = True,
+    rgb_weight: Tensor | None = None,
 ) -> tuple[Tensor, dict[str, Tensor]]:
     """L = L_rgb + s (λ_d L_depth + λ_n L_normal) + λ_dn L_dn for one view, every argument by name (the rendered
     rgb, depth, alpha, normals and the frame gt_rgb are all (H,W,C) tensors: by position they are easily swapped).
@@ -242,12 +268,22 @@ def total_loss(
     depth_valid and normal_valid (H,W) bool restrict the depth and the normal term (the trainer passes one mask for
     both). K (3,3) is needed for the rendered depth's normals (`normal_target` other than "rendered",
     `lambda_depth_normal`); prior_weight (H,W) weighs the prior terms per pixel (`texture_weight`); s = prior_scale,
-    the schedule's factor; prior_aligned: the depth prior is in the render's units (`depth_loss`). Returns (total,
+    the schedule's factor; prior_aligned: the depth prior is in the render's units (`depth_loss`); rgb_weight (H,W):
+    per-pixel weights of L_rgb (`robust_weights`: |Ĉ - C| and 1 - SSIM averaged with them) that multiply the prior
+    weights too. Returns (total,
     {term: float}) with keys rgb_l1, ssim, rgb, depth, normal, total and the fit/validity diagnostics, all detached
     0-d tensors: nothing here waits for the device, so a training step runs without host syncs."""
-    l1 = (rgb - gt_rgb).abs().mean()
-    s = ssim(rgb, gt_rgb, params.ssim_window_px, params.ssim_sigma_px)
-    l_rgb = (1.0 - params.lambda_ssim) * l1 + params.lambda_ssim * (1.0 - s)
+    if rgb_weight is None:
+        l1 = (rgb - gt_rgb).abs().mean()
+        s = ssim(rgb, gt_rgb, params.ssim_window_px, params.ssim_sigma_px)
+        l_rgb = (1.0 - params.lambda_ssim) * l1 + params.lambda_ssim * (1.0 - s)
+    else:  # the weighted means of the same terms; outliers drop out of the priors too (they show the mover)
+        w = rgb_weight.reshape(rgb.shape[:2])[..., None]
+        l1 = (w * (rgb - gt_rgb).abs()).mean()
+        s_map = ssim_map(rgb, gt_rgb, params.ssim_window_px, params.ssim_sigma_px)
+        s = 1.0 - (w * (1.0 - s_map)).mean()
+        l_rgb = (1.0 - params.lambda_ssim) * l1 + params.lambda_ssim * (1.0 - s)
+        prior_weight = w[..., 0] if prior_weight is None else prior_weight * w[..., 0]
     terms = {"rgb_l1": l1.detach(), "ssim": s.detach(), "rgb": l_rgb.detach()}
     total = l_rgb
     surface = None

@@ -2,9 +2,53 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, SerializerFunctionWrapHandler, field_validator, model_serializer
+
+
+class RobustLossParams(BaseModel):
+    """Robust photometric weights against moving objects (`losses.robust_weights`): after a warm-up, pixels whose
+    residual |render - frame| is an outlier for their view, in dense patches, leave the photometric and prior terms.
+    Residuals are the mean over the three channels of colours in [0, 1]."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+    enabled: bool = Field(
+        False,
+        description="weigh down outlier pixels (moving people, vehicles); off by default: it can lock out what a "
+        "poorly seeded scene has not yet learnt (docs/usage.md, transients)",
+    )
+    start_frac: float = Field(
+        0.3, ge=0, le=1, description="share of the iterations trained on every pixel before the weights apply"
+    )
+    residual_ratio: float = Field(
+        3.0, gt=1, description="a pixel is an outlier candidate above this many times its view's median residual"
+    )
+    min_residual: float = Field(
+        0.1, ge=0, le=1, description="nor below this residual (colour units): a well-fitted view drops no texture"
+    )
+    patch_px: int = Field(
+        7, ge=1, le=63, description="side of the square around each pixel whose candidates are counted (odd)"
+    )
+    patch_share: float = Field(
+        0.5, gt=0, lt=1, description="a pixel is an outlier when more than this share of its patch are candidates"
+    )
+    dilate_px: int = Field(2, ge=0, le=32, description="outliers grow by this many pixels (a mover's soft edges)")
+    min_outlier_share: float = Field(
+        0.005,
+        ge=0,
+        lt=1,
+        description="a view with a smaller share of outlier pixels keeps every pixel (static footage has few)",
+    )
+    outlier_weight: float = Field(0.0, ge=0, lt=1, description="weight of an outlier pixel (inliers weigh 1)")
+
+    @field_validator("patch_px")
+    @classmethod
+    def _odd(cls, v: int) -> int:
+        if v % 2 == 0:
+            raise ValueError(f"patch_px must be odd (a patch centred on its pixel), got {v}")
+        return v
 
 
 class LossParams(BaseModel):
@@ -65,6 +109,18 @@ class LossParams(BaseModel):
         description="weight of the mean over Gaussians of shortest / middle axis: flat Gaussians (surfels), whose "
         "shortest axis is a surface normal and whose depth is a surface's (0.01 made meshes worse: README)",
     )
+    robust: RobustLossParams = Field(
+        RobustLossParams(), description="per-pixel weights that keep moving objects out of the static scene"
+    )
+
+    @model_serializer(mode="wrap")
+    def _default_robust_unwritten(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
+        """`robust` is written only when it differs from its default (off), so every cache key made before it
+        existed stays the same: off, the loss is what it was."""
+        data = handler(self)
+        if self.robust == RobustLossParams():
+            data.pop("robust", None)
+        return data
 
 
 class DefaultStrategyParams(BaseModel):

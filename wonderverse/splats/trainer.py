@@ -41,7 +41,7 @@ import torch
 
 from wonderverse.progress import ProgressFn, no_progress
 from wonderverse.splats.compiled import Compiled
-from wonderverse.splats.losses import flatten_loss, masked_mean, texture_weight, total_loss
+from wonderverse.splats.losses import flatten_loss, masked_mean, robust_weights, texture_weight, total_loss
 from wonderverse.splats.model import GaussianModel
 from wonderverse.splats.motion_blur import image_velocity, smear
 from wonderverse.splats.parallax import parallax_gate, triangulation_error
@@ -262,6 +262,21 @@ def _blurred_like_the_video(
     return smear(rgb, vel, params.motion_blur_shutter, params.motion_blur_samples, params.motion_blur_max_px)
 
 
+def _robust(
+    rgb: torch.Tensor, frame: torch.Tensor, params: TrainParams, step: int
+) -> tuple[torch.Tensor | None, torch.Tensor | None]:
+    """The robust photometric weights of a training step and their outlier mask (`losses.robust_weights`), both
+    (H,W); before `robust.start_frac` of the iterations every pixel weighs 1 (the static scene forms first, so the
+    residuals can tell a mover from what is not yet learnt). (None, None) when the robust loss is off."""
+    rp = params.loss.robust
+    if not rp.enabled:
+        return None, None
+    if step < rp.start_frac * params.iterations:  # ones of the same shape: a compiled loss is traced once
+        return torch.ones_like(frame[..., 0]), torch.zeros_like(frame[..., 0], dtype=torch.bool)
+    with torch.no_grad():
+        return robust_weights(rgb.detach(), frame, rp)
+
+
 def view_order(train_ids: list[int], focus: Collection[int], share: float, gen: torch.Generator) -> list[int]:
     """One shuffled pass over `train_ids` (popped from the end). With `focus` views and 0 < share < 1, the
     focus views are repeated so that about `share` of the pass is theirs (each other view still appears once)."""
@@ -290,6 +305,7 @@ def loss_and_grads(
     prior_weight: torch.Tensor | None = None,
     prior_scale: torch.Tensor | float = 1.0,
     prior_aligned: torch.Tensor | bool = True,
+    rgb_weight: torch.Tensor | None = None,
 ) -> tuple[torch.Tensor, dict[str, torch.Tensor], tuple[torch.Tensor, ...]]:
     """(loss, its terms, its gradients with respect to rgb, depth, alpha and normals) of a training step:
     `total_loss` plus `sky_alpha_weight` x the mean alpha over the `sky` pixels (0 on a view without sky).
@@ -314,6 +330,7 @@ def loss_and_grads(
             prior_weight=prior_weight,
             prior_scale=prior_scale,
             prior_aligned=prior_aligned,
+            rgb_weight=rgb_weight,
         )
         if sky_alpha_weight > 0:
             terms["sky_alpha"] = masked_mean(alpha[..., 0], sky)
@@ -427,9 +444,11 @@ def evaluate(
     params: TrainParams,
     background,
     view_gap: int = 1,
-) -> dict[str, float]:
+    per_view: bool = False,
+) -> dict[str, Any]:
     """Mean PSNR / SSIM (wonderverse.metrics) of the renders of `indices` against their frames; with
-    `motion_blur_shutter` the renders are smeared as the camera smeared the frames (`train`'s view_gap)."""
+    `motion_blur_shutter` the renders are smeared as the camera smeared the frames (`train`'s view_gap).
+    With `per_view`, also `psnr_views` and `ssim_views`: each view's figure, in the order of `indices`."""
     from wonderverse.metrics import psnr, ssim
 
     if not indices:
@@ -446,10 +465,17 @@ def evaluate(
         ps.append(psnr(rgb, gt))
         if min(rgb.shape[:2]) >= 11:
             ss.append(ssim(rgb, gt))
-    out = {"psnr": float(np.mean(ps))}
+    out: dict[str, Any] = {"psnr": float(np.mean(ps))}
     if ss:
         out["ssim"] = float(np.mean(ss))
+    if per_view:
+        out |= {"psnr_views": [float(x) for x in ps], "ssim_views": [float(x) for x in ss]}
     return out
+
+
+def _sky_shape(params: TrainParams) -> tuple[int, ...]:
+    rows = params.sky_map_rows
+    return (rows, 2 * rows, 3) if rows else (3,)
 
 
 def train(
@@ -464,6 +490,8 @@ def train(
     focus_share: float = 0.0,
     progress: ProgressFn | None = None,
     view_gap: int = 1,
+    test_views: Sequence[int] | None = None,
+    sky_start: np.ndarray | None = None,
 ) -> tuple[GaussianModel, dict[str, list[float]], dict[str, Any]]:
     """Optimise `model` on `views` (see the module docstring). Returns (model, curves, metrics).
 
@@ -474,13 +502,19 @@ def train(
     `fixed_gaussians` Gaussians (an extended scene's existing ones) are optimised but never densified;
     about `focus_share` of the steps train on `focus_views` (an extension's new frames), see `view_order`.
     Consecutive views are `view_gap` video frames apart (the motion-blur model's frame interval).
+    `test_views`: the views held out (indices; None: every `holdout_every`-th, `split_views`). `sky_start`: the sky
+    to start from, (3,) or a (R, 2R, 3) map (a continued scene's; None: from the sky pixels or `background_rgb`).
     progress(iterations done, iterations, "loss 0.0521, 21468 Gaussians") is called at the start, about every
     1 % of the iterations and at the end; the loss is the last one copied to the host (module docstring).
     """
     report = progress or no_progress
     device = renderer.device
     model = model.to(device)
-    train_ids, test_ids = split_views(len(views), params.holdout_every)
+    if test_views is None:
+        train_ids, test_ids = split_views(len(views), params.holdout_every)
+    else:
+        test_ids = sorted(set(test_views))
+        train_ids = [i for i in range(len(views)) if i not in set(test_ids)]
     data = _Data(views, params, device, train_ids)
     if not train_ids:
         raise ValueError("no views to train on")
@@ -491,7 +525,11 @@ def train(
     else:
         sky = data.sky_colour()
         bg0 = sky if sky is not None else np.zeros(3, np.float32)
-    background = torch.nn.Parameter(torch.tensor(initial_sky(bg0, params.sky_map_rows), device=device))
+    if sky_start is not None and sky_start.shape == _sky_shape(params):
+        bg0 = sky_start
+    else:
+        bg0 = initial_sky(bg0, params.sky_map_rows)
+    background = torch.nn.Parameter(torch.tensor(np.asarray(bg0, np.float32), device=device))
     scene_scale = params.scene_scale
     if resume_state is not None and "scene_scale" in resume_state:
         scene_scale = float(resume_state["scene_scale"])
@@ -579,6 +617,7 @@ def train(
             rgb = _blurred_like_the_video(rgb, depth, alpha, data, i, params, view_gap)
         if strategy is not None and model.num_gaussians:
             strategy.step_pre_backward(pdict, optimizers, strategy_state, step, info)
+        rgb_weight, outliers = _robust(rgb, data.frames[i], params, step)
         loss, terms, grads = loss_fn(
             rgb.detach(),
             data.frames[i],
@@ -595,7 +634,10 @@ def train(
             prior_weight=None if data.prior_weight is None else data.prior_weight[i],
             prior_scale=prior_scale.fill_(prior_schedule(params, step)),
             prior_aligned=data.aligned[i],
+            rgb_weight=rgb_weight,
         )
+        if outliers is not None:
+            terms["outlier_share"] = outliers.float().mean()
         # back-propagate the loss's gradients through the render (and the strategy's own terms)
         renders = (rgb, depth, alpha, normals)
         tensors = [r for r in renders if r.requires_grad]
@@ -651,7 +693,7 @@ def train(
         "skipped_steps": len(curves.get("skipped", [])),
     }
     for name, ids in (("test", test_ids), ("train", train_ids[:8])):
-        for k, v in evaluate(model, views, ids, renderer, params, bg_final, view_gap).items():
+        for k, v in evaluate(model, views, ids, renderer, params, bg_final, view_gap, name == "test").items():
             metrics[f"{name}_{k}"] = v
     if is_map(bg_final):
         metrics["sky_map"] = bg_final.cpu().numpy()

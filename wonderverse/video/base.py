@@ -22,6 +22,8 @@ class GroundTruth:
     `wonderverse.video.content`), -1 for none (the world's own surfaces, sky); None when the world holds no placed
     content. label_names: label id -> the content's name, its kind and variant ("lake (frozen)", "trees (pine)",
     "table"; kinds are `content.VOCABULARY`'s keys). Pixels with a label >= 0 have finite depth.
+    movers: (T,H,W) bool, the pixels showing a moving person or vehicle (`video.movers`), None without movers. depth,
+    normals and labels are the static world's, under the movers too; the frames without movers are the static truth.
     """
 
     poses: np.ndarray
@@ -31,6 +33,7 @@ class GroundTruth:
     guide: dict[str, float] | None = None
     labels: np.ndarray | None = None
     label_names: dict[int, str] = field(default_factory=dict)
+    movers: np.ndarray | None = None
 
 
 @dataclass

@@ -775,6 +775,25 @@ class ProceduralVideo:
             depth *= np.float32(s)
         return rgb, depth, normals
 
+    def _draw_movers(
+        self, world: World, poses: np.ndarray, frames: np.ndarray, depth: np.ndarray, seed: int, frozen: set[int]
+    ) -> np.ndarray | None:
+        """Composite `options.movers` moving people and vehicles (`video.movers`) into the rendered `frames` (T,H,W,3)
+        in place, occluded by the world's camera-z `depth` (native metres) at W2C `poses` (native). Returns their
+        masks (T,H,W) bool (frozen frames are filled by the caller), or None without movers. Before the defects, which
+        then blur and compress movers and world alike."""
+        if not self.options.movers:
+            return None
+        from wonderverse.video.movers import composite_movers, plan_movers
+
+        movers = plan_movers(world, poses, self.K, self.width, self.options.movers, self.scene_seed, seed)
+        masks = np.zeros(depth.shape, dtype=bool)
+        for i in range(len(poses)):
+            if i not in frozen:
+                origin, dirs = world_directions(self.K, poses[i], self.width, self.height)
+                masks[i] = composite_movers(frames[i], depth[i], movers, i, origin, dirs, world.sky.sun_dir)
+        return masks
+
     def generate(
         self,
         prompt: str,
@@ -794,7 +813,9 @@ class ProceduralVideo:
 
         With defects (`options.defects`) the frames show them; gt.poses are the poses really rendered (after
         `parallax_scale` and any fault), gt.depth and gt.normals those of the world's own undeformed mesh at
-        those poses (the geometric drift shows in the frames only)."""
+        those poses (the geometric drift shows in the frames only). With `options.movers` the frames show moving
+        people and vehicles (`video.movers`) and gt.movers their masks; depth, normals and labels stay the static
+        world's."""
         path = validate_path(path)
         if seed < 0:
             raise ValueError(f"seed must be >= 0, got {seed}")
@@ -838,8 +859,11 @@ class ProceduralVideo:
                 else:  # its own deformed scene: render it now and let the scene go
                     _run(view, self.options.shading_threads)
         _run(chunks, self.options.shading_threads)  # all frames at once: threads never wait at a frame's end
+        mover_masks = self._draw_movers(world, poses, frames, depth, seed, frozen)
         for i in sorted(frozen):  # the video holds the previous frame
             frames[i], depth[i], normals[i] = frames[i - 1], depth[i - 1], normals[i - 1]
+            if mover_masks is not None:
+                mover_masks[i] = mover_masks[i - 1]
         labels = None
         if label_names:  # what of the placed content each pixel shows, cast as depth was
             at = plan.frame if morph is not None and plan is not None else T
@@ -856,6 +880,7 @@ class ProceduralVideo:
         if guide is not None and self.options.accept_guide:  # a guided model keeps the known, invents the rest
             frames, guided = self._keep_known(guide, frames, depth)
         truth = GroundTruth(poses, depth, normals, record, guide=guided, labels=labels, label_names=label_names)
+        truth.movers = mover_masks
         return Video(frames=frames, K=self.K.copy(), gt=truth, k_is_guess=False)
 
 

@@ -301,6 +301,14 @@ class ProceduralOptions(BaseModel):
         description=f"a level name ({', '.join(DEFECT_LEVELS)}) or explicit DefectParams; 'none': today's frames",
     )
 
+    # transient objects
+    movers: int = Field(
+        0,
+        ge=0,
+        le=50,
+        description="moving people and vehicles per segment (`wonderverse.video.movers`), composited by depth; "
+        "gt `movers` holds their per-frame masks and the same clip with 0 is its static truth; 0: none",
+    )
     # guided extensions
     accept_guide: bool = Field(
         False,
@@ -311,10 +319,13 @@ class ProceduralOptions(BaseModel):
 
     @model_serializer(mode="wrap")
     def _default_guide_unwritten(self, handler: SerializerFunctionWrapHandler) -> dict[str, Any]:
-        """`accept_guide` is written only when true, so every cache key made before it existed stays the same."""
+        """`accept_guide` is written only when true and `movers` only when set, so every cache key made before they
+        existed stays the same."""
         data = handler(self)
         if not self.accept_guide:
             data.pop("accept_guide", None)
+        if not self.movers:
+            data.pop("movers", None)
         return data
 
     @field_validator("defects", mode="before")
