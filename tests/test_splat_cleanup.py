@@ -1,5 +1,6 @@
 """prune_for_export on constructed scenes: planted floaters and absurd Gaussians go, everything a camera sees or
-the SfM points vouch for stays. Ground truth is the construction (where each Gaussian was put)."""
+the SfM points vouch for stays; planted needles are shortened, discs and round Gaussians left as they are. Ground
+truth is the construction (where each Gaussian was put, and its axes)."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ from hypothesis import strategies as st
 from scipy.spatial import cKDTree
 
 from wonderverse.camera import intrinsics, look_at
-from wonderverse.splats.cleanup import ExportPruneParams, in_any_view, prune_for_export
+from wonderverse.splats.cleanup import ExportPruneParams, axis_ratios, in_any_view, prune_for_export, shorten_needles
 
 W, H = 160, 120
 K = intrinsics(W, H, 60.0)
@@ -173,3 +174,61 @@ def test_counts_add_up_and_what_stays_is_in_order(seed, n, margin):
     # a Gaussian close to an SfM point, opaque enough and not too large, always stays
     kept_rows = {tuple(r) for r in kept["means"]}
     assert all(tuple(r) in kept_rows for r in g["means"][near & ok])
+
+
+# ---------------------------------------------------------------------------------------------- needles
+
+
+def _shaped(axes: list[tuple[float, float, float]], means: np.ndarray | None = None) -> dict[str, np.ndarray]:
+    """Gaussians at `means` (default: on the cube's centre line) with the given σ per axis."""
+    means = np.stack([np.array([0.0, 0.0, 0.3 * i]) for i in range(len(axes))]) if means is None else means
+    g = _gaussians(means)
+    g["log_scales"] = np.log(np.asarray(axes, np.float32))
+    return g
+
+
+def test_a_needle_is_shortened_a_disc_and_a_ball_are_kept_as_they_are(scene):
+    """Three Gaussians among the cloud: a needle (σ 1.0 × 0.02 × 0.02, ratio 50), a disc (1.0 × 1.0 × 0.02: flat,
+    largest / middle 1) and a ball. The needle's long axis is cut to 10 × its middle one (0.2), nothing else of
+    any Gaussian changes, and the three stay exported."""
+    w2c, points, cloud = scene
+    planted = _shaped([(1.0, 0.02, 0.02), (1.0, 1.0, 0.02), (0.1, 0.1, 0.1)])
+    ratio, flatness = axis_ratios(planted["log_scales"])
+    np.testing.assert_allclose(ratio, [50.0, 1.0, 1.0], rtol=1e-5)
+    np.testing.assert_allclose(flatness, [50.0, 50.0, 1.0], rtol=1e-5)  # max/min cannot tell a disc from a needle
+    kept, report = prune_for_export(_cat(cloud, planted), w2c, K, W, H, points, EXTENT)
+    assert report["after"] == report["before"] == len(cloud["means"]) + 3
+    assert report["needles_shortened"] == 1
+    got = np.exp(kept["log_scales"][-3:])
+    np.testing.assert_allclose(got, [(0.2, 0.02, 0.02), (1.0, 1.0, 0.02), (0.1, 0.1, 0.1)], rtol=1e-5)
+    np.testing.assert_array_equal(kept["log_scales"][:-3], cloud["log_scales"])
+    for name in ("means", "quats", "logit_opacities", "sh0", "shN"):
+        np.testing.assert_array_equal(kept[name], _cat(cloud, planted)[name])
+
+
+def test_the_needle_limit_is_a_setting_and_the_long_axis_is_found_in_any_column(scene):
+    """A needle long along its second axis (0.02 × 0.3 × 0.01, ratio 15): shortened to 0.2 at the default limit,
+    to 20 × 0.02 = 0.4 (so left as is) at limit 20, to 3 × 0.02 at limit 3."""
+    w2c, points, cloud = scene
+    needle = _shaped([(0.02, 0.3, 0.01)])
+    for limit, want in ((10.0, 0.2), (20.0, 0.3), (3.0, 0.06)):
+        p = ExportPruneParams(max_needle_ratio=limit)
+        kept, report = prune_for_export(_cat(cloud, needle), w2c, K, W, H, points, EXTENT, p)
+        np.testing.assert_allclose(np.exp(kept["log_scales"][-1]), [0.02, want, 0.01], rtol=1e-5)
+        assert report["needles_shortened"] == (want != 0.3)
+    with pytest.raises(ValueError):
+        ExportPruneParams(max_needle_ratio=1.0)  # every Gaussian but a ball would be a needle
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.tuples(*[st.floats(-8.0, 3.0)] * 3), min_size=1, max_size=30), st.floats(1.01, 100.0))
+def test_shortened_needles_keep_their_two_short_axes_and_end_at_the_limit(log_axes, limit):
+    ls = np.asarray(log_axes, np.float64)
+    out, needle = shorten_needles(ls, limit)
+    ratio_before, _ = axis_ratios(ls)
+    ratio_after, _ = axis_ratios(out)
+    np.testing.assert_array_equal(needle, ratio_before > limit)
+    np.testing.assert_array_equal(out[~needle], ls[~needle])
+    assert np.all(ratio_after <= limit * (1 + 1e-9))
+    np.testing.assert_allclose(ratio_after[needle], limit, rtol=1e-9)
+    np.testing.assert_array_equal(np.sort(out, 1)[:, :2], np.sort(ls, 1)[:, :2])  # the two shorter axes unchanged

@@ -16,6 +16,18 @@ removed when
 On that scene the defaults remove 161 transparent, 73 too large and 485 out-of-view Gaussians (3.3 %), and
 the training views rendered before and after differ by 42-48 dB PSNR.
 
+Needles are shortened, not removed: a Gaussian whose largest axis is over `max_needle_ratio` times its middle
+one (`axis_ratios`; a disc, two long axes and a short one, is no needle) gets its largest axis cut to that many
+times the middle one (`shorten_needles`). Seen side-on from a viewpoint no training camera had, a needle is a
+streak across the view. Removing needles leaves holes where they carried colour; shortening them keeps their
+colour at their centre: on the default preview scene (2026-12-06, 21,084 Gaussians, 49 training views, PSNR
+against the frames on every 4th), removing those over 5 cost 0.37 dB beyond the pruning, shortening them 0.05 dB. The default 10
+is nearly free (12 Gaussians there, under 0.01 dB); lower limits cost more than they show (3: 775 Gaussians,
+0.24 dB, novel views barely changed). There, the streaks of novel views come from Gaussians of ratio 2-5 seen
+side-on by training views (their length is supported), which no export-time rule removes for free: keeping
+only Gaussians near SfM points or inside the points' box cost 0.2-1.1 dB (distant terrain the SfM did not
+triangulate). Figures: `python -m benchmarks.splat_cleanup` (docs/benchmarks.md).
+
 Lengths are shares of the scene extent the caller gives: the outputs step passes `camera.scene_extent` of the
 training cameras and their rendered depth, the one extent every output is measured by (paths, the mesh).
 
@@ -51,9 +63,35 @@ class ExportPruneParams(BaseModel):
         1.0, gt=0, description="a Gaussian wider (6 σ, largest axis) than this share of the extent is absurdly large"
     )
     min_opacity: float = Field(1.0 / 255.0, ge=0, lt=1, description="less opaque than this is nearly transparent")
+    max_needle_ratio: float = Field(
+        10.0,
+        gt=1,
+        description="a Gaussian whose largest axis is over this many times its middle one (a needle) has it "
+        "shortened to that many times (a streak in novel views); 1e9: never",
+    )
 
 
 REASONS = ("non_finite", "transparent", "too_large", "outside_views")
+
+
+def axis_ratios(log_scales: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(largest / middle, largest / smallest) axis of each Gaussian, from (N,3) log scales. The first is large for
+    a needle only; the second for a needle and for a flat disc alike."""
+    srt = np.sort(np.asarray(log_scales, np.float64).reshape(-1, 3), axis=1)
+    with np.errstate(over="ignore", invalid="ignore"):
+        return np.exp(srt[:, 2] - srt[:, 1]), np.exp(srt[:, 2] - srt[:, 0])
+
+
+def shorten_needles(log_scales: np.ndarray, max_ratio: float) -> tuple[np.ndarray, np.ndarray]:
+    """(log scales with every needle's largest axis cut to `max_ratio` times its middle axis, same dtype; (N,) bool
+    of the needles shortened). A needle: largest / middle axis over `max_ratio`; other Gaussians are unchanged."""
+    ls = np.asarray(log_scales)
+    srt = np.sort(ls.reshape(-1, 3).astype(np.float64), axis=1)
+    cap = srt[:, 1] + np.log(max_ratio)
+    needle = srt[:, 2] > cap
+    out = ls.copy()
+    out[needle] = np.minimum(ls[needle], cap[needle, None]).astype(ls.dtype)
+    return out, needle
 
 
 def in_any_view(
@@ -110,9 +148,9 @@ def prune_for_export(
     `gaussians`: world-frame arrays in the GaussianModel.to_numpy() layout; `w2c` (M,4,4) the training cameras
     (OpenCV axes; non-finite poses ignored) with intrinsics K (3,3) or (M,3,3) for width×height images;
     `sfm_points` (P,3) world points or None; `extent` the scene's size in world units (`camera.scene_extent`).
-    Returns (the kept Gaussians, same arrays and dtypes, in their
-    order; a report dict): `before`, `after` (counts), `removed` {non_finite, transparent, too_large,
-    outside_views} (each removed Gaussian counted once, under the first reason in that order), `extent` (world
+    Returns (the kept Gaussians, same arrays and dtypes, in their order, needles shortened; a report dict):
+    `before`, `after` (counts), `removed` {non_finite, transparent, too_large, outside_views} (each removed
+    Gaussian counted once, under the first reason in that order), `needles_shortened` (count), `extent` (world
     units), `bounds_before` / `bounds_after` ({min, max} of the finite centres, world units; None when empty)
     and `params`.
     """
@@ -147,6 +185,7 @@ def prune_for_export(
         outside[idx[~seen & far]] = True
     keep = finite & ~transparent & ~too_large & ~outside
     kept = {name: np.asarray(a)[keep] for name, a in gaussians.items()}
+    kept["log_scales"], needles = shorten_needles(kept["log_scales"], params.max_needle_ratio)
     report = {
         "before": int(n),
         "after": int(keep.sum()),
@@ -156,6 +195,7 @@ def prune_for_export(
             "too_large": int(too_large.sum()),
             "outside_views": int(outside.sum()),
         },
+        "needles_shortened": int(needles.sum()),
         "extent": extent,
         "bounds_before": _bounds(means),
         "bounds_after": _bounds(means[keep]),
