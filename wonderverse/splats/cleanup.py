@@ -20,13 +20,13 @@ Needles are shortened, not removed: a Gaussian whose largest axis is over `max_n
 one (`axis_ratios`; a disc, two long axes and a short one, is no needle) gets its largest axis cut to that many
 times the middle one (`shorten_needles`). Seen side-on from a viewpoint no training camera had, a needle is a
 streak across the view. Removing needles leaves holes where they carried colour; shortening them keeps their
-colour at their centre: on the default preview scene (2026-12-06, 21,084 Gaussians, 49 training views, PSNR
-against the frames on every 4th), removing those over 5 cost 0.37 dB beyond the pruning, shortening them 0.05 dB. The default 10
-is nearly free (12 Gaussians there, under 0.01 dB); lower limits cost more than they show (3: 775 Gaussians,
-0.24 dB, novel views barely changed). There, the streaks of novel views come from Gaussians of ratio 2-5 seen
-side-on by training views (their length is supported), which no export-time rule removes for free: keeping
-only Gaussians near SfM points or inside the points' box cost 0.2-1.1 dB (distant terrain the SfM did not
-triangulate). Figures: `python -m benchmarks.splat_cleanup` (docs/benchmarks.md).
+colour at their centre: on the default preview scene (2026-12-06, 21,084 Gaussians, PSNR of every 4th of its 49
+training views against the frames), removing those over 5 cost 0.37 dB beyond the pruning, shortening them
+0.05 dB. The default 10 is nearly free (12 Gaussians there, under 0.01 dB); lower limits cost more than they
+show (3: 775 Gaussians, 0.24 dB, novel views barely changed). There, the streaks of novel views come from
+Gaussians of ratio 2-5 that training views see side-on (their length is supported), which no export-time rule
+removes for free: keeping only Gaussians near SfM points or inside the points' box cost 0.2-1.1 dB (distant
+terrain the SfM did not triangulate). Figures: `python -m benchmarks.splat_cleanup` (docs/benchmarks.md).
 
 Lengths are shares of the scene extent the caller gives: the outputs step passes `camera.scene_extent` of the
 training cameras and their rendered depth, the one extent every output is measured by (paths, the mesh).
@@ -145,7 +145,8 @@ def prune_for_export(
 ) -> tuple[dict[str, np.ndarray], dict]:
     """The Gaussians worth exporting, and what was removed.
 
-    `gaussians`: world-frame arrays in the GaussianModel.to_numpy() layout; `w2c` (M,4,4) the training cameras
+    `gaussians`: world-frame arrays in the GaussianModel.to_numpy() layout (any other array of one row per
+    Gaussian is carried along: its kept rows are returned); `w2c` (M,4,4) the training cameras
     (OpenCV axes; non-finite poses ignored) with intrinsics K (3,3) or (M,3,3) for width×height images;
     `sfm_points` (P,3) world points or None; `extent` the scene's size in world units (`camera.scene_extent`).
     Returns (the kept Gaussians, same arrays and dtypes, in their order, needles shortened; a report dict):
