@@ -82,7 +82,8 @@ def candidates(value: Any, annotation: Any) -> list[Any]:
 def _with(data: dict, path: tuple[str, ...], value: Any) -> dict:
     if len(path) == 1:
         return {**data, path[0]: value}
-    return {**data, path[0]: _with(data[path[0]], path[1:], value)}
+    # a block left unwritten at its default (`loss.robust`, to keep the keys made before it) is created
+    return {**data, path[0]: _with(data.get(path[0], {}), path[1:], value)}
 
 
 def _tags(cfg: BaseModel, block: tuple[str, ...]) -> list[Any]:

@@ -25,6 +25,10 @@ TV(N̂) = mean over horizontally adjacent pixel pairs of Σ_c |N̂[y,x+1,c] - N�
 over the whole image: the paper's sum Σ_ij |∇_i N̂| + |∇_j N̂| divided by the number of pairs, so λ_s
 does not depend on the resolution. The total is exactly the weighted sum above: λ_d and λ_n multiply
 their terms and nothing else (no (1 + λ) factors).
+
+Robust weights (`loss.robust`, off by default): per-pixel weights w from the view's own residuals (`robust_weights`)
+replace the means of L_rgb by mean(w |Ĉ - C|) and mean(w (1 - SSIM map)), and multiply the prior weights, so a moving
+person or car in a frame pulls on nothing (docs/usage.md, transients).
 """
 
 from __future__ import annotations
