@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 
 import numpy as np
 
@@ -81,23 +81,25 @@ def stitched(store: SceneStore) -> tuple[np.ndarray, list[tuple[str, int]]]:
 
 
 def posed_stitched(
-    store: SceneStore, arrays: dict[str, Callable[[str], str]]
+    store: SceneStore, arrays: dict[str, Callable[[str], str]], only: Collection[str] | None = None
 ) -> tuple[dict[str, np.ndarray], np.ndarray, list[str]]:
     """The stitched frames with a global pose (`sfm/`), in stitched order: {name: per-frame rows stacked} for each
     `arrays[name](seg)` (the path of a (T, ...) array of the segment), W2C poses (N,4,4) and frame names
-    (`s000_0007`: segment, generation-order index). Each segment's arrays are read once."""
+    (`s000_0007`: segment, generation-order index); with `only`, the frames of those names alone. Each segment's
+    arrays are read once, and only for a segment with a frame wanted."""
     segs = store.meta(SFM.path).segments
     index, poses = store.array(SFM.frame_index), store.array(SFM.poses)
-    keep = np.isfinite(poses).all(axis=(1, 2))
     read: dict[str, dict[str, np.ndarray]] = {}
     rows: dict[str, list[np.ndarray]] = {name: [] for name in arrays}
-    names = []
-    for (a, i), ok in zip(index, keep, strict=True):
-        if ok:
-            seg = segs[a]
-            if seg not in read:
-                read[seg] = {name: store.array(path(seg)) for name, path in arrays.items()}
-            for name in arrays:
-                rows[name].append(read[seg][name][i])
-            names.append(f"{seg}_{int(i):04d}")
-    return {name: np.stack(r) if r else np.zeros((0,)) for name, r in rows.items()}, poses[keep], names
+    names, kept = [], []
+    for k, (a, i) in enumerate(index):
+        seg, name = segs[a], f"{segs[a]}_{int(i):04d}"
+        if not np.isfinite(poses[k]).all() or (only is not None and name not in only):
+            continue
+        if seg not in read:
+            read[seg] = {key: store.array(path(seg)) for key, path in arrays.items()}
+        for key in arrays:
+            rows[key].append(read[seg][key][i])
+        names.append(name)
+        kept.append(k)
+    return {key: np.stack(r) if r else np.zeros((0,)) for key, r in rows.items()}, poses[kept], names

@@ -7,6 +7,7 @@ step, in the outputs' gravity-aligned frame."""
 from __future__ import annotations
 
 import logging
+from collections.abc import Collection
 from typing import TYPE_CHECKING, Any
 
 import numpy as np
@@ -19,6 +20,7 @@ from wonderverse.schema import PRIORS_SEGMENT, SFM, SPLATS, SPLATS_CHECKPOINT
 from wonderverse.store import SceneStore, cache_key, write_array
 
 if TYPE_CHECKING:
+    from wonderverse.splats.region import Region
     from wonderverse.splats.seeding import PreviousSplats
     from wonderverse.splats.trainer import Views
 
@@ -34,9 +36,9 @@ def params(cfg: RunConfig) -> SplatsStepParams:
     return cfg.steps.splats
 
 
-def load_views(store: SceneStore) -> tuple[Views, list[str]]:
-    """Every posed stitched frame with its priors, in SfM world units (frames without a pose skipped), and
-    the frames' names (`s000_0007`: segment, generation-order index)."""
+def load_views(store: SceneStore, only: Collection[str] | None = None) -> tuple[Views, list[str]]:
+    """Every posed stitched frame with its priors (with `only`, the frames of those names), in SfM world units
+    (frames without a pose skipped), and the frames' names (`s000_0007`: segment, generation-order index)."""
     from tasks.segments import attempt_path, posed_stitched
     from wonderverse.splats.trainer import Views
 
@@ -46,7 +48,7 @@ def load_views(store: SceneStore) -> tuple[Views, list[str]]:
     }
     arrays = {"frames": lambda seg: attempt_path(store, seg).frames}
     arrays |= {name: (lambda seg, n=name: getattr(PRIORS_SEGMENT.at(seg=seg), n)) for name in priors}
-    rows, w2c, names = posed_stitched(store, arrays)
+    rows, w2c, names = posed_stitched(store, arrays, only)
     if not names:
         raise WonderError("no posed frames to train on")
     views = Views(
@@ -62,7 +64,7 @@ def load_views(store: SceneStore) -> tuple[Views, list[str]]:
 
 def _train_digest(p: SplatsStepParams) -> str:
     """What must not change for an extension to continue the previous optimisation instead of restarting."""
-    kept = p.model_dump(exclude={"extend_iterations_frac", "extend_new_view_share"})
+    kept = p.model_dump(exclude={name for name in SplatsStepParams.model_fields if name.startswith("extend_")})
     return cache_key("splats_train", 2, {"splats": kept})
 
 
@@ -129,27 +131,43 @@ def _load_checkpoint(store: SceneStore, key: str, device: Any, n_views: int, sh_
     return state
 
 
+def _region(
+    store: SceneStore, p: SplatsStepParams, previous: PreviousSplats, names: list[str], w2c: np.ndarray
+) -> Region | None:
+    """The region an extension trains (`wonderverse.splats.region`), None when the whole scene is to be."""
+    from tasks.segments import attempt_path
+    from wonderverse.splats.region import extension_region
+
+    if p.extend_old_views_max is None:
+        return None
+    seen = set(previous.frames)
+    new = [i for i, n in enumerate(names) if n not in seen]
+    height, width = store.shape(attempt_path(store, names[new[0]].split("_")[0]).frames)[1:3]
+    means = previous.normalization.apply_inverse(np.asarray(previous.arrays["means"], np.float64))
+    limits = (p.extend_old_views_max, p.extend_min_overlap, p.extend_view_margin_frac)
+    return extension_region(means, w2c, store.array(SFM.K), width, height, new, *limits)
+
+
 def run(store: SceneStore, p: SplatsStepParams, ctx: StepContext) -> str:
+    from tasks.segments import posed_stitched
     from wonderverse.splats.model import normalization_to_dict
+    from wonderverse.splats.region import held_out, scene_figures
     from wonderverse.splats.renderer import make_renderer
-    from wonderverse.splats.seeding import start_training
+    from wonderverse.splats.seeding import merged, start_training
     from wonderverse.splats.trainer import train
 
-    views, names = load_views(store)
-    views, names = views.subset(slice(None, None, p.frame_stride)), names[:: p.frame_stride]
-    points, colors = store.array(SFM.points3d), store.array(SFM.colors)
+    _, w2c, names = posed_stitched(store, {})
+    w2c, names = w2c[:: p.frame_stride], names[:: p.frame_stride]
     previous = _previous(store, p, names)
-    start = start_training(views, names, points, colors, p, previous)
+    region = None if previous is None else _region(store, p, previous, names, w2c)
+    views, local = load_views(store, set(names if region is None else [names[i] for i in region.views]))
+    test = held_out(names, p.train.holdout_every)
+    held = {names[i] for i in test}
+    points, colors = store.array(SFM.points3d), store.array(SFM.colors)
+    start = start_training(views, local, points, colors, p, previous, region)
     model, fixed, norm = start.model, start.fixed, start.normalization
     if previous is not None:
-        log.info(
-            "extending the splats: %d existing Gaussians kept, %d new, %d iterations (%.0f %% on %d new views)",
-            fixed,
-            model.num_gaussians - fixed,
-            start.train.iterations,
-            100 * p.extend_new_view_share,
-            len(start.new_views),
-        )
+        log.info("extending the splats: %s", start.describe(p.extend_new_view_share))
     renderer = make_renderer(ctx.execution.renderer)
     model, curves, metrics = train(
         model,
@@ -163,8 +181,14 @@ def run(store: SceneStore, p: SplatsStepParams, ctx: StepContext) -> str:
         focus_share=p.extend_new_view_share,
         progress=callback("iterations"),
         view_gap=p.frame_stride,
+        test_views=[i for i, n in enumerate(local) if n in held],
+        sky_start=None if previous is None else stored_sky(store),
     )
     arrays = model.to_numpy()
+    if start.kept is not None:
+        arrays, norm = merged(start, arrays, previous), previous.normalization
+    before = None if previous is None else store.meta(SPLATS.path).metrics
+    metrics = scene_figures(metrics, local, names, test, before) | {"n_gaussians": len(arrays["means"])}
     sky_map = metrics.pop("sky_map", None)
     if sky_map is not None:
         arrays["sky_map"] = sky_map
@@ -175,20 +199,22 @@ def run(store: SceneStore, p: SplatsStepParams, ctx: StepContext) -> str:
         metrics=metrics,
         frames=names,
         train_digest=_train_digest(p),
-        extended_from=None if previous is None else {"frames": len(previous.frames), "kept_gaussians": fixed},
+        extended_from=None if previous is None else start.extended_from(len(previous.frames)),
         curves={k: [float(x) for x in v] for k, v in curves.items()},
     ) as g:
         for name, arr in arrays.items():
             write_array(g, getattr(SPLATS, name), arr)
     store.remove(CHECKPOINT)
+    return f"{metrics['n_gaussians']} Gaussians, {_psnr_label(metrics)}, {renderer.__class__.__name__}"
+
+
+def _psnr_label(metrics: dict[str, Any]) -> str:
     if metrics.get("test_views") and "test_psnr" in metrics:  # held-out only where views were held out
-        label = f"held-out PSNR {metrics['test_psnr']:.2f} dB ({len(metrics['test_views'])} views)"
-    else:
-        label = f"training PSNR {metrics.get('train_psnr', float('nan')):.2f} dB"
-    return f"{metrics['n_gaussians']} Gaussians, {label}, {renderer.__class__.__name__}"
+        return f"held-out PSNR {metrics['test_psnr']:.2f} dB ({len(metrics['test_views'])} views)"
+    return f"training PSNR {metrics.get('train_psnr', float('nan')):.2f} dB"
 
 
-# 5: the step contract
+# 6: held-out views chosen per segment (region.held_out); an extension trains a region
 STEP = Step(
-    "splats", 5, ("priors",), params, run, "3D Gaussian splatting with depth and normal losses", group=SPLATS.path
+    "splats", 6, ("priors",), params, run, "3D Gaussian splatting with depth and normal losses", group=SPLATS.path
 )

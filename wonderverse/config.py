@@ -289,6 +289,24 @@ class SplatsStepParams(Model):
         lt=1,
         description="after `extend`: share of those iterations on the new frames (the rest keep the old)",
     )
+    # A region, not the whole world: each extension then costs the same however large the world has grown
+    # (wonderverse.splats.region; docs/benchmarks.md, benchmarks.scale).
+    extend_old_views_max: int | None = Field(
+        32,
+        ge=0,
+        description="after `extend`: old views trained beside the new ones, at most (those seeing most of what the "
+        "new views see); Gaussians none of the trained views sees are kept as they are. None: the whole scene",
+    )
+    extend_min_overlap: float = Field(
+        0.05,
+        ge=0,
+        le=1,
+        description="after `extend`: an old view is trained beside the new ones when it sees this "
+        "share of the Gaussians they see",
+    )
+    extend_view_margin_frac: float = Field(
+        0.25, ge=0, description="after `extend`: a Gaussian this share of the image size off a trained view is in it"
+    )
 
 
 class OutputsParams(Model):

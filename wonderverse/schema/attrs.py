@@ -302,6 +302,11 @@ class SplatMetrics(BaseModel):
     test_ssim: float | None = None
     train_psnr: float | None = None
     train_ssim: float | None = None
+    test_psnr_by_frame: dict[str, float] = Field(
+        default_factory=dict, description="each held-out frame's PSNR (dB), carried where not rendered again"
+    )
+    test_ssim_by_frame: dict[str, float] = Field(default_factory=dict, description="each held-out frame's SSIM")
+    rendered_test_views: list[int] = Field(default_factory=list, description="the held-out views rendered this run")
 
 
 class SplatsAttrs(StepAttrs):
@@ -309,7 +314,11 @@ class SplatsAttrs(StepAttrs):
     metrics: SplatMetrics = Field(default_factory=SplatMetrics)
     frames: list[str] = Field(default_factory=list, description="the frames trained on (`s000_0007`)")
     train_digest: str = Field("", description="what must not change for an extension to continue the training")
-    extended_from: dict[str, int] | None = Field(None, description="{frames, kept_gaussians} of the splats continued")
+    extended_from: dict[str, int] | None = Field(
+        None,
+        description="an extension's start: {frames, kept_gaussians (carried over), continued_gaussians (trained "
+        "again), views (trained)}",
+    )
     curves: dict[str, list[float]] = Field(default_factory=dict, description="per-iteration loss terms")
 
 

@@ -23,6 +23,7 @@ if TYPE_CHECKING:
     from wonderverse.config import SplatsStepParams
     from wonderverse.splats.model import GaussianModel
     from wonderverse.splats.params import TrainParams
+    from wonderverse.splats.region import Region
     from wonderverse.splats.trainer import Views
 
 
@@ -41,7 +42,8 @@ class TrainingStart:
     """views: the training views in the training frame; normalization: world -> training frame; model:
     the Gaussians to start from, the first `fixed` of them the previous run's (0 for a new scene);
     new_views: indices of the views the previous run did not see; train: the training schedule (a
-    shortened continuation after an extension)."""
+    shortened continuation after an extension); kept: the previous Gaussians left out of a region's training
+    (arrays in the previous run's training frame, `previous.normalization`), None when every one is trained."""
 
     views: Views
     normalization: Sim3
@@ -49,6 +51,27 @@ class TrainingStart:
     fixed: int
     new_views: list[int]
     train: TrainParams
+    kept: dict[str, np.ndarray] | None = None
+
+    def extended_from(self, frames: int) -> dict[str, int]:
+        """What a continuation started from: the previous run's `frames`, its Gaussians carried over (kept as
+        they were or continued), those continued, and the views trained."""
+        kept = 0 if self.kept is None else len(self.kept["means"])
+        return {
+            "frames": frames,
+            "kept_gaussians": kept + self.fixed,
+            "continued_gaussians": self.fixed,
+            "views": len(self.views),
+        }
+
+    def describe(self, new_view_share: float) -> str:
+        """What a continuation does, in words (`new_view_share`: the share of its steps on the new views)."""
+        kept = 0 if self.kept is None else len(self.kept["means"])
+        return (
+            f"{kept} Gaussians kept as they are, {self.fixed} continued, {self.model.num_gaussians - self.fixed} "
+            f"new; {self.train.iterations} iterations on {len(self.views)} views, {100 * new_view_share:.0f} % "
+            f"on the {len(self.new_views)} new"
+        )
 
 
 def initial_model(views: Views, points: np.ndarray, colors: np.ndarray, params: SplatsStepParams) -> GaussianModel:
@@ -121,11 +144,14 @@ def start_training(
     colors: np.ndarray,
     params: SplatsStepParams,
     previous: PreviousSplats | None = None,
+    region: Region | None = None,
 ) -> TrainingStart:
     """Training set up from world-frame `views` (one per name in `names`) and SfM `points` (P,3) with
     `colors` (P,3) uint8: frames downscaled to `max_side_px`, everything moved into a frame centred on the
     cameras with unit extent (`model.normalization_from_cameras`), and the Gaussians to start from: a new
-    model, or `previous` continued (`extended_model`, a shortened schedule, `trainer.continuation_params`)."""
+    model, or `previous` continued (`extended_model`, a shortened schedule, `trainer.continuation_params`).
+    With a `region` (`wonderverse.splats.region`), `views` are the region's and only the previous Gaussians
+    of `region.gaussians` are continued; the others are returned as `kept`, for `merged` after training."""
     from wonderverse.splats.data import downscale_views
     from wonderverse.splats.model import normalization_from_cameras
     from wonderverse.splats.trainer import continuation_params, normalize_views
@@ -139,5 +165,22 @@ def start_training(
         return TrainingStart(nviews, norm, model, 0, [], p.train)
     seen = set(previous.frames)
     new_views = [i for i, n in enumerate(names) if n not in seen]
+    kept = None
+    if region is not None:
+        mask = region.gaussians
+        kept = {k: a[~mask] for k, a in previous.arrays.items()}
+        previous = PreviousSplats({k: a[mask] for k, a in previous.arrays.items()}, previous.normalization, [])
     model, fixed = extended_model(previous, nviews, norm, new_views, p)
-    return TrainingStart(nviews, norm, model, fixed, new_views, continuation_params(p.train, p.extend_iterations_frac))
+    train = continuation_params(p.train, p.extend_iterations_frac)
+    return TrainingStart(nviews, norm, model, fixed, new_views, train, kept)
+
+
+def merged(start: TrainingStart, trained: dict[str, np.ndarray], previous: PreviousSplats) -> dict[str, np.ndarray]:
+    """The whole scene after a region's training: the `kept` Gaussians as they were, followed by the `trained`
+    ones (arrays in `start.normalization`'s frame) moved into the previous run's frame, which the result is in."""
+    from wonderverse.splats.ply import to_training_frame, to_world
+
+    if start.kept is None:
+        raise ValueError("merged() is for a region's training, which keeps the Gaussians outside it")
+    moved = to_training_frame(to_world(trained, start.normalization), previous.normalization)
+    return {k: np.concatenate([start.kept[k], np.asarray(moved[k], start.kept[k].dtype)]) for k in start.kept}
