@@ -26,9 +26,11 @@ over the whole image: the paper's sum Σ_ij |∇_i N̂| + |∇_j N̂| divided by
 does not depend on the resolution. The total is exactly the weighted sum above: λ_d and λ_n multiply
 their terms and nothing else (no (1 + λ) factors).
 
-Robust weights (`loss.robust`, off by default): per-pixel weights w from the view's own residuals (`robust_weights`)
-replace the means of L_rgb by mean(w |Ĉ - C|) and mean(w (1 - SSIM map)), and multiply the prior weights, so a moving
-person or car in a frame pulls on nothing (docs/usage.md, transients).
+Robust weights (`loss.robust`): per-pixel weights w (`outlier_blobs`) from the frame's disagreement with the other
+training frames warped into it by the rendered depth (`cross_view_residual`, `test: cross_view`) or from the render's
+residual (`robust_weights`, `test: render`) replace the means of L_rgb by mean(w |Ĉ - C|) and mean(w (1 - SSIM
+map)), and multiply the prior weights, so a moving person or car in a frame pulls on nothing (docs/usage.md,
+transients).
 """
 
 from __future__ import annotations
@@ -73,19 +75,18 @@ def ssim(img: Tensor, ref: Tensor, window: int = 11, sigma: float = 1.5) -> Tens
     return ssim_map(img, ref, window, sigma).mean()
 
 
-@torch.no_grad()
-def robust_weights(rgb: Tensor, gt_rgb: Tensor, params: RobustLossParams) -> tuple[Tensor, Tensor]:
-    """Per-pixel photometric weights (H,W) of a render against its frame, both (H,W,3) in [0,1] (no gradient), and
-    the outlier mask (H,W) bool they give up on. Everything is of this one view, so no state crosses steps.
+def outlier_blobs(residual: Tensor, params: RobustLossParams) -> tuple[Tensor, Tensor]:
+    """Per-pixel weights (H,W) and the outlier mask (H,W) bool of a per-pixel residual (H,W) in colour units.
 
-    A pixel is a candidate when its residual r = mean_c |rgb - gt| exceeds max(`residual_ratio` x the view's
-    median r, `min_residual`): the median stands for how well the static scene fits this view, and a mover covers
-    well under half of it. Candidates count only in dense patches (more than `patch_share` of the `patch_px` square
-    around the pixel), so the thin lines where fine texture is not yet resolved stay in, while a person's or a car's
-    blob goes; the blob then grows by `dilate_px` to take its soft edges. A view whose outliers are fewer than
-    `min_outlier_share` of its pixels keeps them all (static footage leaves such stray specks). Outliers weigh
-    `outlier_weight`, the rest 1. Fixed shapes and no host sync, like the rest of the loss."""
-    r = (rgb.detach() - gt_rgb).abs().mean(-1)
+    A pixel is a candidate when its residual exceeds max(`residual_ratio` x the view's median, `min_residual`): the
+    median stands for how well this view fits, and a mover covers well under half of it. Candidates count only in
+    dense patches (more than `patch_share` of the `patch_px` square around the pixel), so thin lines (fine texture,
+    depth edges) stay in, while a person's or a car's blob goes; the blob then grows by `dilate_px` to take its soft
+    edges. A view whose outliers are fewer than `min_outlier_share` of its pixels keeps them all (static footage
+    leaves stray specks), and so does one whose outliers are more than `max_outlier_share` (then the evidence, not
+    the view, is wrong: a depth that does not yet fit). Outliers weigh `outlier_weight`, the rest 1. Fixed shapes and
+    no host sync, like the rest of the loss."""
+    r = residual
     tau = torch.clamp_min(params.residual_ratio * r.median(), params.min_residual)
     cand = (r > tau).to(r.dtype)[None, None]
     k = params.patch_px
@@ -95,8 +96,56 @@ def robust_weights(rgb: Tensor, gt_rgb: Tensor, params: RobustLossParams) -> tup
         d = params.dilate_px
         out = F.max_pool2d(out, 2 * d + 1, stride=1, padding=d)
     mask = out[0, 0] > 0.5
-    mask = mask & (mask.to(r.dtype).mean() >= params.min_outlier_share)
+    share = mask.to(r.dtype).mean()
+    mask = mask & (share >= params.min_outlier_share) & (share <= params.max_outlier_share)
     return torch.where(mask, params.outlier_weight, 1.0).to(r.dtype), mask
+
+
+@torch.no_grad()
+def robust_weights(rgb: Tensor, gt_rgb: Tensor, params: RobustLossParams) -> tuple[Tensor, Tensor]:
+    """`outlier_blobs` of the residual r = mean_c |rgb - gt| of a render against its frame, both (H,W,3) in [0,1]:
+    the render test (`robust.test: render`). Everything is of this one view, so no state crosses steps."""
+    return outlier_blobs((rgb.detach() - gt_rgb).abs().mean(-1), params)
+
+
+@torch.no_grad()
+def warp_frames(
+    depth: Tensor, K: Tensor, w2c: Tensor, frames: Tensor, Ks: Tensor, w2cs: Tensor
+) -> tuple[Tensor, Tensor]:
+    """Other views' frames (N,H',W',3) resampled into a view of camera-z `depth` (H,W) (intrinsics K (3,3) in
+    pixels, W2C (4,4)): each pixel's point at its depth, projected into frame n (Ks (N,3,3), w2cs (N,4,4)) and
+    sampled there bilinearly. Returns the warped colours (N,H,W,3) and where they are valid (N,H,W) bool: in front
+    of camera n and inside its frame. Pixel centres at +0.5 (as `splats.data.backproject_depth`)."""
+    h, w = depth.shape
+    v, u = torch.meshgrid(
+        torch.arange(h, dtype=depth.dtype, device=depth.device),
+        torch.arange(w, dtype=depth.dtype, device=depth.device),
+        indexing="ij",
+    )
+    pix = torch.stack([u + 0.5, v + 0.5, torch.ones_like(u)], -1)
+    cam = (pix @ torch.linalg.inv(K).T) * depth[..., None]
+    c2w = torch.linalg.inv(w2c)
+    world = cam @ c2w[:3, :3].T + c2w[:3, 3]
+    pj = torch.einsum("nij,hwj->nhwi", w2cs[:, :3, :3], world) + w2cs[:, None, None, :3, 3]
+    z = pj[..., 2]
+    uv = torch.einsum("nij,nhwj->nhwi", Ks, pj)[..., :2] / z.clamp_min(1e-6)[..., None]
+    hh, ww = frames.shape[1:3]
+    grid = torch.stack([2 * uv[..., 0] / ww - 1, 2 * uv[..., 1] / hh - 1], -1)
+    warped = F.grid_sample(frames.permute(0, 3, 1, 2), grid, mode="bilinear", align_corners=False)
+    valid = (z > 1e-6) & (grid.abs() <= 1).all(-1)
+    return warped.permute(0, 2, 3, 1), valid
+
+
+@torch.no_grad()
+def cross_view_residual(frame: Tensor, warped: Tensor, valid: Tensor) -> Tensor:
+    """Per-pixel disagreement (H,W) of a frame (H,W,3) with the other views' frames warped into it (`warp_frames`):
+    the median over those views of mean_c |frame - warped|, 0 where fewer than two see the pixel. The static world
+    looks the same from every view, a mover is elsewhere in most of them, and a ghost in the scene is in no frame:
+    so a high median marks a transient of this frame, whatever the render shows."""
+    d = (frame[None] - warped).abs().mean(-1)
+    d = torch.where(valid, d, torch.nan)
+    med = torch.nanmedian(d, dim=0).values
+    return torch.where(valid.sum(0) >= 2, torch.nan_to_num(med, nan=0.0), 0.0)
 
 
 def fit_scale_shift(prior: Tensor, target: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:

@@ -8,19 +8,35 @@ from pydantic import BaseModel, ConfigDict, Field, SerializerFunctionWrapHandler
 
 
 class RobustLossParams(BaseModel):
-    """Robust photometric weights against moving objects (`losses.robust_weights`): after a warm-up, pixels whose
-    residual |render - frame| is an outlier for their view, in dense patches, leave the photometric and prior terms.
-    Residuals are the mean over the three channels of colours in [0, 1]."""
+    """Robust photometric weights against moving objects (`losses.outlier_blobs`): pixels where the frame disagrees
+    with the other training frames warped into it by the rendered depth (`test: cross_view`, `losses.
+    cross_view_residual`) or with the render (`test: render`, `losses.robust_weights`), in dense patches, leave the
+    photometric and prior terms. Residuals are the mean over the three channels of colours in [0, 1]."""
 
     model_config = ConfigDict(extra="forbid", frozen=True)
 
     enabled: bool = Field(
         False,
-        description="weigh down outlier pixels (moving people, vehicles); off by default: it can lock out what a "
-        "poorly seeded scene has not yet learnt (docs/usage.md, transients)",
+        description="weigh down outlier pixels (moving people, vehicles); off by default (docs/usage.md, transients)",
+    )
+    test: Literal["cross_view", "render"] = Field(
+        "cross_view",
+        description="what a pixel must disagree with to be an outlier: the other training frames warped into its view "
+        "by the rendered depth (movers move, the world agrees across views; a ghost in the scene is in no frame), or "
+        "the render (cannot tell a mover from a ghost or from what is not yet learnt; wants start_frac 0.3)",
+    )
+    neighbours: int = Field(
+        12,
+        ge=2,
+        le=64,
+        description="cross_view: the training views nearest in the video order a frame is compared with",
     )
     start_frac: float = Field(
-        0.3, ge=0, le=1, description="share of the iterations trained on every pixel before the weights apply"
+        0.0,
+        ge=0,
+        le=1,
+        description="share of the iterations trained on every pixel before the weights apply (cross_view needs none: "
+        "it asks no render colour; render: 0.3, the static scene forms first)",
     )
     residual_ratio: float = Field(
         3.0, gt=1, description="a pixel is an outlier candidate above this many times its view's median residual"
@@ -34,12 +50,21 @@ class RobustLossParams(BaseModel):
     patch_share: float = Field(
         0.5, gt=0, lt=1, description="a pixel is an outlier when more than this share of its patch are candidates"
     )
-    dilate_px: int = Field(2, ge=0, le=32, description="outliers grow by this many pixels (a mover's soft edges)")
+    dilate_px: int = Field(
+        0, ge=0, le=32, description="outliers grow by this many pixels (soft edges; 2 lost ground: docs/benchmarks.md)"
+    )
     min_outlier_share: float = Field(
         0.005,
         ge=0,
         lt=1,
         description="a view with a smaller share of outlier pixels keeps every pixel (static footage has few)",
+    )
+    max_outlier_share: float = Field(
+        0.4,
+        gt=0,
+        le=1,
+        description="a view with a larger share keeps every pixel too: movers fill less of a frame; more is a "
+        "rendered depth that does not yet fit (cross_view) or a scene not yet learnt (render)",
     )
     outlier_weight: float = Field(0.0, ge=0, lt=1, description="weight of an outlier pixel (inliers weigh 1)")
 

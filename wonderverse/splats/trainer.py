@@ -41,11 +41,20 @@ import torch
 
 from wonderverse.progress import ProgressFn, no_progress
 from wonderverse.splats.compiled import Compiled
-from wonderverse.splats.losses import flatten_loss, masked_mean, robust_weights, texture_weight, total_loss
+from wonderverse.splats.losses import (
+    cross_view_residual,
+    flatten_loss,
+    masked_mean,
+    outlier_blobs,
+    robust_weights,
+    texture_weight,
+    total_loss,
+    warp_frames,
+)
 from wonderverse.splats.model import GaussianModel
 from wonderverse.splats.motion_blur import image_velocity, smear
 from wonderverse.splats.parallax import parallax_gate, triangulation_error
-from wonderverse.splats.params import DefaultStrategyParams, LossParams, NoStrategy, TrainParams
+from wonderverse.splats.params import DefaultStrategyParams, LossParams, NoStrategy, RobustLossParams, TrainParams
 from wonderverse.splats.renderer import Renderer
 from wonderverse.splats.sky import composite, initial_sky, is_map, mean_colour
 from wonderverse.splats.strategy import make_strategy
@@ -262,19 +271,107 @@ def _blurred_like_the_video(
     return smear(rgb, vel, params.motion_blur_shutter, params.motion_blur_samples, params.motion_blur_max_px)
 
 
+_FAR_DEPTH = 1e4  # camera z given to pixels with little rendered alpha (sky): warped as if at infinity
+_MIN_ALPHA = 0.1  # below this rendered alpha a pixel's depth Σ w z / alpha is too thin to place it
+
+
+def nearest_views(i: int, train_ids: Sequence[int], count: int) -> list[int]:
+    """The `count` training views nearest view i in the video order (ties: the earlier first), i itself excluded:
+    the frames that see most of what view i sees."""
+    return sorted((j for j in train_ids if j != i), key=lambda j: (abs(j - i), j))[:count]
+
+
 def _robust(
-    rgb: torch.Tensor, frame: torch.Tensor, params: TrainParams, step: int
+    rgb: torch.Tensor,
+    depth: torch.Tensor,
+    alpha: torch.Tensor,
+    data: _Data,
+    i: int,
+    params: TrainParams,
+    step: int,
+    train_ids: Sequence[int],
 ) -> tuple[torch.Tensor | None, torch.Tensor | None]:
-    """The robust photometric weights of a training step and their outlier mask (`losses.robust_weights`), both
-    (H,W); before `robust.start_frac` of the iterations every pixel weighs 1 (the static scene forms first, so the
-    residuals can tell a mover from what is not yet learnt). (None, None) when the robust loss is off."""
+    """The robust photometric weights of a training step on view i and their outlier mask, both (H,W); before
+    `robust.start_frac` of the iterations every pixel weighs 1. (None, None) when the robust loss is off.
+
+    `test: cross_view`: frame i against the nearest `neighbours` training frames warped into it by the rendered
+    depth (`losses.cross_view_residual`); nothing is kept across steps (checkpoints need no state), and held-out
+    frames are never looked at. `test: render`: frame i against the render (`losses.robust_weights`)."""
     rp = params.loss.robust
     if not rp.enabled:
         return None, None
     if step < rp.start_frac * params.iterations:  # ones of the same shape: a compiled loss is traced once
-        return torch.ones_like(frame[..., 0]), torch.zeros_like(frame[..., 0], dtype=torch.bool)
+        return torch.ones_like(rgb[..., 0]), torch.zeros_like(rgb[..., 0], dtype=torch.bool)
     with torch.no_grad():
-        return robust_weights(rgb.detach(), frame, rp)
+        if rp.test == "render":
+            return robust_weights(rgb.detach(), data.frames[i], rp)
+        a = alpha.detach()[..., 0]
+        z = torch.where(a > _MIN_ALPHA, depth.detach()[..., 0] / a.clamp_min(1e-6), _FAR_DEPTH)
+        return _cross_view(data.frames, data.K, data.w2c, i, z, train_ids, rp)
+
+
+def _cross_view(
+    frames: torch.Tensor,
+    K: Sequence[torch.Tensor],
+    w2c: torch.Tensor,
+    i: int,
+    depth: torch.Tensor,
+    train_ids: Sequence[int],
+    rp: RobustLossParams,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """`losses.outlier_blobs` of frame i's disagreement with its nearest training frames warped into it by the
+    camera-z `depth` (H,W); every pixel kept where fewer than two other training views exist."""
+    others = nearest_views(i, train_ids, rp.neighbours)
+    if len(others) < 2:
+        return torch.ones_like(depth), torch.zeros_like(depth, dtype=torch.bool)
+    warped, valid = warp_frames(depth, K[i], w2c[i], frames[others], torch.stack([K[j] for j in others]), w2c[others])
+    return outlier_blobs(cross_view_residual(frames[i], warped, valid), rp)
+
+
+@torch.no_grad()
+def prior_outlier_masks(views: Views, train_ids: Sequence[int], rp: RobustLossParams) -> np.ndarray:
+    """Outlier masks (T,H,W) bool of every view, by the cross-view test (`rp`, whatever its `test`) on the depth
+    prior instead of a render: for seeding, before any Gaussian exists. A mover's pixels seed Gaussians at the
+    mover's depth (or, coloured by the mover, at the world's) that the loss then has to remove: drop them. Views
+    without a prior, and pixels whose prior is invalid (sky), are warped as if at infinity. Frames compared with
+    are training views only."""
+    frames = np.asarray(views.frames)
+    f = torch.from_numpy(frames.astype(np.float32) / 255.0 if frames.dtype == np.uint8 else frames.astype(np.float32))
+    w2c = torch.from_numpy(np.asarray(views.w2c, np.float32))
+    K = [torch.from_numpy(np.asarray(views.K_of(i), np.float32)) for i in range(len(views))]
+    out = np.zeros(frames.shape[:3], bool)
+    for i in range(len(views)):
+        z = np.full(frames.shape[1:3], _FAR_DEPTH, np.float32)
+        if views.prior_depth is not None:
+            with np.errstate(invalid="ignore"):
+                ok = np.isfinite(views.prior_depth[i]) & (views.prior_depth[i] > 0)
+            z[ok] = views.prior_depth[i][ok]
+        out[i] = _cross_view(f, K, w2c, i, torch.from_numpy(z), train_ids, rp)[1].numpy()
+    return out
+
+
+@torch.no_grad()
+def outlier_masks(
+    model: GaussianModel,
+    views: Views,
+    indices: Sequence[int],
+    train_ids: Sequence[int],
+    renderer: Renderer,
+    params: TrainParams,
+    background: torch.Tensor,
+) -> dict[int, np.ndarray]:
+    """The outlier masks (H,W) bool the robust loss gives up on in views `indices` with the model as it is (the
+    last steps' masks, for reports and benchmarks), whatever `robust.start_frac` says; empty when it is off."""
+    if not params.loss.robust.enabled:
+        return {}
+    data = _Data(views, params, renderer.device, prior_weights=False)
+    sh = min(params.sh_degree, model.sh_degree)
+    out = {}
+    for i in indices:
+        rgb, depth, alpha, _, _ = _render_view(model, data, i, renderer, params, background, sh)
+        _, mask = _robust(rgb, depth, alpha, data, i, params, params.iterations, train_ids)
+        out[int(i)] = mask.cpu().numpy()
+    return out
 
 
 def view_order(train_ids: list[int], focus: Collection[int], share: float, gen: torch.Generator) -> list[int]:
@@ -492,6 +589,7 @@ def train(
     view_gap: int = 1,
     test_views: Sequence[int] | None = None,
     sky_start: np.ndarray | None = None,
+    frozen_gaussians: int = 0,
 ) -> tuple[GaussianModel, dict[str, list[float]], dict[str, Any]]:
     """Optimise `model` on `views` (see the module docstring). Returns (model, curves, metrics).
 
@@ -504,6 +602,9 @@ def train(
     Consecutive views are `view_gap` video frames apart (the motion-blur model's frame interval).
     `test_views`: the views held out (indices; None: every `holdout_every`-th, `split_views`). `sky_start`: the sky
     to start from, (3,) or a (R, 2R, 3) map (a continued scene's; None: from the sky pixels or `background_rgb`).
+    The first `frozen_gaussians` (≤ `fixed_gaussians`) are rendered but never change (their gradients are zeroed:
+    Adam, starting from zero moments, then moves them by exactly 0): Gaussians an extension's region shares with
+    old views it does not train on.
     progress(iterations done, iterations, "loss 0.0521, 21468 Gaussians") is called at the start, about every
     1 % of the iterations and at the end; the loss is the last one copied to the host (module docstring).
     """
@@ -617,7 +718,7 @@ def train(
             rgb = _blurred_like_the_video(rgb, depth, alpha, data, i, params, view_gap)
         if strategy is not None and model.num_gaussians:
             strategy.step_pre_backward(pdict, optimizers, strategy_state, step, info)
-        rgb_weight, outliers = _robust(rgb, data.frames[i], params, step)
+        rgb_weight, outliers = _robust(rgb, depth, alpha, data, i, params, step, train_ids)
         loss, terms, grads = loss_fn(
             rgb.detach(),
             data.frames[i],
@@ -655,6 +756,10 @@ def train(
             torch.autograd.backward(tensors, grad_tensors)
         trained = [*pdict.values(), background]
         found_inf = _found_inf(loss, trained)
+        if frozen_gaussians:
+            for p in pdict.values():
+                if p.grad is not None:
+                    p.grad[:frozen_gaussians] = 0
         adam_step((optimizer, bg_opt), found_inf)  # a non-finite step leaves parameters and moments as they were
         for p in trained:
             p.grad = None
