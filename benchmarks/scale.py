@@ -5,9 +5,9 @@
   right for six, then going forward. Each extension runs in a fresh process (its peak RSS is its own, read from the
   OS when it exits).
 - Per extension: seconds per step, peak RSS (MB), the scene folder's size (MB: the store and the files beside it),
-  Gaussians, held-out PSNR (the splats step's), the global poses' ATE against the procedural world's true path (a
-  share of its length) and whether the whole stitched path passes the check's jump test (no seam where the world
-  was grown: `wonderverse.check.check_trajectory` over the global poses, the scene's own rules).
+  Gaussians, held-out PSNR (every held-out view rendered again), the global poses' ATE against the procedural
+  world's true path (a share of its length) and whether the whole stitched path passes the check's jump test (no
+  seam where the world was grown: `wonderverse.check.check_trajectory` over the global poses, the scene's rules).
 - Then the final world is built from scratch (one `generate` with every extension's words) in a fresh process (its
   held-out PSNR tells how much of a fall is the world getting harder rather than the growing), and,
   with `--dask`, once more on a real Dask cluster the benchmark starts (`dask scheduler` and two `dask worker`
@@ -115,10 +115,11 @@ def child_main(what: str, scene: str, payload: str) -> None:
     print(json.dumps({"steps": {r.step: r.seconds for r in results if r.status == "ran"}}), flush=True)
 
 
-def psnr_by_segment(scene: Path) -> dict[str, float]:
-    """Held-out PSNR of the stored splats per segment (dB): the views the splats step held out, rendered again
-    and grouped by the segment they come from, so that a segment can be followed from the extension that added
-    it to the last one (does what was built hold?) and compared with the world built from scratch."""
+def held_out_psnr(scene: Path) -> dict[str, float]:
+    """Held-out PSNR of the stored splats (dB), every held-out view rendered again now: `all` (their mean) and per
+    segment (the views grouped by the segment they come from), so that a segment can be followed from the
+    extension that added it to the last one (does what was built hold?) and compared with the world built from
+    scratch. (The splats step's own figure carries the figures of views an extension's region did not touch.)"""
     import torch
 
     from tasks.splats import load_views, stored_sky
@@ -137,16 +138,20 @@ def psnr_by_segment(scene: Path) -> dict[str, float]:
     views = normalize_views(
         downscale_views(views.subset(trained), p.max_side_px), normalization_from_dict(meta.normalization)
     )
-    groups: dict[str, list[int]] = {}
-    for i in meta.metrics.test_views:
-        groups.setdefault(meta.frames[i].split("_")[0], []).append(i)
     sky = stored_sky(store)
     sky = torch.from_numpy(np.asarray(np.zeros(3) if sky is None else sky, np.float32))
-    renderer = make_renderer("auto")
-    return {
-        seg: round(evaluate(model, views, ids, renderer, p.train, sky)["psnr"], 3)
-        for seg, ids in sorted(groups.items())
-    }
+    ids = list(meta.metrics.test_views)
+    per_view = evaluate(model, views, ids, make_renderer("auto"), p.train, sky, per_view=True) if ids else {}
+    groups: dict[str, list[float]] = {}
+    for i, value in zip(ids, per_view.get("psnr_views", []), strict=True):
+        groups.setdefault(meta.frames[i].split("_")[0], []).append(value)
+    out = {seg: round(float(np.mean(v)), 3) for seg, v in sorted(groups.items())}
+    return out | {"all": float(np.mean(per_view["psnr_views"])) if ids else float("nan")}
+
+
+def _psnr_figures(scene: Path) -> dict[str, Any]:
+    by_segment = held_out_psnr(scene)
+    return {"psnr": by_segment.pop("all"), "psnr_by_segment": by_segment}
 
 
 def measure(scene: Path) -> dict[str, Any]:
@@ -163,8 +168,7 @@ def measure(scene: Path) -> dict[str, Any]:
         "frames": len(poses),
         "store_mb": size / 2**20,
         "gaussians": splats.metrics.n_gaussians,
-        "psnr": splats.metrics.test_psnr,
-        "psnr_by_segment": psnr_by_segment(scene),
+        **_psnr_figures(scene),
         "ate_frac": pose_error(scene),
         "seam": not seams.accepted,
         "seam_reasons": seams.reasons,

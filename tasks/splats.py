@@ -183,6 +183,7 @@ def run(store: SceneStore, p: SplatsStepParams, ctx: StepContext) -> str:
         view_gap=p.frame_stride,
         test_views=[i for i, n in enumerate(local) if n in held],
         sky_start=None if previous is None else stored_sky(store),
+        frozen_gaussians=start.frozen,
     )
     arrays = model.to_numpy()
     if start.kept is not None:
@@ -208,13 +209,11 @@ def run(store: SceneStore, p: SplatsStepParams, ctx: StepContext) -> str:
     return f"{metrics['n_gaussians']} Gaussians, {_psnr_label(metrics)}, {renderer.__class__.__name__}"
 
 
-def _psnr_label(metrics: dict[str, Any]) -> str:
-    if metrics.get("test_views") and "test_psnr" in metrics:  # held-out only where views were held out
+def _psnr_label(metrics: dict[str, Any]) -> str:  # held-out only where views were held out
+    if metrics.get("test_views") and "test_psnr" in metrics:
         return f"held-out PSNR {metrics['test_psnr']:.2f} dB ({len(metrics['test_views'])} views)"
     return f"training PSNR {metrics.get('train_psnr', float('nan')):.2f} dB"
 
 
 # 6: held-out views chosen per segment (region.held_out); an extension trains a region
-STEP = Step(
-    "splats", 6, ("priors",), params, run, "3D Gaussian splatting with depth and normal losses", group=SPLATS.path
-)
+STEP = Step("splats", 6, ("priors",), params, run, "3D Gaussian splatting with depth and normal losses", SPLATS.path)

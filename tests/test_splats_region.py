@@ -58,9 +58,12 @@ def test_the_region_is_the_new_views_and_the_old_ones_that_see_the_same_wall() -
     seen_lo, seen_hi = old_x[42] - HALF, 100 + HALF  # the chosen cameras' view of the wall
     inside = (x >= seen_lo + 1e-6) & (x <= seen_hi - 1e-6)
     outside = (x < seen_lo - 1e-6) | (x > seen_hi + 1e-6)
-    assert region.gaussians[inside].all() and not region.gaussians[outside].any()
-    # most of the world is kept as it is: the share trained is the share of the wall the chosen cameras see
-    assert region.gaussians.mean() == pytest.approx((seen_hi - seen_lo) / (100 + 2 * HALF), abs=2e-3)
+    assert region.rendered[inside].all() and not region.rendered[outside].any()
+    # most of the world is not even rendered: the share rendered is the share of the wall the chosen cameras see
+    assert region.rendered.mean() == pytest.approx((seen_hi - seen_lo) / (100 + 2 * HALF), abs=2e-3)
+    # trained: what no other old camera sees, i.e. right of the last unchosen camera's view (x = 82 + HALF)
+    free = x > old_x[41] + HALF + 1e-6
+    assert (region.trained == (region.rendered & free)).all() and region.trained.any()
 
 
 def test_old_views_need_the_overlap_to_join_and_the_cap_holds() -> None:
@@ -125,7 +128,6 @@ def test_scene_figures_restate_a_region_s_metrics_over_the_scene() -> None:
 
 def test_merged_keeps_the_untouched_gaussians_bit_for_bit_and_moves_the_trained_ones() -> None:
     from wonderverse.splats.model import GaussianModel, init_from_points, normalization_from_cameras
-    from wonderverse.splats.region import Region
     from wonderverse.splats.seeding import PreviousSplats, merged, start_training
 
     rng = np.random.default_rng(0)
@@ -137,26 +139,53 @@ def test_merged_keeps_the_untouched_gaussians_bit_for_bit_and_moves_the_trained_
     previous = PreviousSplats(arrays, prev_norm, [f"s000_{i:04d}" for i in range(20)])
     names = [*previous.frames, "s001_0000", "s001_0001"]
     region = extension_region(world, w2c_all, K, W, H, [20, 21], 4, 0.05, 0.0)
-    assert 0 < region.gaussians.sum() < 400
+    frozen = region.rendered & ~region.trained
+    assert region.trained.any() and frozen.any() and not region.rendered.all()
     frames = rng.integers(0, 255, (len(region.views), H, W, 3), dtype=np.uint8)
     views = Views(frames=frames, w2c=w2c_all[region.views], K=K)
     p = SplatsStepParams(init_from_depth=False)
-    start = start_training(
-        views,
-        [names[i] for i in region.views],
-        world,
-        np.zeros((400, 3), np.uint8),
-        p,
-        previous,
-        Region(region.views, region.gaussians),
-    )
-    assert start.fixed == region.gaussians.sum() and len(start.kept["means"]) == 400 - start.fixed
+    local = [names[i] for i in region.views]
+    start = start_training(views, local, world, np.zeros((400, 3), np.uint8), p, previous, region)
+    assert start.frozen == frozen.sum() and start.fixed == region.rendered.sum()
+    assert len(start.kept["means"]) == 400 - region.trained.sum()
+    # the model starts with the frozen ones, then the trained ones, each where it was (in the region's frame)
+    first = start.model.to_numpy()["means"][: start.fixed]
+    back = first / start.normalization.s + start.normalization.center
+    np.testing.assert_allclose(back, np.concatenate([world[frozen], world[region.trained]]), atol=1e-4)
     trained = start.model.to_numpy()
+    trained["means"][: start.frozen] += 5.0  # whatever happened to the frozen ones is not taken
     out = merged(start, trained, previous)
-    kept = ~region.gaussians
+    kept = ~region.trained
     for k in GaussianModel.PARAM_NAMES:
         assert np.array_equal(out[k][: kept.sum()], arrays[k][kept]), k  # untouched: the very same values
     # the continued ones, not trained here, come back to where they were (world = centre + x / scale)
     back = out["means"][kept.sum() :] / prev_norm.s + prev_norm.center
-    np.testing.assert_allclose(back, world[region.gaussians], atol=1e-4)
+    np.testing.assert_allclose(back[: region.trained.sum()], world[region.trained], atol=1e-4)
+    assert len(out["means"]) == kept.sum() + len(trained["means"]) - start.frozen
     assert isinstance(prev_norm, Sim3)
+
+
+def test_frozen_gaussians_are_rendered_but_never_change() -> None:
+    """The trainer's `frozen_gaussians`: the first ones keep every value bit for bit while the others learn, and
+    they are rendered (the frame they cover is fitted around them, not by the others)."""
+    import torch
+
+    from wonderverse.splats.model import init_from_points
+    from wonderverse.splats.params import NoStrategy, TrainParams
+    from wonderverse.splats.renderer import make_renderer
+    from wonderverse.splats.trainer import train
+
+    rng = np.random.default_rng(1)
+    n = 300
+    pts = np.stack([rng.uniform(-4, 4, n), rng.uniform(-3, 3, n), np.full(n, DEPTH)], axis=1)
+    model = init_from_points(pts, rng.uniform(0, 1, (n, 3)), sh_degree=0, init_opacity=0.5)
+    w2c = _row(np.array([0.0, 0.5, 1.0, 1.5]))
+    frames = rng.integers(0, 255, (4, H, W, 3), dtype=np.uint8)
+    before = model.to_numpy()
+    params = TrainParams(iterations=20, sh_degree=0, holdout_every=0, strategy=NoStrategy())
+    torch.set_num_threads(1)
+    out, _, _ = train(model, Views(frames=frames, w2c=w2c, K=K), params, make_renderer("torch"), frozen_gaussians=100)
+    after = out.to_numpy()
+    for k, a in before.items():
+        assert np.array_equal(after[k][:100], a[:100]), k
+    assert not np.allclose(after["sh0"][100:], before["sh0"][100:])  # the others learnt

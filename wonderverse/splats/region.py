@@ -6,8 +6,10 @@ continuation trains a *region* (`extension_region`):
 
 - the views: the new ones, plus at most `max_old_views` old views that see most of what the new views see (each
   seeing at least `min_overlap` of it), so that old Gaussians the new views move are held to the old views too;
-- the Gaussians: the old ones whose centre lies in one of those views (the image grown by `margin_frac` on each
-  side, in front of the camera), plus the seeds of the new frames.
+- the Gaussians rendered: the old ones whose centre lies in one of those views (the image grown by `margin_frac`
+  on each side, in front of the camera), plus the seeds of the new frames;
+- the Gaussians trained: those of them no other old view sees (in its image), plus the seeds. A Gaussian an
+  untrained old view shows is rendered but not changed, so what that view shows stays as it was.
 
 Everything else is kept exactly as it was. The cost of a region depends on how much a few views see, not on the
 size of the world. Held-out views are chosen per segment (`held_out`), so a frame keeps its role as the world
@@ -27,11 +29,13 @@ import numpy as np
 
 @dataclass
 class Region:
-    """views: indices (ascending) of the views trained, the new ones included; gaussians: (N,) bool over the old
-    Gaussians, True for those optimised (the others are kept as they are)."""
+    """views: indices (ascending) of the views trained, the new ones included; rendered: (N,) bool over the old
+    Gaussians, those the training renders; trained: (N,) bool, those of them it optimises (the others are kept
+    as they are)."""
 
     views: list[int]
-    gaussians: np.ndarray
+    rendered: np.ndarray
+    trained: np.ndarray
 
 
 def visibility(
@@ -72,7 +76,8 @@ def extension_region(
     """The region to train after an extension (module docstring): `means` (N,3) the old Gaussians' centres,
     `w2c` (V,4,4) every view's pose, `new` the indices of the new views. An old view's overlap is the share of
     the old Gaussians the new views see that it sees too; where the new views see no old Gaussian at all (the
-    world turned to empty space), the old views nearest the new cameras are taken instead."""
+    world turned to empty space), the old views nearest the new cameras are taken instead. Cost: one projection
+    of the Gaussians the region renders per old view, so it grows with the number of views, not with training."""
     from wonderverse.camera import camera_centers
 
     w2c = np.asarray(w2c, np.float64).reshape(-1, 4, 4)
@@ -90,8 +95,11 @@ def extension_region(
         eligible = np.ones(len(old), bool)
     ranked = old[np.argsort(-score, kind="stable")][: max(0, max_old_views)]
     chosen = sorted({*new, *(int(i) for i in ranked if eligible[np.searchsorted(old, i)])})
-    gaussians = visibility(means, w2c[chosen], Ks[chosen], width, height, margin_frac).any(axis=0)
-    return Region(chosen, gaussians)
+    rendered = visibility(means, w2c[chosen], Ks[chosen], width, height, margin_frac).any(axis=0)
+    others = np.setdiff1d(old, chosen)
+    shown = np.zeros(len(means), bool)  # rendered Gaussians an untrained old view shows in its image
+    shown[rendered] = visibility(means[rendered], w2c[others], Ks[others], width, height, 0.0).any(axis=0)
+    return Region(chosen, rendered, rendered & ~shown)
 
 
 def held_out(names: Sequence[str], every: int) -> list[int]:

@@ -42,8 +42,9 @@ class TrainingStart:
     """views: the training views in the training frame; normalization: world -> training frame; model:
     the Gaussians to start from, the first `fixed` of them the previous run's (0 for a new scene);
     new_views: indices of the views the previous run did not see; train: the training schedule (a
-    shortened continuation after an extension); kept: the previous Gaussians left out of a region's training
-    (arrays in the previous run's training frame, `previous.normalization`), None when every one is trained."""
+    shortened continuation after an extension); kept: the previous Gaussians a region's training does not change
+    (arrays in the previous run's training frame, `previous.normalization`), None when every one is trained;
+    frozen: how many of them the model starts with (rendered, never changed: they come first)."""
 
     views: Views
     normalization: Sim3
@@ -52,25 +53,27 @@ class TrainingStart:
     new_views: list[int]
     train: TrainParams
     kept: dict[str, np.ndarray] | None = None
+    frozen: int = 0
 
     def extended_from(self, frames: int) -> dict[str, int]:
         """What a continuation started from: the previous run's `frames`, its Gaussians carried over (kept as
         they were or continued), those continued, and the views trained."""
-        kept = 0 if self.kept is None else len(self.kept["means"])
+        kept = 0 if self.kept is None else len(self.kept["means"]) - self.frozen
         return {
             "frames": frames,
             "kept_gaussians": kept + self.fixed,
-            "continued_gaussians": self.fixed,
+            "continued_gaussians": self.fixed - self.frozen,
             "views": len(self.views),
         }
 
     def describe(self, new_view_share: float) -> str:
         """What a continuation does, in words (`new_view_share`: the share of its steps on the new views)."""
         kept = 0 if self.kept is None else len(self.kept["means"])
+        continued, new = self.fixed - self.frozen, self.model.num_gaussians - self.fixed
         return (
-            f"{kept} Gaussians kept as they are, {self.fixed} continued, {self.model.num_gaussians - self.fixed} "
-            f"new; {self.train.iterations} iterations on {len(self.views)} views, {100 * new_view_share:.0f} % "
-            f"on the {len(self.new_views)} new"
+            f"{kept} Gaussians kept as they are ({self.frozen} of them rendered), {continued} continued, {new} new; "
+            f"{self.train.iterations} iterations on {len(self.views)} views, {100 * new_view_share:.0f} % on the "
+            f"{len(self.new_views)} new"
         )
 
 
@@ -165,22 +168,25 @@ def start_training(
         return TrainingStart(nviews, norm, model, 0, [], p.train)
     seen = set(previous.frames)
     new_views = [i for i, n in enumerate(names) if n not in seen]
-    kept = None
-    if region is not None:
-        mask = region.gaussians
-        kept = {k: a[~mask] for k, a in previous.arrays.items()}
-        previous = PreviousSplats({k: a[mask] for k, a in previous.arrays.items()}, previous.normalization, [])
+    kept, frozen = None, 0
+    if region is not None:  # the region's untrained Gaussians first: the trainer keeps them as they are
+        kept = {k: a[~region.trained] for k, a in previous.arrays.items()}
+        order = np.concatenate([np.flatnonzero(region.rendered & ~region.trained), np.flatnonzero(region.trained)])
+        frozen = int((region.rendered & ~region.trained).sum())
+        previous = PreviousSplats({k: a[order] for k, a in previous.arrays.items()}, previous.normalization, [])
     model, fixed = extended_model(previous, nviews, norm, new_views, p)
     train = continuation_params(p.train, p.extend_iterations_frac)
-    return TrainingStart(nviews, norm, model, fixed, new_views, train, kept)
+    return TrainingStart(nviews, norm, model, fixed, new_views, train, kept, frozen)
 
 
 def merged(start: TrainingStart, trained: dict[str, np.ndarray], previous: PreviousSplats) -> dict[str, np.ndarray]:
-    """The whole scene after a region's training: the `kept` Gaussians as they were, followed by the `trained`
-    ones (arrays in `start.normalization`'s frame) moved into the previous run's frame, which the result is in."""
+    """The whole scene after a region's training: the Gaussians it did not train (`kept`) as they were, bit for
+    bit, followed by the ones it did (`trained` after its first `start.frozen`, arrays in `start.normalization`'s
+    frame) moved into the previous run's frame, which the result is in."""
     from wonderverse.splats.ply import to_training_frame, to_world
 
     if start.kept is None:
         raise ValueError("merged() is for a region's training, which keeps the Gaussians outside it")
-    moved = to_training_frame(to_world(trained, start.normalization), previous.normalization)
+    rest = {k: np.asarray(a)[start.frozen :] for k, a in trained.items()}
+    moved = to_training_frame(to_world(rest, start.normalization), previous.normalization)
     return {k: np.concatenate([start.kept[k], np.asarray(moved[k], start.kept[k].dtype)]) for k in start.kept}
