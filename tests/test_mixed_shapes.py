@@ -100,55 +100,128 @@ def test_two_photos_one_camera_cannot_take_are_refused_in_one_line(tmp_path: Pat
 # ---------------------------------------------------------------------------------------------- end to end
 
 W, H, N = 160, 224, 14  # portrait frames, as a phone shoots them
+SCENE = "a small house decorated for Christmas"
+
+
+def _orbit() -> tuple[np.ndarray, list[np.ndarray]]:
+    """The true W2C path (N,4,4) of a portrait orbit and its frames."""
+    from wonderverse.camera import move_path
+    from wonderverse.video import initial_pose
+    from wonderverse.video.procedural import ProceduralVideo
+
+    model = ProceduralVideo(SCENE, 0, W, H, 60.0, {"fault_probability": 0.0})
+    truth = move_path(initial_pose(model), np.radians(-20), 0.0, 1.0, -0.8, N)
+    return truth, list(model.generate("orbit", truth, 0, None).frames)
+
+
+def _reconstruct(frames: list[np.ndarray], tmp_path: Path) -> tuple[str, np.ndarray]:
+    """`reconstruct` of the frames written as photos IMG_0000.png...: its clip line and the poses (N,4,4)."""
+    from conftest import run_cli
+
+    from wonderverse.store import SceneStore
+
+    photos, out = tmp_path / "photos", tmp_path / "scene"
+    photos.mkdir()
+    for i, f in enumerate(frames):
+        Image.fromarray(f).save(photos / f"IMG_{i:04d}.png")
+    args = ("reconstruct", str(photos), "--out", str(out), "--until", "poses", "--engine", "local")
+    r = run_cli(*args, "--fov-deg", "60", timeout=600)
+    assert r.returncode == 0, r.stderr[-3000:]
+    line = next(ln for ln in r.stderr.splitlines() if ln.startswith("wonderverse: clip photos/:"))
+    info = json.loads(run_cli("inspect", str(out), "--json").stdout)
+    assert (info["clips"][0]["frames"], info["clips"][0]["size"]) == (N, [W, H])
+    return line, SceneStore.open(out).array("sfm/poses")
+
+
+def _roll(poses: np.ndarray, truth: np.ndarray, i: int) -> tuple[float, float]:
+    """(angle in degrees, |cos| of its axis with the optical axis) of the rotation taking frame i's true rotation
+    to its estimate, both relative to frame 0 (so the two frames need no common world)."""
+    est = poses[i, :3, :3] @ poses[0, :3, :3].T
+    true = truth[i, :3, :3] @ truth[0, :3, :3].T
+    roll = est @ true.T
+    angle = float(np.degrees(np.arccos(np.clip((np.trace(roll) - 1) / 2, -1, 1))))
+    return angle, float(abs(roll[2, 2]))  # roll[2, 2] is 1 for a rotation about z
 
 
 @pytest.mark.e2e  # SfM over the whole clip through the CLI, tens of seconds
 def test_a_procedural_orbit_with_two_photos_stored_landscape_is_posed_frame_for_frame(tmp_path: Path) -> None:
     """An orbit rendered portrait and written as photos, two of them stored landscape (one turned each way, as a
-    phone held either way stores them): `reconstruct` turns both back, registers all 14, follows the true path,
+    phone's file without its EXIF tag): `reconstruct` turns both back, registers all 14, follows the true path,
     and the turned frames' rotations are the true ones (rolled half a turn for the one read upside down)."""
-    from conftest import run_cli
-
-    from wonderverse.camera import move_path
     from wonderverse.metrics import ate
-    from wonderverse.store import SceneStore
-    from wonderverse.video import initial_pose
-    from wonderverse.video.procedural import ProceduralVideo
 
-    model = ProceduralVideo("a small house decorated for Christmas", 0, W, H, 60.0, {"fault_probability": 0.0})
-    truth = move_path(initial_pose(model), np.radians(-20), 0.0, 1.0, -0.8, N)
-    frames = model.generate("orbit", truth, 0, None).frames
-    photos = tmp_path / "photos"
-    photos.mkdir()
+    truth, frames = _orbit()
     stored = {4: -1, 9: 1}  # np.rot90's k: stored turned clockwise (read back upright) and counter-clockwise
-    for i, f in enumerate(frames):
-        Image.fromarray(np.ascontiguousarray(np.rot90(f, stored[i])) if i in stored else f).save(
-            photos / f"IMG_{i:04d}.png"
-        )
-    out = tmp_path / "scene"
-    r = run_cli(
-        "reconstruct", str(photos), "--out", str(out), "--until", "poses", "--engine", "local", "--fov-deg", "60",
-        timeout=600,
-    )  # fmt: skip
-    assert r.returncode == 0, r.stderr[-3000:]
-    line = next(ln for ln in r.stderr.splitlines() if ln.startswith("wonderverse: clip photos/:"))
+    frames = [np.ascontiguousarray(np.rot90(f, stored[i])) if i in stored else f for i, f in enumerate(frames)]
+    line, poses = _reconstruct(frames, tmp_path)
     assert "2 of 14 images turned a quarter counter-clockwise to the 160x224 of the others" in line, line
     assert "(IMG_0004.png, IMG_0009.png)" in line and "left out" not in line, line
-    info = json.loads(run_cli("inspect", str(out), "--json").stdout)
-    assert (info["clips"][0]["frames"], info["clips"][0]["size"]) == (N, [W, H])
-    poses = SceneStore.open(out).array("sfm/poses")
     assert poses.shape == (N, 4, 4) and np.isfinite(poses).all(), "every frame posed"
     # measured 2026-12-06 (2-core CPU): ATE 0.20 % of the path; the same photos all upright 0.22 %. Margin 5x.
     assert ate(poses, truth)["rmse_frac"] < 0.01
-    # Rotations relative to frame 0 (upright): frame 4, stored turned clockwise, is read back as shot, so its
-    # rotation is the truth's; frame 9, stored turned counter-clockwise, is read upside down, so its rotation is
-    # the truth's preceded by half a turn about the camera's optical axis (z). Any other frame: the truth's.
+    # frame 4 is read back as shot: its rotation is the truth's; frame 9 is read upside down: the truth's preceded
+    # by half a turn about the optical axis. Any other frame: the truth's.
     for i in range(1, N):
-        est = poses[i, :3, :3] @ poses[0, :3, :3].T
-        true = truth[i, :3, :3] @ truth[0, :3, :3].T
-        roll = est @ true.T
-        angle = np.degrees(np.arccos(np.clip((np.trace(roll) - 1) / 2, -1, 1)))
-        if i == 9:
-            assert roll[2, 2] > 0.999 and angle > 177, (i, angle, roll)  # about z, by 180 degrees
-        else:
-            assert angle < 3, (i, angle)
+        angle, about_z = _roll(poses, truth, i)
+        assert (about_z > 0.999 and angle > 177) if i == 9 else angle < 3, (i, angle, about_z)
+
+
+@pytest.mark.e2e  # SfM over the whole clip through the CLI, tens of seconds
+def test_two_shots_with_the_phone_held_sideways_are_posed_as_the_same_camera_rolled(tmp_path: Path) -> None:
+    """Two shots of the orbit taken with the phone held sideways: landscape renders from the true poses, upright
+    as a phone shows them, with the same focal length (one sensor, turned). Read, they are turned a quarter to
+    portrait, the world on its side in them; all 14 are posed on the true path, those two as the true cameras
+    rolled a quarter about their optical axes; the up direction the outputs take from the cameras
+    (`estimate_gravity`) leaves those two out and stays true."""
+    from wonderverse.camera import intrinsics
+    from wonderverse.gravity import estimate_gravity
+    from wonderverse.metrics import ate
+    from wonderverse.video.procedural import ProceduralVideo
+
+    truth, frames = _orbit()
+    f = intrinsics(W, H, 60.0)[0, 0]
+    sideways = ProceduralVideo(SCENE, 0, H, W, np.degrees(2 * np.arctan(H / 2 / f)), {"fault_probability": 0.0})
+    for i in (4, 9):
+        frames[i] = sideways.generate("sideways", truth[[i, i]], 0, None).frames[0]
+    line, poses = _reconstruct(frames, tmp_path)
+    assert "2 of 14 images turned a quarter counter-clockwise to the 160x224 of the others" in line, line
+    assert np.isfinite(poses).all(), "every frame posed"
+    # measured 2026-12-06 (2-core CPU): see docs/usage.md ("Photos of mixed shapes")
+    assert ate(poses, truth)["rmse_frac"] < 0.01
+    for i in range(1, N):
+        angle, about_z = _roll(poses, truth, i)
+        assert (about_z > 0.999 and abs(angle - 90) < 3) if i in (4, 9) else angle < 3, (i, angle, about_z)
+    assert _up_error_deg(estimate_gravity(poses).up, poses, truth, upright=[i for i in range(N) if i not in (4, 9)]) < 2
+
+
+def _up_error_deg(up: np.ndarray, w2c: np.ndarray, truth: np.ndarray, upright: list[int]) -> float:
+    """Degrees between `up` (in the frame of `w2c`) and the true up (+Z of `truth`'s world) carried into that
+    frame by the rotation that best maps the `upright` cameras' orientations onto the true ones."""
+    U, _, Vt = np.linalg.svd(np.einsum("nji,njk->ik", truth[upright, :3, :3], w2c[upright, :3, :3]))
+    true_up = (U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt).T @ np.array([0.0, 0.0, 1.0])
+    return float(np.degrees(np.arccos(np.clip(up @ true_up / np.linalg.norm(up), -1, 1))))
+
+
+def test_cameras_on_their_side_are_left_out_of_the_up_estimate() -> None:
+    """Level cameras on a 20° arc, two of them rolled a quarter (as turned landscape shots are): without them the
+    x axes give up exactly; with them counted, the x axes would give a direction near the horizon. A rig of
+    cameras all rolled (more than a third) and cameras looking straight down are left as they were."""
+    from wonderverse.camera import look_at, rot_z
+    from wonderverse.gravity import camera_up, estimate_gravity, on_their_side
+
+    yaws = np.radians(np.linspace(-10, 10, 14))
+    level = np.stack([look_at([0, 0, 1.5], [10 * np.cos(a), 10 * np.sin(a), 1.0]) for a in yaws])
+    roll = np.eye(4)
+    roll[:3, :3] = rot_z(np.pi / 2)
+    mixed = level.copy()
+    mixed[[4, 9]] = roll @ level[[4, 9]]
+    np.testing.assert_array_equal(on_their_side(mixed[:, :3, :3]), np.isin(np.arange(14), [4, 9]))
+    assert _up_error_deg(estimate_gravity(mixed).up, mixed, level, [i for i in range(14) if i not in (4, 9)]) < 0.01
+    assert camera_up(mixed)[2]["cameras_on_their_side"] == 2
+    # counted, the two would pull up to the horizon: the x-axis eigenvector of all 14 is far from +Z
+    x = mixed[:, 0, :3]
+    assert abs(np.linalg.eigh(x.T @ x)[1][:, 0][2]) < 0.5
+    rig = roll @ level  # every camera rolled: no "few turned shots" to leave out
+    assert not on_their_side(rig[:, :3, :3]).any()
+    down = np.stack([look_at([a, 0, 10], [a, 0, 0], up=[np.cos(a), np.sin(a), 0]) for a in np.linspace(0, 6, 12)])
+    assert not on_their_side(down[:, :3, :3]).any()  # nadir cameras: their image-ups cancel, nothing is guessed

@@ -8,7 +8,8 @@ Evidence:
    idea). Its sign: the side the image-up vectors (−y) lean to, or, when every camera looks straight down or
    up, the opposite of where they look (a nadir drone). Cameras that all share one heading leave a plane of
    candidates (every direction perpendicular to the one x axis); the image-up mean projected on it is then
-   off by the cameras' mean pitch.
+   off by the cameras' mean pitch. Cameras on their side (a phone's landscape shots among portrait ones, turned
+   to the others' shape when read) are left out of this (`on_their_side`).
 2. **The ground plane.** A RANSAC plane in the points (the SfM points, the fused mesh) whose normal lies within
    `plane_max_angle_deg` of the camera estimate (with one heading: perpendicular to the shared x axis and
    within `ambiguous_max_angle_deg` of the image-up mean, so a wall facing the cameras is not taken for the
@@ -112,7 +113,9 @@ def camera_up(w2c: np.ndarray, params: GravityParams | None = None) -> tuple[np.
     to be perpendicular to it, and the returned up assumes a level mean pitch), else None.
     """
     p = params or GravityParams()
-    R = _valid(w2c)[:, :3, :3]
+    R_all = _valid(w2c)[:, :3, :3]
+    side = on_their_side(R_all)
+    R = R_all[~side]
     x, img_up, fwd = R[:, 0], -R[:, 1], R[:, 2]
     evals, evecs = np.linalg.eigh(x.T @ x / len(x))  # ascending
     mean_up = img_up.mean(0)
@@ -142,8 +145,28 @@ def camera_up(w2c: np.ndarray, params: GravityParams | None = None) -> tuple[np.
         "sign_from": sign_from,
         "x_axis_eigenvalues": [float(e) for e in evals],
         "cameras": len(R),
+        "cameras_on_their_side": int(side.sum()),
     }
     return up, ambiguous_axis, evidence
+
+
+SIDE_MIN_IMAGE_UP = 0.5  # |mean image-up| at least this: most cameras upright, their mean a fair first up
+SIDE_MAX_SHARE = 1.0 / 3.0  # more cameras than this "on their side" is a rolled rig, not a few turned shots
+SIDE_MIN_X_UP = 0.7071  # |x · first up| over this (x within 45° of up): the camera is on its side
+
+
+def on_their_side(R: np.ndarray) -> np.ndarray:
+    """(N,) bool: cameras (W2C rotations (N,3,3)) on their side, whose x axis points nearer up than level: a
+    phone's landscape shot among portrait ones, turned a quarter to their shape when read (`video.files`). Their
+    x axes would pull the up estimate toward the horizon (on a 20° orbit with 2 of 14 such shots, 79° off), so
+    `camera_up` leaves them out. Up here is the image-up mean, used only when most cameras are upright (its norm
+    at least SIDE_MIN_IMAGE_UP) and at most SIDE_MAX_SHARE of them would be left out; else none is."""
+    side = np.zeros(len(R), bool)
+    mean_up = (-R[:, 1]).mean(0)
+    if np.linalg.norm(mean_up) < SIDE_MIN_IMAGE_UP:
+        return side
+    side = np.abs(R[:, 0] @ (mean_up / np.linalg.norm(mean_up))) > SIDE_MIN_X_UP
+    return side if side.sum() <= SIDE_MAX_SHARE * len(R) else np.zeros(len(R), bool)
 
 
 def ground_plane(
