@@ -742,7 +742,8 @@ def _guided_extensions(segments: list[SegmentInfo]) -> dict[str, Any]:
 
 
 def _export_facts(pruned: PruneRecord, frame: OutputFrame) -> dict[str, Any]:
-    """What `prune_for_export` removed before splats.ply/.spz/.glb were written, their bounds, and the frame."""
+    """What `prune_for_export` removed (and how many needles it shortened) before splats.ply/.spz/.glb were
+    written, their bounds, and the frame."""
 
     def box(bounds: Bounds | None) -> str | None:
         if bounds is None:
@@ -754,6 +755,7 @@ def _export_facts(pruned: PruneRecord, frame: OutputFrame) -> dict[str, Any]:
     facts = {
         "Gaussians exported": f"{pruned.after} of {pruned.before}",
         "removed": ", ".join(f"{n} {why.replace('_', ' ')}" for why, n in pruned.removed.items() if n) or "none",
+        "needles shortened": str(pruned.needles_shortened),
         "bounds before (world units)": box(pruned.bounds_before),
         "bounds exported (world units)": box(pruned.bounds_after),
     }

@@ -486,3 +486,13 @@ def test_report_renders_in_headless_chromium(full_scene: Path):
     # it is not blank: the header band is dark, the page body light
     px = np.asarray(shot.convert("RGB"))
     assert px[5, 5].mean() < 80 and px[-5, 5].mean() > 200
+
+
+def test_the_report_says_what_the_export_pruned_and_shortened() -> None:
+    from flows.report import _export_facts
+    from wonderverse.schema.attrs import OutputFrame, PruneRecord
+
+    pruned = PruneRecord(before=100, after=90, removed={"transparent": 7, "too_large": 3}, needles_shortened=4)
+    facts = _export_facts(pruned, OutputFrame(world_from_sfm={}, up_in_sfm=[0, 0, 1], world="z up"))
+    assert facts["Gaussians exported"] == "90 of 100" and facts["needles shortened"] == "4"
+    assert facts["removed"] == "7 transparent, 3 too large"

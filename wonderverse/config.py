@@ -289,13 +289,14 @@ class SplatsStepParams(Model):
         lt=1,
         description="after `extend`: share of those iterations on the new frames (the rest keep the old)",
     )
-    # A region, not the whole world: each extension then costs the same however large the world has grown
-    # (wonderverse.splats.region; docs/benchmarks.md, benchmarks.scale).
+    # None (the whole world) by default: on the 2-core CPU a region cost as much as the whole world (forward
+    # segments see nearly all of it, and rendering, not the views, is the cost) and froze what the old views show
+    # where training the whole world kept improving it (docs/benchmarks.md, benchmarks.scale, 9c4c48f).
     extend_old_views_max: int | None = Field(
-        32,
+        None,
         ge=0,
-        description="after `extend`: old views trained beside the new ones, at most (those seeing most of what the "
-        "new views see); Gaussians none of the trained views sees are kept as they are. None: the whole scene",
+        description="after `extend`: train a region: the new views and at most this many old views (those seeing "
+        "most of what the new views see); Gaussians none of them sees are kept as they are. None: the whole scene",
     )
     extend_min_overlap: float = Field(
         0.05,

@@ -365,6 +365,7 @@ class PruneRecord(BaseModel):
     before: int = Field(description="Gaussians trained")
     after: int = Field(description="Gaussians exported")
     removed: dict[str, int] = Field(default_factory=dict, description="Gaussians removed, by reason")
+    needles_shortened: int = Field(0, description="needles whose largest axis was cut to `max_needle_ratio`")
     extent: float | None = Field(None, description="the scene extent the thresholds followed (world units)")
     bounds_before: Bounds | None = Field(None, description="the box of the finite centres before (world units)")
     bounds_after: Bounds | None = Field(None, description="the box of the exported centres (world units)")
