@@ -131,11 +131,15 @@ def _candidates(annotation: Any, value: Any) -> list[Any]:
     return []
 
 
-def _with_leaf(cfg: dict[str, Any], path: tuple[str, ...], leaf: str, value: Any) -> dict[str, Any]:
+def _with_leaf(cfg: dict[str, Any], path: tuple[str, ...], leaf: str, value: Any, block: BaseModel) -> dict[str, Any]:
     out = copy.deepcopy(cfg)
     node = out
     for p in path:
-        node = node[p]
+        # a block left unwritten at its default (`loss.robust`, so that older cache keys hold) is written whole
+        # once one of its leaves differs
+        node = node.setdefault(p, {})
+    if not node:
+        node.update(block.model_dump())
     node[leaf] = value
     return out
 
@@ -170,7 +174,7 @@ def test_overriding_one_leaf_of_any_nested_model_keeps_every_other_value(backend
                     cfg = build_config("a forest", preset="standard", overrides=over)
                 except ConfigError:
                     continue  # out of this leaf's range, or against another setting: try another value
-                expected = _with_leaf(base_data, path, leaf, _get(cfg, path, leaf))
+                expected = _with_leaf(base_data, path, leaf, _get(cfg, path, leaf), model)
                 assert cfg.model_dump() == expected, f"overriding {'.'.join(path)}.{leaf} changed other values"
                 assert _get(cfg, path, leaf) != value
                 changed = True
