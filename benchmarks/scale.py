@@ -42,7 +42,10 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # before torch loads, as the CLI does: idle threads sleep
+from flows.openmp import busy_cpus, wait_env
+
+# Before torch loads, as the CLI does: idle OpenMP threads spin briefly on an idle machine, sleep on a busy one
+os.environ.update(wait_env(os.environ, busy_cpus()))
 
 import numpy as np
 
@@ -91,7 +94,10 @@ def _child(args: list[str]) -> dict[str, Any]:
     its peak RSS (MB, from the OS when it exits)."""
     t = time.perf_counter()
     proc = subprocess.Popen(
-        [sys.executable, "-m", "benchmarks.scale", "--child", *args], stdout=subprocess.PIPE, text=True
+        [sys.executable, "-m", "benchmarks.scale", "--child", *args],
+        stdout=subprocess.PIPE,
+        text=True,
+        env=wait_env(os.environ, busy_cpus()),  # as the CLI's parent chooses for its child
     )
     out = proc.stdout.read() if proc.stdout else ""
     _, status, usage = os.wait4(proc.pid, 0)

@@ -24,10 +24,6 @@ from flows.view import view_command
 from wonderverse.errors import WonderError
 from wonderverse.text import error_line
 
-# Before torch loads: idle OpenMP threads sleep instead of spinning (measured 3-10x faster CPU splat
-# training on a shared 2-core machine).
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
 app = typer.Typer(
     add_completion=False,
     no_args_is_help=True,

@@ -5,7 +5,8 @@ terminal's Ctrl-C (SIGINT), SIGTERM and SIGHUP therefore reach the parent alone:
 process group (the run, its Dask workers, Prefect's ephemeral server) with SIGKILL, says so in one line and
 exits 128 + the signal's number (130 for Ctrl-C, 143 for SIGTERM). Should the parent itself be killed
 (kill -9), a tiny reaper process in the child's group kills it as soon as the parent is gone, so no run, Dask worker
-or Prefect server outlives the command.
+or Prefect server outlives the command. The parent also chooses how the child's OpenMP threads wait
+(`flows.openmp`), before the child loads torch.
 
 Why a kill and not a graceful stop: the main thread may sit for a minute inside a C call (COLMAP's mapper,
 Open3D) where Python cannot interrupt it, Prefect and Dask react to SIGINT in their own ways (the first
@@ -21,6 +22,8 @@ import os
 import signal
 import subprocess
 import sys
+
+from flows.openmp import command_env
 
 CHILD_ENV = "WONDERVERSE_CHILD"  # set in the child: it runs the command itself
 _STOPS = {signal.SIGINT: "Ctrl-C", signal.SIGTERM: "SIGTERM", signal.SIGHUP: "SIGHUP"}
@@ -56,7 +59,7 @@ def run_supervised(argv: list[str]) -> int:
     parent_alive, _writer = os.pipe()  # the write end stays open in this process only, until it exits
     child = subprocess.Popen(
         [sys.executable, "-m", "flows.cli", *argv],
-        env={**os.environ, CHILD_ENV: "1", _PARENT_FD_ENV: str(parent_alive)},
+        env={**command_env(os.environ, argv), CHILD_ENV: "1", _PARENT_FD_ENV: str(parent_alive)},
         start_new_session=True,
         pass_fds=(parent_alive,),
     )
