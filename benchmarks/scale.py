@@ -4,10 +4,11 @@
   extension) is grown by N extensions (`--quick`: 6, else 12) with `extend`, the user's words alternating left and
   right for six, then going forward. Each extension runs in a fresh process (its peak RSS is its own, read from the
   OS when it exits).
-- Per extension: seconds per step, peak RSS (MB), the scene folder's size (MB: the store and the files beside it),
-  Gaussians, held-out PSNR (every held-out view rendered again), the global poses' ATE against the procedural
-  world's true path (a share of its length) and whether the whole stitched path passes the check's jump test (no
-  seam where the world was grown: `wonderverse.check.check_trajectory` over the global poses, the scene's rules).
+- Per extension: seconds per step and of writing the report (as the CLI does after every run), peak RSS (MB), the
+  scene folder's size (MB: the store and the files beside it), Gaussians, held-out PSNR (every held-out view
+  rendered again), the global poses' ATE against the procedural world's true path (a share of its length) and
+  whether the whole stitched path passes the check's jump test (no seam where the world was grown:
+  `wonderverse.check.check_trajectory` over the global poses, the scene's rules).
 - Then the final world is built from scratch (one `generate` with every extension's words) in a fresh process (its
   held-out PSNR tells how much of a fall is the world getting harder rather than the growing), and,
   with `--dask`, once more on a real Dask cluster the benchmark starts (`dask scheduler` and two `dask worker`
@@ -108,17 +109,21 @@ def _child(args: list[str]) -> dict[str, Any]:
 
 
 def child_main(what: str, scene: str, payload: str) -> None:
-    """In the child: `generate` (payload: JSON of the words) or `extend` (payload: the words); prints the seconds
-    of every step that ran, as JSON."""
+    """In the child: `generate` (payload: JSON of the words) or `extend` (payload: the words), then the report, as
+    the CLI does; prints the seconds of every step that ran and of the report, as JSON."""
     from flows.extend import extend
     from flows.pipeline import execute
+    from flows.report import write_report
 
     if what == "extend":
         results = extend(scene, payload, engine="local")
     else:
         words, address = json.loads(payload)
         results = execute(scene, config(tuple(words), address))
-    print(json.dumps({"steps": {r.step: r.seconds for r in results if r.status == "ran"}}), flush=True)
+    t = time.perf_counter()
+    write_report(scene)
+    steps = {r.step: r.seconds for r in results if r.status == "ran"} | {"report": time.perf_counter() - t}
+    print(json.dumps({"steps": steps}), flush=True)
 
 
 def held_out_psnr(scene: Path) -> dict[str, float]:

@@ -33,6 +33,7 @@ import numpy as np
 
 from flows.inspect import clips as clip_rows
 from flows.inspect import expected_keys, global_k, guide, priors, root_meta, run_config, scene_spec, step_statuses
+from flows.report_cache import DrawingCache, metadata_files
 from flows.scene_quality import gates_of, pose_quality, registration, splat_quality
 from tasks import STEPS
 from tasks.segments import accepted_attempt, attempt_ids, attempt_path, segment_ids, stitched
@@ -69,6 +70,7 @@ SCENE_VIDEOS = {"novel.mp4": "Novel views (off the training path)", "flythrough.
 # Modules that decide what the report looks like: a report drawn by other code is redrawn.
 _REPORT_CODE = (
     "flows/report.py",
+    "flows/report_cache.py",
     "flows/inspect.py",
     "wonderverse/report.py",
     "wonderverse/plots.py",
@@ -154,7 +156,7 @@ def _ate_percent(est: np.ndarray, gt: np.ndarray) -> float | None:
 # -- sections ------------------------------------------------------------------------------------
 
 
-def _attempt(store: SceneStore, seg: str, k: int, chosen: int | None, params: Any) -> AttemptInfo:
+def _attempt(store: SceneStore, seg: str, k: int, chosen: int | None, params: Any, cache: DrawingCache) -> AttemptInfo:
     from flows.preview import check_result
     from wonderverse.plots import segment_check_plot
 
@@ -175,11 +177,18 @@ def _attempt(store: SceneStore, seg: str, k: int, chosen: int | None, params: An
     info.flagged_frames = list(check.flagged_frames)
     info.registered_frac = check.registered_frac
     info.sfm_seconds = check.sfm_seconds
-    info.check_plot = segment_check_plot(check_result(check), params, f"{seg} attempt {k}")
+    title = f"{seg} attempt {k}"
+    info.check_plot = cache.png(
+        cache.key(f"check plot {title} {params.model_dump_json()}", ap),
+        lambda: segment_check_plot(check_result(check), params, title),
+    )
     if _has_array(store, ap.sfm.poses):
         est = store.array(ap.sfm.poses)
         gt = store.array(ap.gt.poses) if has_gt and _has_array(store, ap.gt.poses) else None
-        info.topview = _topview(est, gt, "SfM", f"{seg} attempt {k}: camera path from above")
+        info.topview = cache.png(
+            cache.key(f"top view {title}", ap),
+            lambda: _topview(est, gt, "SfM", f"{title}: camera path from above"),
+        )
         if gt is not None:
             info.metrics["SfM ATE (% of path)"] = _ate_percent(est, gt)
     return info
@@ -214,7 +223,7 @@ def _status(store: SceneStore, seg: str, n_attempts: int) -> tuple[str, bool | N
     return "not generated yet", None
 
 
-def _previews(store: SceneStore, seg: str, p: ReportParams) -> list[Picture]:
+def _previews(store: SceneStore, seg: str, p: ReportParams, cache: DrawingCache) -> list[Picture]:
     """Depth/normal priors of a few frames beside the frame (and the ground truth when there is one)."""
     from wonderverse.report import depth_normal_preview
 
@@ -226,14 +235,17 @@ def _previews(store: SceneStore, seg: str, p: ReportParams) -> list[Picture]:
         return []
     idx = np.unique(np.linspace(0, shape[0] - 1, p.preview_frames).round().astype(int))
     gt = store.exists(ap.gt) and _has_array(store, ap.gt.depth) and _has_array(store, ap.gt.normals)
-    png = depth_normal_preview(
-        _rows(store, ap.frames, idx),
-        _rows(store, PRIORS_SEGMENT.at(seg=seg).depth, idx),
-        _rows(store, PRIORS_SEGMENT.at(seg=seg).normals, idx).astype(np.float32),
-        [f"frame {i}" for i in idx],
-        gt_depth=_rows(store, ap.gt.depth, idx) if gt else None,
-        gt_normals=_rows(store, ap.gt.normals, idx).astype(np.float32) if gt else None,
-        thumb_width_px=p.preview_thumb_width_px,
+    png = cache.png(
+        cache.key(f"priors preview {seg}", ap, PRIORS_SEGMENT.at(seg=seg)),
+        lambda: depth_normal_preview(
+            _rows(store, ap.frames, idx),
+            _rows(store, PRIORS_SEGMENT.at(seg=seg).depth, idx),
+            _rows(store, PRIORS_SEGMENT.at(seg=seg).normals, idx).astype(np.float32),
+            [f"frame {i}" for i in idx],
+            gt_depth=_rows(store, ap.gt.depth, idx) if gt else None,
+            gt_normals=_rows(store, ap.gt.normals, idx).astype(np.float32) if gt else None,
+            thumb_width_px=p.preview_thumb_width_px,
+        ),
     )
     kind = store.meta(PRIORS_SEGMENT.at(seg=seg)).kind  # complete: its cache key was checked above
     words = f" (the network predicts {kind.replace('_', ' ')})" if kind else ""
@@ -257,10 +269,13 @@ def _global_gt(store: SceneStore) -> tuple[np.ndarray, np.ndarray] | None:
     return store.array(SFM.poses), gt
 
 
-def _prior_errors(store: SceneStore, segments: list[SegmentInfo], sfm_to_gt_scale: float) -> dict[str, Any]:
+def _prior_errors(
+    store: SceneStore, segments: list[SegmentInfo], sfm_to_gt_scale: float, cache: DrawingCache
+) -> dict[str, Any]:
     """Depth and normal errors of every segment's priors against the ground truth; per-segment figures go
     into the segments' metrics, the pixel-weighted totals are returned. The priors are in SfM units, so
-    the ground truth depth is scaled by the global Sim3 scale (GT metres -> SfM units) first."""
+    the ground truth depth is scaled by the global Sim3 scale (GT metres -> SfM units) first (the scale moves
+    as the world grows: the depth errors are measured again, the normal errors are kept)."""
     from wonderverse.metrics import depth_errors, normal_errors
 
     tot = {"d_n": 0, "absrel": 0.0, "delta1": 0.0, "sq": 0.0, "n_n": 0, "deg": 0.0, "good": 0.0}
@@ -273,7 +288,10 @@ def _prior_errors(store: SceneStore, segments: list[SegmentInfo], sfm_to_gt_scal
             continue
         prior = store.array(PRIORS_SEGMENT.at(seg=seg).depth)
         d = depth_errors(prior, store.array(ap.gt.depth) * sfm_to_gt_scale, mask=np.isfinite(prior))
-        n = normal_errors(store.array(PRIORS_SEGMENT.at(seg=seg).normals), store.array(ap.gt.normals))
+        n = cache.figures(
+            cache.key(f"normal errors {seg}", ap, PRIORS_SEGMENT.at(seg=seg)),
+            lambda s=seg, a=ap: normal_errors(store.array(PRIORS_SEGMENT.at(seg=s).normals), store.array(a.gt.normals)),
+        )
         info.metrics |= {
             "depth prior AbsRel": d["absrel"],
             "depth prior δ1 (%)": 100 * d["delta1"] if d["n"] else None,
@@ -339,11 +357,13 @@ def _read_notes(store: SceneStore, seg: str) -> list[str]:
     return list(meta.read_notes) if meta is not None else []
 
 
-def _segments(store: SceneStore, p: ReportParams, clips: list[ClipInfo] | None = None) -> list[SegmentInfo]:
+def _segments(
+    store: SceneStore, p: ReportParams, cache: DrawingCache, clips: list[ClipInfo] | None = None
+) -> list[SegmentInfo]:
     """Planned segments (from the plan, else from the store) with attempts, status and previews; for a scene
     of clips, each segment carries its clip (and no plan entry: nothing was planned)."""
     if clips is not None:
-        return _clip_segments(store, p, clips)
+        return _clip_segments(store, p, cache, clips)
     params = _check_params(store)
     plan = store.meta(PLAN.path)
     planned = list(plan.plan.segments) if plan is not None else []
@@ -376,17 +396,17 @@ def _segments(store: SceneStore, p: ReportParams, clips: list[ClipInfo] | None =
             reference=ref,
             status=status,
             status_ok=ok,
-            attempts=[_attempt(store, seg, k, chosen, params) for k in ks],
+            attempts=[_attempt(store, seg, k, chosen, params, cache) for k in ks],
         )
         if chosen is not None and ks:
             shape = _shape(store, ATTEMPT.at(seg=seg, attempt=chosen).frames)
             info.frames = shape[0] if shape else None
-        info.previews = _previews(store, seg, p)
+        info.previews = _previews(store, seg, p, cache)
         out.append(info)
     return out
 
 
-def _clip_segments(store: SceneStore, p: ReportParams, clips: list[ClipInfo]) -> list[SegmentInfo]:
+def _clip_segments(store: SceneStore, p: ReportParams, cache: DrawingCache, clips: list[ClipInfo]) -> list[SegmentInfo]:
     """One segment per clip, in the order given, with its attempts, verdict and previews."""
     params = _check_params(store)
     ok = {"accepted": True, "recovered": True, "kept_failing": False, "dropped": False}
@@ -400,10 +420,10 @@ def _clip_segments(store: SceneStore, p: ReportParams, clips: list[ClipInfo]) ->
             status=CLIP_VERDICTS.get(clip.verdict, clip.verdict),
             status_ok=ok.get(clip.verdict),
             frames=clip.frames,
-            attempts=[_attempt(store, seg, k, chosen, params) for k in ks],
+            attempts=[_attempt(store, seg, k, chosen, params, cache) for k in ks],
             clip=clip,
         )
-        info.previews = _previews(store, seg, p)
+        info.previews = _previews(store, seg, p, cache)
         out.append(info)
     return out
 
@@ -626,7 +646,9 @@ def _planned_paths(store: SceneStore, segments: list[SegmentInfo]) -> Picture | 
     return Picture(png, "the camera path each segment was conditioned on")
 
 
-def _metrics(store: SceneStore, segments: list[SegmentInfo]) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
+def _metrics(
+    store: SceneStore, segments: list[SegmentInfo], cache: DrawingCache
+) -> tuple[dict[str, dict[str, Any]], dict[str, Any]]:
     """Metric groups, and headline figures for the summary."""
     metrics: dict[str, dict[str, Any]] = {}
     headline: dict[str, Any] = {}
@@ -693,7 +715,7 @@ def _metrics(store: SceneStore, segments: list[SegmentInfo]) -> tuple[dict[str, 
             headline["camera path ATE"] = f"{100 * e['rmse_frac']:.2f} % of the path length"
             ok = np.isfinite(est).all(axis=(1, 2)) & np.isfinite(gt).all(axis=(1, 2))
             scale = umeyama(camera_centers(gt[ok]), camera_centers(est[ok]), allow_degenerate=True).s
-            metrics |= _prior_errors(store, segments, scale)
+            metrics |= _prior_errors(store, segments, scale, cache)
     splats = store.meta(SPLATS.path)
     if splats is not None:
         m = splats.metrics
@@ -825,15 +847,18 @@ def failure_note(store: SceneStore) -> str:
 
 
 def gather(store: SceneStore, params: ReportParams | None = None) -> ReportContent:
-    """Everything the report shows, read from the store (nothing is written)."""
+    """Everything the report shows, read from the store (nothing is written there; what is drawn per segment is
+    kept in the report's cache beside it, `flows.report_cache`)."""
     p = params or ReportParams()
+    cache = DrawingCache(store, _code_fingerprint(p))
     spec = scene_spec(store)
     plan = store.meta(PLAN.path)
     clips = _clip_infos(store)
-    segments = _segments(store, p, clips)
+    segments = _segments(store, p, cache, clips)
     overview, trajectory = _stitched_pictures(store, p)
     videos, mesh_views, scene_notes = _scene(store, p)
-    metrics, headline = _metrics(store, segments)
+    metrics, headline = _metrics(store, segments, cache)
+    cache.prune()
     timings = _timings(store, clips is not None)
     splats = store.meta(SPLATS.path)
     curves = {k: [float(x) for x in v] for k, v in (splats.curves if splats is not None else {}).items()}
@@ -881,26 +906,14 @@ def gather(store: SceneStore, params: ReportParams | None = None) -> ReportConte
     )
 
 
-def _metadata_files(store_path: Path) -> list[tuple[str, bytes]]:
-    """(relative path, bytes) of every node's `zarr.json` in the store (groups' attributes, arrays' shapes),
-    sorted; leftovers of killed runs (`_staging`, `_trash`) are not part of the scene."""
-    out = []
-    stack = [store_path]
-    while stack:
-        d = stack.pop()
-        try:
-            raw = (d / "zarr.json").read_bytes()
-        except OSError:
-            continue
-        out.append((d.relative_to(store_path).as_posix(), raw))
-        try:
-            is_group = json.loads(raw).get("node_type") == "group"
-        except (ValueError, RecursionError, AttributeError):  # unreadable, nested beyond the parser, not a mapping
-            continue
-        if is_group:  # an array's folder holds only chunks
-            with os.scandir(d) as entries:
-                stack += [Path(e.path) for e in entries if e.is_dir() and not e.name.startswith("_")]
-    return sorted(out)
+def _code_fingerprint(p: ReportParams) -> str:
+    """sha256 hex of what draws the report: WonderVerse's version, the report modules' source and `p`."""
+    h = hashlib.sha256(f"{__version__}\0{p.model_dump_json()}".encode())
+    code_root = Path(__file__).resolve().parents[1]
+    for rel in _REPORT_CODE:
+        with_code = code_root / rel
+        h.update(f"\0{rel}\0".encode() + (with_code.read_bytes() if with_code.is_file() else b""))
+    return h.hexdigest()
 
 
 def report_state(store: SceneStore, params: ReportParams | None = None) -> str:
@@ -921,15 +934,10 @@ def report_state(store: SceneStore, params: ReportParams | None = None) -> str:
         h.update(f"{label}\0{len(data)}\0".encode())
         h.update(data)
 
-    add("version", __version__.encode())
+    add("code", _code_fingerprint(p).encode())
     add("folder", str(store.scene_dir.resolve()).encode())  # the page names it
-    add("params", p.model_dump_json().encode())
-    code_root = Path(__file__).resolve().parents[1]
-    for rel in _REPORT_CODE:
-        with_code = code_root / rel
-        add(rel, with_code.read_bytes() if with_code.is_file() else b"")
     add("expected keys", json.dumps(expected_keys(store), sort_keys=True).encode())
-    for rel, raw in _metadata_files(store.path):
+    for rel, raw in metadata_files(store.path):
         add(f"store:{rel}", raw)
     beside = []
     with os.scandir(store.scene_dir) as entries:

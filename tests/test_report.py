@@ -29,6 +29,7 @@ from PIL import Image
 from flows.inspect import summarize
 from flows.pipeline import execute
 from flows.report import report_state, write_report
+from flows.report_cache import CACHE_DIR
 from tasks import STEPS
 from tasks.segments import attempt_ids, segment_ids
 from wonderverse.camera import Sim3
@@ -371,6 +372,39 @@ def test_report_is_rewritten_only_when_the_store_changed(full_scene: Path, tmp_p
     assert report.stat().st_mtime_ns != stamp
     assert "No renders of the splats yet: novel.mp4 is written by the outputs step." in section(text, "scene")
     assert [v["src"] for v in Page(section(text, "scene")).attrs_of("video")] == ["flythrough.mp4"]
+
+
+@pytest.mark.e2e
+def test_per_segment_drawings_are_kept_between_reports_and_redrawn_when_their_segment_changes(
+    full_scene: Path, tmp_path: Path
+):
+    """A growing world's report redraws only what changed (flows.report_cache); the page is the same either way."""
+    scene = tmp_path / "copy"
+    shutil.copytree(full_scene, scene)
+    cache = scene / CACHE_DIR
+    shutil.rmtree(cache)
+
+    def page() -> str:
+        return re.sub(r"written [^<]* UTC by", "", write_report(scene).read_text())
+
+    def entries() -> dict[str, int]:
+        return {p.name: p.stat().st_mtime_ns for p in cache.iterdir()}
+
+    drawn = page()
+    first = entries()
+    assert {n.rsplit(".", 1)[1] for n in first} == {"png", "json"}  # plots, and the normal priors' errors
+    (cache / "0123.png").write_bytes(b"left by an older report")
+    assert page() == drawn
+    assert entries() == first  # every entry read again as it was, the unused one removed
+    # the rejected first attempt of s000 is checked again (its check's attributes change): its check plot and
+    # top view are drawn again, nothing else
+    store = SceneStore.open(scene, mode="r+")
+    check = store.group("segments/s000/attempts/0/check")
+    check.attrs["notes"] = [*check.attrs.get("notes", []), "checked again"]
+    page()
+    now = entries()
+    assert len(set(first) - set(now)) == 2 and len(set(now) - set(first)) == 2
+    assert all(now[n] == first[n] for n in set(first) & set(now))
 
 
 @pytest.mark.e2e
