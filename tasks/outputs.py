@@ -189,7 +189,7 @@ def run(store: SceneStore, params: Params, ctx: StepContext) -> str:
         for product in PRODUCTS
         for f in r[product.name].files
     ]
-    mesh = r["mesh"].mesh.model_copy(update={"points": r["points"].points, "fused": [], "view_depths": []})
+    mesh = r["mesh"].mesh.model_copy(update={"points": r["points"].points, "fused": [], "keys": [], "view_depths": []})
     store.mark_complete(
         OUTPUTS.path,
         ctx.key,

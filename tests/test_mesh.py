@@ -28,6 +28,7 @@ from wonderverse.mesh import (
     write_points_ply,
 )
 from wonderverse.metrics import chamfer_fscore, sample_mesh_points
+from wonderverse.products.mesh import camera_ids, reusable
 from wonderverse.tsdf import TsdfFusion, fuse_tsdf, mesh_from_views
 
 W, H = 80, 60
@@ -420,6 +421,29 @@ def test_scene_extent_and_fusion_cameras():
     centres = -np.einsum("nji,nj->ni", out[:, :3, :3], out[:, :3, 3])
     np.testing.assert_allclose(centres[:, 0], [0.0, 1.5, 3.0, 4.5, 6.0], atol=1e-9)
     np.testing.assert_allclose(fusion_cameras(with_nan, 0), cams)
+    assert (out[::2] == cams).all()  # the frames bit for bit: their digests name them in the stored fusion
+
+
+def test_a_fusion_goes_on_when_a_frame_is_posed_between_two_it_fused_and_not_when_a_frame_moved():
+    """An extension may pose a frame an earlier run could not: the cameras interpolated across its gap are gone, but
+    every frame fused is still there, pose unchanged, so the stored fusion goes on (`products.mesh.reusable`)."""
+    xs = (0.0, 1.0, 2.5, 3.7)
+    cams = np.stack([look_at(np.array([x, 0.0, 1.0]), np.array([2 * x, 5.0, 1.0])) for x in xs])
+    before = cams.copy()
+    before[2] = np.nan  # not registered by the first run
+    fused = camera_ids(fusion_cameras(before, 1))
+    fused_keys = camera_ids(before[[0, 1, 3]])
+    assert set(fused_keys) <= set(fused)
+    now = fusion_cameras(cams, 1)  # frame 2 posed by the extension
+    assert not set(fused) <= set(camera_ids(now))  # the old rule (every camera still there) would start over
+    assert reusable(fused, fused_keys, camera_ids(now), camera_ids(cams))
+    moved = cams.copy()
+    moved[1, 0, 3] += 1e-9  # a re-solve moved a frame it fused
+    assert not reusable(fused, fused_keys, camera_ids(fusion_cameras(moved, 1)), camera_ids(moved))
+    # a fusion recorded without its frames: every camera it fused must be there
+    assert not reusable(fused, [], camera_ids(now), camera_ids(cams))
+    assert reusable(fused, [], camera_ids(fusion_cameras(before, 1)), camera_ids(before[[0, 1, 3]]))
+    assert not reusable([], [], camera_ids(now), camera_ids(cams))
 
 
 def test_chamfer_fscore_known_answers():

@@ -102,7 +102,11 @@ def fusion_cameras(w2c: np.ndarray, extra_per_gap: int) -> np.ndarray:
     if extra_per_gap == 0 or len(keys) < 2:
         return keys
     times = np.linspace(0.0, len(keys) - 1.0, (len(keys) - 1) * (extra_per_gap + 1) + 1)
-    return interpolate_poses(keys, np.arange(len(keys), dtype=np.float64), times, ease=False)
+    cams = interpolate_poses(keys, np.arange(len(keys), dtype=np.float64), times, ease=False)
+    cams[:: extra_per_gap + 1] = (
+        keys  # the frames bit for bit (a slerp at its end is not): they name the fusion's frames
+    )
+    return cams
 
 
 def _to_o3d(mesh: TriMesh) -> Any:

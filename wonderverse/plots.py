@@ -162,7 +162,9 @@ def growth_plot(runs: Sequence[dict[str, float]], labels: Sequence[str], title: 
     ax = fig.subplots()
     x = np.arange(len(runs))
     bottom = np.zeros(len(runs))
-    for step in [s for s in STEP_ORDER if any(s in r for r in runs)]:
+    named = [s for s in STEP_ORDER if any(s in r for r in runs)]
+    others = [s for s in dict.fromkeys(k for r in runs for k in r) if s not in STEP_ORDER]  # e.g. the report
+    for step in named + others:
         h = np.array([r.get(step, 0.0) for r in runs])
         ax.bar(x, h, bottom=bottom, label=step)
         bottom += h

@@ -44,9 +44,17 @@ def camera_ids(w2c: np.ndarray) -> list[str]:
     return [hashlib.sha1(c.tobytes()).hexdigest()[:16] for c in w2c]
 
 
-def reusable(fused: list[str], cameras: list[str]) -> bool:
-    """Whether a fusion of the cameras `fused` can go on with `cameras`: every camera it fused is still there."""
-    return bool(fused) and set(fused) <= set(cameras)
+def reusable(fused: list[str], fused_keys: list[str], cameras: list[str], keys: list[str]) -> bool:
+    """Whether a fusion of the cameras `fused` (of which `fused_keys` are frames' poses) can go on with `cameras`
+    (of which `keys` are frames' poses): every frame it fused is still there, pose unchanged. A camera interpolated
+    between two frames may be gone: a frame registered later between them (an extension poses frames an earlier
+    run could not) splits their gap, and what was fused from between two unchanged frames still holds. Without
+    `fused_keys` (a fusion recorded before frames were told apart) every camera it fused must still be there."""
+    if not fused:
+        return False
+    if not fused_keys:
+        return set(fused) <= set(cameras)
+    return set(fused_keys) <= set(keys)
 
 
 def median_depth(depth: np.ndarray) -> float | None:

@@ -347,6 +347,9 @@ class MeshFigures(Attrs):
     look: float | None = Field(None, description="median of the fused views' median rendered depths")
     points: int | None = Field(None, description="points in points.ply")
     fused: list[str] = Field(default_factory=list, description="the cameras its fusion holds (pose digests)")
+    keys: list[str] = Field(
+        default_factory=list, description="those of `fused` that are frames' poses (the others lie between two)"
+    )
     view_depths: list[float | None] = Field(default_factory=list, description="each fused view's median depth")
 
 
