@@ -21,7 +21,9 @@ Last line (JSON): `extensions`; `growth` (seconds of the last extension / of the
 of the last extension / of building the final world from scratch); `rss_growth` (peak RSS of the last extension /
 of the first) with `frames_growth` (stitched frames after the last / after the first) to compare it with;
 `ate_frac_first`, `ate_frac_last`; `psnr_start` (the world before its first extension), `psnr_first`, `psnr_last`
-(dB), `psnr_scratch` (the final world built from scratch: its held-out PSNR when nothing was grown); `seams`
+(dB), `psnr_kept_first`, `psnr_kept_last` (the mean of the per-segment held-out PSNR of the segments the first
+extension left, after it and after the last: does what was built hold?), `psnr_scratch` (the final world built
+from scratch: its held-out PSNR when nothing was grown); `seams`
 (extensions whose stitched path failed the jump test); `scratch_seconds`; `last_extension_seconds`; with `--dask`:
 `dask_speedup` (segment-parallel steps' seconds in one process / on the cluster).
 """
@@ -43,10 +45,12 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from flows.openmp import busy_cpus, wait_env
+from flows.openmp import WAIT_KEYS, busy_cpus, wait_env
 
-# Before torch loads, as the CLI does: idle OpenMP threads spin briefly on an idle machine, sleep on a busy one
-os.environ.update(wait_env(os.environ, busy_cpus()))
+# Before torch loads, as the CLI does: idle OpenMP threads spin briefly on an idle machine, sleep on a busy one (a
+# child keeps what its parent chose)
+if not any(k in os.environ for k in WAIT_KEYS):
+    os.environ.update(wait_env(os.environ, busy_cpus()))
 
 import numpy as np
 
@@ -271,6 +275,10 @@ def main() -> None:
     plot(rows, out / "scale.png")
     (out / "scale_rows.json").write_text(json.dumps({"start": start, "rows": rows, "scratch": scratch}, indent=1))
     first, last = rows[0], rows[-1]
+
+    def kept(row: dict[str, Any]) -> float:  # what the first extension built, as `row` renders it
+        return float(np.mean([row["psnr_by_segment"][s] for s in first["psnr_by_segment"]]))
+
     table = [
         {
             "extension": r["extension"],
@@ -300,6 +308,8 @@ def main() -> None:
         "psnr_start": round(start["psnr"], 3),
         "psnr_first": round(first["psnr"], 3),
         "psnr_last": round(last["psnr"], 3),
+        "psnr_kept_first": round(kept(first), 3),
+        "psnr_kept_last": round(kept(last), 3),
         "psnr_scratch": round(scratch["psnr"], 3),
         "seams": sum(r["seam"] for r in rows),
         "scratch_seconds": round(scratch["wall_s"], 1),
