@@ -3,9 +3,10 @@
 torch's CPU kernels (splat training) run in OpenMP parallel regions thousands of times a second. Between regions
 GNU OpenMP's threads spin before they sleep. On an idle machine spinning is what makes training fast (waking a
 sleeping thread costs more than a short region); on a busy one spinning threads steal the cores that the work
-needs. Measured on the 2-core machine, extending a 3-segment preview world (`docs/benchmarks.md`, "OpenMP wait"):
-alone, 46 s with libgomp's default spin, 50 s with 3000 spins, 63 s with sleeping threads (`OMP_WAIT_POLICY=
-PASSIVE`); two at once, 272 s, 83 s and 68 s each. So a command that starts on an idle machine spins briefly and
+needs. Measured on the 2-core machine, extending a 3-segment preview world (`python -m benchmarks.openmp_wait`):
+alone, 64 s with libgomp's default spin (300 000), 65 s with 3000 spins, 79 s with sleeping threads
+(`OMP_WAIT_POLICY=PASSIVE`); two at once, 308 s, 99 s and 86 s each. So a command that starts on an idle machine
+spins briefly (nearly all of the default's gain alone; beside another run 16 % slower than sleeping, not 3.6x) and
 one that starts beside other work sleeps at once. Commands that may run for long beside others (`serve`, whose
 scheduled runs may overlap; `studio`, whose jobs choose again as they start) and those that train nothing sleep.
 

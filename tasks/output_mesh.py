@@ -12,9 +12,9 @@ from tasks.progress import callback
 
 def make_mesh(scene: OutputScene) -> Made:
     """TSDF fusion of splat renders from the fusion cameras, cleaned and in the output frame. When the stored fusion
-    was made with the same settings and every camera it fused is still there (an extension), only the new cameras
-    are rendered and fused into it (`products.mesh.reusable`); else every camera is, at the extent of their
-    renders."""
+    was made with the same settings and every frame it fused is still there, pose unchanged (an extension), only the
+    new cameras are rendered and fused into it (`products.mesh.reusable`); else every camera is, at the extent of
+    their renders."""
     from wonderverse.camera import scene_extent
     from wonderverse.mesh import fusion_cameras
     from wonderverse.products.mesh import camera_ids, export_mesh, fuse_views, median_depth

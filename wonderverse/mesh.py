@@ -103,9 +103,8 @@ def fusion_cameras(w2c: np.ndarray, extra_per_gap: int) -> np.ndarray:
         return keys
     times = np.linspace(0.0, len(keys) - 1.0, (len(keys) - 1) * (extra_per_gap + 1) + 1)
     cams = interpolate_poses(keys, np.arange(len(keys), dtype=np.float64), times, ease=False)
-    cams[:: extra_per_gap + 1] = (
-        keys  # the frames bit for bit (a slerp at its end is not): they name the fusion's frames
-    )
+    # the frames bit for bit (a slerp at its end is not): their pose digests name the frames a fusion holds
+    cams[:: extra_per_gap + 1] = keys
     return cams
 
 
