@@ -46,6 +46,16 @@ def metadata_files(root: Path) -> list[tuple[str, bytes]]:
     return sorted(out)
 
 
+def _numbers(raw: bytes) -> dict[str, float | int | None]:
+    """A stored object of numbers; ValueError for anything else (an entry altered by hand is computed again)."""
+    value = json.loads(raw)
+    if not isinstance(value, dict) or not all(
+        v is None or (isinstance(v, int | float) and not isinstance(v, bool)) for v in value.values()
+    ):
+        raise ValueError("not an object of numbers")
+    return value
+
+
 class DrawingCache:
     """Entries of one report being gathered; `salt` fingerprints the report's code and parameters."""
 
@@ -69,7 +79,7 @@ class DrawingCache:
 
     def figures(self, key: str, compute: Callable[[], dict[str, Any]]) -> dict[str, Any]:
         """A JSON object of numbers (floats, ints, None), computed once."""
-        return self._entry(f"{key}.json", compute, lambda v: json.dumps(v).encode(), json.loads)
+        return self._entry(f"{key}.json", compute, lambda v: json.dumps(v).encode(), _numbers)
 
     def _entry(self, name: str, make: Callable[[], Any], dump: Callable[[Any], bytes], load: Callable[[bytes], Any]):
         self.used.add(name)

@@ -396,6 +396,11 @@ def test_per_segment_drawings_are_kept_between_reports_and_redrawn_when_their_se
     (cache / "0123.png").write_bytes(b"left by an older report")
     assert page() == drawn
     assert entries() == first  # every entry read again as it was, the unused one removed
+    figures = next(p for p in cache.iterdir() if p.suffix == ".json")
+    good = figures.read_bytes()
+    figures.write_text('{"mean_deg": "<script>", "n": [1]}')  # altered by hand: computed again, not trusted
+    assert page() == drawn and figures.read_bytes() == good
+    first = entries()
     # the rejected first attempt of s000 is checked again (its check's attributes change): its check plot and
     # top view are drawn again, nothing else
     store = SceneStore.open(scene, mode="r+")
