@@ -45,8 +45,7 @@ def busy_cpus(sample_s: float = SAMPLE_S) -> float:
     if before is None:
         return os.getloadavg()[0] if hasattr(os, "getloadavg") else 0.0
     time.sleep(sample_s)
-    after = totals()
-    assert after is not None
+    after = totals() or before
     total, idle = after[0] - before[0], after[1] - before[1]
     return (os.cpu_count() or 1) * (1.0 - idle / total) if total > 0 else 0.0
 

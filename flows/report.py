@@ -179,7 +179,7 @@ def _attempt(store: SceneStore, seg: str, k: int, chosen: int | None, params: An
     info.sfm_seconds = check.sfm_seconds
     title = f"{seg} attempt {k}"
     info.check_plot = cache.png(
-        cache.key(f"check plot {title} {params.model_dump_json()}", ap),
+        cache.key(f"check plot {title} {params.model_dump_json() if params is not None else ''}", ap),
         lambda: segment_check_plot(check_result(check), params, title),
     )
     if _has_array(store, ap.sfm.poses):
@@ -846,11 +846,11 @@ def failure_note(store: SceneStore) -> str:
     )
 
 
-def gather(store: SceneStore, params: ReportParams | None = None) -> ReportContent:
-    """Everything the report shows, read from the store (nothing is written there; what is drawn per segment is
-    kept in the report's cache beside it, `flows.report_cache`)."""
+def gather(store: SceneStore, params: ReportParams | None = None, cache: DrawingCache | None = None) -> ReportContent:
+    """Everything the report shows, read from the store (nothing is written); what is drawn per segment is read from
+    `cache` (`flows.report_cache`) where it holds it, and drawn into it where not."""
     p = params or ReportParams()
-    cache = DrawingCache(store, _code_fingerprint(p))
+    cache = cache or DrawingCache(store, _code_fingerprint(p))
     spec = scene_spec(store)
     plan = store.meta(PLAN.path)
     clips = _clip_infos(store)
@@ -858,7 +858,6 @@ def gather(store: SceneStore, params: ReportParams | None = None) -> ReportConte
     overview, trajectory = _stitched_pictures(store, p)
     videos, mesh_views, scene_notes = _scene(store, p)
     metrics, headline = _metrics(store, segments, cache)
-    cache.prune()
     timings = _timings(store, clips is not None)
     splats = store.meta(SPLATS.path)
     curves = {k: [float(x) for x in v] for k, v in (splats.curves if splats is not None else {}).items()}
@@ -977,7 +976,8 @@ def write_report(scene_dir: Path | str, params: ReportParams | None = None, *, o
         log.debug("report %s is up to date", out)
         return out
     check_writable(scene_dir, f"{REPORT_NAME} in {scene_dir}")  # before the seconds of drawing, not after
-    content = gather(store, params)
+    cache = DrawingCache(store, _code_fingerprint(params or ReportParams()))
+    content = gather(store, params, cache)
     content.state = state
     text = render_html(content, params)
     tmp = out.with_name(f".{REPORT_NAME}.{uuid.uuid4().hex}")
@@ -989,4 +989,5 @@ def write_report(scene_dir: Path | str, params: ReportParams | None = None, *, o
     finally:
         with contextlib.suppress(OSError):
             tmp.unlink(missing_ok=True)
+    cache.save()
     return out

@@ -4,8 +4,9 @@ its new segments' plots and figures, so that writing the report costs about the 
 An entry is named by a fingerprint of what it is drawn from: the metadata of the store groups it reads (their
 attributes carry each step's cache key, so new content comes with new metadata, the argument `report_state` rests
 on too), and the report's code and parameters. An entry holds PNG bytes or a JSON object of numbers, nothing that
-runs. Entries the last report did not use are removed; a cache that cannot be written (a read-only folder, a full
-disk) costs only the drawing.
+runs. New entries are written, and those the report did not use removed, only once the report itself is written (a
+report refused on a damaged store changes nothing); a cache that cannot be written (a read-only folder, a full disk)
+costs only the drawing.
 """
 
 from __future__ import annotations
@@ -64,6 +65,7 @@ class DrawingCache:
         self.folder = store.scene_dir / CACHE_DIR
         self.salt = salt
         self.used: set[str] = set()
+        self.fresh: dict[str, bytes] = {}  # drawn by this report, written by `save`
 
     def key(self, what: str, *groups: str) -> str:
         """The name of what is drawn from `groups` (store paths) as `what` says (its kind and any settings)."""
@@ -87,18 +89,21 @@ class DrawingCache:
         with contextlib.suppress(OSError, ValueError):
             return load(path.read_bytes())
         value = make()
-        tmp = self.folder / f".{name}.{uuid.uuid4().hex}"
-        try:
-            self.folder.mkdir(exist_ok=True)
-            tmp.write_bytes(dump(value))
-            os.replace(tmp, path)  # whole or absent: a killed report leaves no half entry
-        except OSError:
-            with contextlib.suppress(OSError):
-                tmp.unlink(missing_ok=True)
+        self.fresh[name] = dump(value)
         return value
 
-    def prune(self) -> None:
-        """Remove the entries this report did not use (segments since replaced, older code or settings)."""
+    def save(self) -> None:
+        """Write the entries drawn by this report and remove those it did not use (segments since replaced, older
+        code or settings)."""
+        for name, data in self.fresh.items():
+            tmp = self.folder / f".{name}.{uuid.uuid4().hex}"
+            try:
+                self.folder.mkdir(exist_ok=True)
+                tmp.write_bytes(data)
+                os.replace(tmp, self.folder / name)  # whole or absent: a killed report leaves no half entry
+            except OSError:
+                with contextlib.suppress(OSError):
+                    tmp.unlink(missing_ok=True)
         with contextlib.suppress(OSError), os.scandir(self.folder) as entries:
             for e in entries:
                 if e.name not in self.used:
