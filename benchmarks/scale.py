@@ -45,7 +45,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from flows.openmp import WAIT_KEYS, busy_cpus, wait_env
+from flows.openmp import WAIT_KEYS, busy_cpus, command_env, wait_env
 
 # Before torch loads, as the CLI does: idle OpenMP threads spin briefly on an idle machine, sleep on a busy one (a
 # child keeps what its parent chose)
@@ -102,7 +102,7 @@ def _child(args: list[str]) -> dict[str, Any]:
         [sys.executable, "-m", "benchmarks.scale", "--child", *args],
         stdout=subprocess.PIPE,
         text=True,
-        env=wait_env(os.environ, busy_cpus()),  # as the CLI's parent chooses for its child
+        env=command_env(os.environ, args[:1]),  # as the CLI's parent chooses for its child
     )
     out = proc.stdout.read() if proc.stdout else ""
     _, status, usage = os.wait4(proc.pid, 0)

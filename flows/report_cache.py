@@ -66,15 +66,23 @@ class DrawingCache:
         self.salt = salt
         self.used: set[str] = set()
         self.fresh: dict[str, bytes] = {}  # drawn by this report, written by `save`
+        self._groups: dict[str, bytes] = {}  # group -> digest of its metadata (several entries read one group)
 
     def key(self, what: str, *groups: str) -> str:
         """The name of what is drawn from `groups` (store paths) as `what` says (its kind and any settings)."""
         h = hashlib.sha256(f"{self.salt}\0{what}".encode())
         for g in groups:
-            for rel, raw in metadata_files(self.store.path / g):
-                h.update(f"\0{g}/{rel}\0{len(raw)}\0".encode())
-                h.update(raw)
+            h.update(f"\0{g}\0".encode() + self._group_digest(g))
         return h.hexdigest()[:32]
+
+    def _group_digest(self, group: str) -> bytes:
+        if group not in self._groups:
+            h = hashlib.sha256()
+            for rel, raw in metadata_files(self.store.path / group):
+                h.update(f"{rel}\0{len(raw)}\0".encode())
+                h.update(raw)
+            self._groups[group] = h.digest()
+        return self._groups[group]
 
     def png(self, key: str, draw: Callable[[], bytes]) -> bytes:
         return self._entry(f"{key}.png", draw, bytes, bytes)
