@@ -50,10 +50,15 @@ def busy_cpus(sample_s: float = SAMPLE_S) -> float:
     return (os.cpu_count() or 1) * (1.0 - idle / total) if total > 0 else 0.0
 
 
+def users_wait(environ: Mapping[str, str]) -> bool:
+    """Whether the user set the wait (either variable, not marked as chosen here)."""
+    return environ.get(AUTO_ENV) != "1" and any(k in environ for k in WAIT_KEYS)
+
+
 def wait_env(environ: Mapping[str, str], busy: float) -> dict[str, str]:
     """`environ` with the OpenMP wait chosen for a machine with `busy` cores in use: a few spins when it is idle,
-    sleeping threads otherwise. A wait the user set (either variable, not marked as chosen here) is kept."""
-    if environ.get(AUTO_ENV) != "1" and any(k in environ for k in WAIT_KEYS):
+    sleeping threads otherwise. A wait the user set is kept."""
+    if users_wait(environ):
         return dict(environ)
     env = {k: v for k, v in environ.items() if k not in WAIT_KEYS}
     # GOMP_SPINCOUNT overrides the policy in libgomp; OMP_WAIT_POLICY speaks to other OpenMP runtimes
@@ -66,6 +71,6 @@ def wait_env(environ: Mapping[str, str], busy: float) -> dict[str, str]:
 
 def command_env(environ: Mapping[str, str], argv: list[str]) -> dict[str, str]:
     """The environment for the child that runs `wonderverse ARGV`: the machine is looked at only for a run that
-    trains."""
-    sampled = bool(argv) and argv[0] in SAMPLED_COMMANDS
+    trains, and only when the user set no wait (the look costs every such command, a refusal too, `SAMPLE_S`)."""
+    sampled = bool(argv) and argv[0] in SAMPLED_COMMANDS and not users_wait(environ)
     return wait_env(environ, busy_cpus() if sampled else math.inf)

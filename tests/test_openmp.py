@@ -8,6 +8,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
+
+from flows import openmp
 from flows.openmp import AUTO_ENV, BUSY_CPUS_MAX, IDLE_SPINS, busy_cpus, command_env, wait_env
 from tests.conftest import ROOT
 
@@ -60,3 +63,15 @@ def test_the_supervised_child_gets_the_chosen_wait(tmp_path: Path) -> None:
 def test_commands_that_train_nothing_sleep_without_looking() -> None:
     for argv in (["serve"], ["studio"], ["inspect", "x"], []):
         assert command_env({}, argv)["OMP_WAIT_POLICY"] == "PASSIVE"
+
+
+def test_a_wait_the_user_set_is_kept_without_looking(monkeypatch: pytest.MonkeyPatch) -> None:
+    def look(*_: object) -> float:
+        raise AssertionError("the machine was looked at although the user set the wait")
+
+    monkeypatch.setattr(openmp, "busy_cpus", look)
+    for env in ({"OMP_WAIT_POLICY": "PASSIVE"}, {"GOMP_SPINCOUNT": "10"}):
+        assert command_env(env, ["generate", "a lake"]) == env
+    chosen_before = {"GOMP_SPINCOUNT": "0", AUTO_ENV: "1"}  # chosen by a parent: chosen again, so looked at
+    with pytest.raises(AssertionError, match="looked at"):
+        command_env(chosen_before, ["extend", "x", "a lake"])
