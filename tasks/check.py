@@ -11,7 +11,7 @@ from tasks.base import Step, StepContext
 from tasks.parallel import map_segments
 from tasks.progress import callback
 from tasks.segment_check import CheckParams, check_segment, is_checked
-from tasks.segments import segment_ids
+from tasks.segments import pixels, segment_ids
 from wonderverse.config import RunConfig
 from wonderverse.schema import CHECK
 from wonderverse.store import SceneStore
@@ -36,6 +36,8 @@ def run(store: SceneStore, p: CheckParams, ctx: StepContext) -> str:
         workers=ctx.execution.segment_workers,
         address=ctx.execution.dask_address,
         step="check",
+        pixels=pixels(store, todo),
+        min_pixels=ctx.execution.cluster_min_pixels,
         progress=callback("clips checked" if p.source.video.backend == "files" else "segments checked"),
     )
     results = [done[s] if s in done else fresh[todo.index(s)] for s in segs]

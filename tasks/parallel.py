@@ -2,10 +2,9 @@
 `tasks.fan_out` (so inside a Prefect task run every segment is a task run of its own).
 
 `map_segments` starts a cluster for its one call; `segment_pool` keeps one open for a block of calls (a guided
-flow's waves), started ahead of time if wanted, with work submitted per segment as soon as it is ready.
-
-Each submitted function opens the store itself and writes only its own segment's groups, so
-nothing big travels through the scheduler and workers never share a writer."""
+flow's waves), started ahead of time if wanted, with work submitted per segment as soon as it is ready. Each
+submitted function opens the store itself and writes only its own segment's groups, so nothing big travels through
+the scheduler and workers never share a writer."""
 
 from __future__ import annotations
 
@@ -30,23 +29,21 @@ def _open_client(address: str | None, n_workers: int, closing: ExitStack) -> Any
     from dask.distributed import Client, LocalCluster
 
     if address is not None:
-        client = Client(address)
-        closing.callback(client.close)
-        return client
-    # Worker processes use one thread each: the work inside (SfM, rendering) sets its own thread count.
-    cluster = LocalCluster(
-        n_workers=n_workers,
-        threads_per_worker=1,
-        processes=True,
-        host="127.0.0.1",
-        # The scheduler serves HTTP whatever the dashboard setting; on a free port, so a busy 8787 (another
-        # cluster, a dashboard) costs no "Port 8787 is already in use" warning. No dashboard.
-        dashboard_address="127.0.0.1:0",
-        scheduler_kwargs={"dashboard": False},
-        # A task's failure reaches the user once, as the step's error; the workers must not print it too.
-        silence_logs=logging.CRITICAL,
-    )
-    closing.callback(cluster.close)
+        cluster: Any = address
+    else:  # worker processes use one thread each: the work inside (SfM, rendering) sets its own thread count
+        cluster = LocalCluster(
+            n_workers=n_workers,
+            threads_per_worker=1,
+            processes=True,
+            host="127.0.0.1",
+            # The scheduler serves HTTP whatever the dashboard setting; on a free port, so a busy 8787 (another
+            # cluster, a dashboard) costs no "Port 8787 is already in use" warning. No dashboard.
+            dashboard_address="127.0.0.1:0",
+            scheduler_kwargs={"dashboard": False},
+            # A task's failure reaches the user once, as the step's error; the workers must not print it too.
+            silence_logs=logging.CRITICAL,
+        )
+        closing.callback(cluster.close)
     client = Client(cluster)
     closing.callback(client.close)
     return client
@@ -157,10 +154,9 @@ class SegmentPool:
     def settle(futures: Iterable[Any]) -> None:
         """Wait for the submitted work that is running on the cluster, its errors ignored (deferred work is not
         run): after a failure, so that what the workers are writing is finished before the cluster stops."""
-        for f in futures:
-            if not isinstance(f, _Deferred):
-                with suppress(Exception):
-                    f.result()
+        for f in (f for f in futures if not isinstance(f, _Deferred)):
+            with suppress(Exception):
+                f.result()
 
     def map(
         self,
@@ -208,13 +204,17 @@ def map_segments(
     address: str | None = None,
     step: str = "segments",
     progress: ProgressFn | None = None,
+    pixels: int = 0,
+    min_pixels: int = 0,
 ) -> list[T]:
     """[fn(item, *args) for item in items], run concurrently on Dask; results in input order.
 
-    One item or one worker runs in-process (no cluster start-up). `step` names the per-item task runs;
-    `progress` hears of each finished item as in `fan_out`. A cluster of its own for this call (min(workers,
-    items) processes); `segment_pool` keeps one for several."""
+    One item, one worker or, without a scheduler's `address`, fewer `pixels` (the items' frames) than `min_pixels`
+    run in-process (no cluster start-up). `step` names the per-item task runs; `progress` hears of each finished
+    item as in `fan_out`. A cluster of its own for this call (min(workers, items) processes); `segment_pool` keeps
+    one for several."""
     if not items:
         return []
+    workers = 1 if address is None and pixels < min_pixels else workers
     with segment_pool(min(workers, len(items)), address, step) as pool:
         return pool.map(fn, items, *args, step=step, progress=progress)

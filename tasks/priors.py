@@ -16,7 +16,7 @@ from tasks.base import Step, StepContext
 from tasks.parallel import map_segments
 from tasks.progress import callback
 from tasks.raw_depth import ground_truth, raw_depth
-from tasks.segments import accepted_attempt, attempt_path, segment_ids
+from tasks.segments import accepted_attempt, attempt_path, pixels, segment_ids
 from wonderverse.config import PriorsStepParams, RunConfig
 from wonderverse.errors import WonderError
 from wonderverse.schema import PRIORS, PRIORS_RAW, PRIORS_RAW_SEGMENT, PRIORS_SEGMENT, SEGMENT, SFM
@@ -113,6 +113,8 @@ def run(store: SceneStore, p: PriorsStepParams, ctx: StepContext) -> str:
         workers=ctx.execution.segment_workers,
         address=ctx.execution.dask_address,
         step="priors",
+        pixels=pixels(store, todo),
+        min_pixels=ctx.execution.cluster_min_pixels,
         progress=callback("segments with priors"),
     )
     out = [done[s] if s in done else fresh[todo.index(s)] for s in segs]

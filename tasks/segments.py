@@ -51,6 +51,19 @@ def frames(store: SceneStore, seg: str, attempt: int | None = None) -> np.ndarra
     return store.array(attempt_path(store, seg, attempt).frames)
 
 
+def pixels(store: SceneStore, segs: Collection[str]) -> int:
+    """Pixels in the frames of the segments' accepted attempts (frames x height x width, together; from the arrays'
+    metadata, nothing read): how much per-segment work there is. A dropped segment counts none."""
+    total = 0
+    for seg in segs:
+        try:
+            shape = store.open_array(attempt_path(store, seg).frames).shape
+        except (KeyError, FileNotFoundError):
+            continue
+        total += int(np.prod(shape[:3]))
+    return total
+
+
 def camera_prior(store: SceneStore, seg: str) -> CameraPrior:
     """A segment's K (3,3) and where it came from: given (the renderer's, or a clip's given field of view) or
     guessed; stores written before the flag existed count as guessed."""

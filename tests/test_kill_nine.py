@@ -34,10 +34,10 @@ def tiny_spec(folder: Path) -> Path:
     on one thread: COLMAP's mapper with two threads is not bit-reproducible (two clean runs of this scene with
     num_threads 2 gave 525 and 507 splats), with one it is."""
     steps = {**SHORT_STEPS, "poses": {"sfm": {"num_threads": 1}}}
+    execution = {"cluster_min_pixels": 0}  # Dask workers however small the segments: a kill must take them down too
+    scene = tiny_config().scene.model_dump(mode="json")
     f = folder / "tiny.yaml"
-    f.write_text(
-        yaml.safe_dump({"preset": "preview", "scene": tiny_config().scene.model_dump(mode="json"), "steps": steps})
-    )
+    f.write_text(yaml.safe_dump({"preset": "preview", "scene": scene, "steps": steps, "execution": execution}))
     return f
 
 

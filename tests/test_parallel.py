@@ -96,7 +96,16 @@ def test_map_segments_starts_a_cluster_per_call_only_when_it_needs_one(monkeypat
     opened = _opened(monkeypatch)
     assert parallel.map_segments(_pid, [1], workers=2) == [os.getpid()]  # one item: in-process
     assert parallel.map_segments(_pid, [1, 2], workers=1) == [os.getpid()] * 2
+    small = {"pixels": 99, "min_pixels": 100}  # less work than a cluster's start costs
+    assert parallel.map_segments(_pid, [1, 2], workers=2, **small) == [os.getpid()] * 2
     assert not opened
+
+    def asked(*args: Any) -> Any:
+        raise LookupError("a cluster was asked for")
+
+    monkeypatch.setattr(parallel, "_open_client", asked)  # as much work as a start costs: a cluster (none started)
+    with pytest.raises(LookupError, match="asked for"):
+        parallel.map_segments(_pid, [1, 2], workers=2, pixels=100, min_pixels=100)
 
 
 @pytest.mark.e2e

@@ -25,11 +25,14 @@ from wonderverse.store import SceneStore
 pytestmark = pytest.mark.e2e  # the CLI in a subprocess, signalled
 
 
-def tiny_spec(tmp_path: Path, prompt: str = "a small house decorated for Christmas", **scene) -> Path:
+def tiny_spec(
+    tmp_path: Path, prompt: str = "a small house decorated for Christmas", execution: dict | None = None, **scene
+) -> Path:
     """A --config file of the tiny video with SHORT_STEPS (a whole run in ~20 s on 2 cores)."""
-    f = tmp_path / f"spec-{abs(hash((prompt, str(scene))))}.yaml"
+    f = tmp_path / f"spec-{abs(hash((prompt, str(scene), str(execution))))}.yaml"
     video = {**TINY_VIDEO, "options": {"fault_probability": 0.0}}
     spec = {"preset": "preview", "scene": {"prompt": prompt, "video": video, **scene}, "steps": SHORT_STEPS}
+    spec |= {"execution": execution} if execution else {}
     f.write_text(yaml.safe_dump(spec))
     return f
 
@@ -77,7 +80,9 @@ def wait_for_line(proc: subprocess.Popen, needle: str, timeout: float = 600) -> 
 )
 def test_a_signal_stops_the_run_at_once_and_the_same_command_resumes(tmp_path, engine, signum, during, code):
     scene = tmp_path / "scene"
-    args = ("generate", "--config", str(tiny_spec(tmp_path)), "--out", str(scene), "--engine", engine)
+    # stopped during the check, the run has Dask workers, however small its segments: they must stop too
+    spec = tiny_spec(tmp_path, execution={"cluster_min_pixels": 0} if during == "check:" else None)
+    args = ("generate", "--config", str(spec), "--out", str(scene), "--engine", engine)
     env = prefect_env(tmp_path)
     proc = start_cli(*args, env=env)
     before = wait_for_line(proc, f"] {during}")

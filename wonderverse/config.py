@@ -333,6 +333,12 @@ class OutputsParams(Model):
     quality_frames: int = Field(8, ge=1, le=1000, description="novel-view frames scored, evenly spaced")
 
 
+# Below this many pixels of segments to check or give priors, the work runs in the calling process: a LocalCluster's
+# start (spawning its workers, each importing the project) costs more than two workers win back (measured in
+# `benchmarks.cluster_start`, docs/benchmarks.md)
+LOCAL_CLUSTER_MIN_PIXELS = 3_000_000
+
+
 class ExecutionParams(Model):
     """Where and how fast the steps run: never part of a cache key, since results do not depend on it (a scene
     made on a GPU with gsplat is complete on a CPU machine too)."""
@@ -340,6 +346,12 @@ class ExecutionParams(Model):
     generate_workers: int = Field(1, ge=1, le=64, description="segments rendered at once")
     segment_workers: int = Field(
         2, ge=1, le=256, description="segments checked / given priors at once (Dask LocalCluster worker processes)"
+    )
+    cluster_min_pixels: int = Field(
+        LOCAL_CLUSTER_MIN_PIXELS,
+        ge=0,
+        description="a LocalCluster is started only for segments of more pixels (frames x height x width, together) "
+        "than this: its start costs seconds that smaller work does not win back (0: always)",
     )
     dask_address: str | None = Field(
         None, description="an existing Dask scheduler for per-segment work, tcp://host:8786 (no user:password@)"

@@ -17,6 +17,9 @@ from wonderverse.camera import camera_centers
 from wonderverse.check import CheckParams, CheckResult
 
 DPI = 100
+# Fixed margins rather than a layout engine: constrained layout doubled the time a plot takes (0.19 s -> 0.09 s for
+# a check plot), and a report draws two per attempt
+FIXED_MARGINS = {"left": 0.1, "right": 0.97, "bottom": 0.1, "top": 0.9}
 
 
 def _png(fig: Any) -> bytes:
@@ -39,7 +42,8 @@ def segment_check_figure(
     from matplotlib.figure import Figure
 
     params = params or CheckParams()
-    fig = Figure(figsize=(8, 5), dpi=DPI, layout="constrained")
+    fig = Figure(figsize=(8, 5), dpi=DPI)
+    fig.subplots_adjust(**FIXED_MARGINS, hspace=0.12)
     ax_t, ax_r = fig.subplots(2, 1, sharex=True)
     steps = np.arange(len(check.rot_steps))
     flagged = np.array(sorted(set(check.flagged_frames)), dtype=int)
@@ -114,7 +118,8 @@ def trajectory_topview_figure(
     extent = float(np.ptp(all_c @ np.stack([u, v]).T, axis=0).max()) if len(all_c) >= 2 else 1.0
     arrow = 0.08 * (extent if extent > 0 else 1.0)
 
-    fig = Figure(figsize=(6, 6), dpi=DPI, layout="constrained")
+    fig = Figure(figsize=(6, 6), dpi=DPI)
+    fig.subplots_adjust(**FIXED_MARGINS | {"left": 0.16, "right": 0.95})  # room for long tick labels
     ax = fig.subplots()
     drawn = []
     for k, (c, dirs, label) in enumerate(zip(centres_list, dirs_list, labels, strict=True)):
