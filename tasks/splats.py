@@ -6,6 +6,7 @@ step, in the outputs' gravity-aligned frame."""
 
 from __future__ import annotations
 
+import hashlib
 import logging
 from collections.abc import Collection
 from typing import TYPE_CHECKING, Any
@@ -62,6 +63,11 @@ def load_views(store: SceneStore, only: Collection[str] | None = None) -> tuple[
     return views, names
 
 
+def poses_digest(w2c: np.ndarray) -> str:
+    """A digest of the W2C poses (N,4,4) the splats are trained with, bit for bit."""
+    return hashlib.sha256(np.ascontiguousarray(w2c, np.float64).tobytes()).hexdigest()
+
+
 def _train_digest(p: SplatsStepParams) -> str:
     """What must not change for an extension to continue the previous optimisation instead of restarting."""
     kept = p.model_dump(exclude={name for name in SplatsStepParams.model_fields if name.startswith("extend_")})
@@ -81,7 +87,7 @@ def _previous(store: SceneStore, p: SplatsStepParams, names: list[str]) -> Previ
     if not (old and old < set(names)):
         return None
     arrays = {k: store.array(getattr(SPLATS, k)) for k in GaussianModel.PARAM_NAMES}
-    return PreviousSplats(arrays, normalization_from_dict(prev.normalization), prev.frames)
+    return PreviousSplats(arrays, normalization_from_dict(prev.normalization), prev.frames, prev.poses_digest)
 
 
 def stored_sky(store: SceneStore) -> np.ndarray | None:
@@ -134,11 +140,18 @@ def _load_checkpoint(store: SceneStore, key: str, device: Any, n_views: int, sh_
 def _region(
     store: SceneStore, p: SplatsStepParams, previous: PreviousSplats, names: list[str], w2c: np.ndarray
 ) -> Region | None:
-    """The region an extension trains (`wonderverse.splats.region`), None when the whole scene is to be."""
+    """The region an extension trains (`wonderverse.splats.region`), None when the whole scene is to be: no
+    region is asked for, or the frames the previous splats were trained on have moved (the global poses were solved
+    again, not only extended): Gaussians kept as they were would no longer line up with their views."""
     from tasks.segments import attempt_path
     from wonderverse.splats.region import extension_region
 
     if p.extend_old_views_max is None:
+        return None
+    at = {n: i for i, n in enumerate(names)}
+    trained_with = previous.poses_digest
+    if trained_with is not None and poses_digest(w2c[[at[n] for n in previous.frames]]) != trained_with:
+        log.warning("the poses of the frames the splats were trained on have moved: every view trains again")
         return None
     seen = set(previous.frames)
     new = [i for i, n in enumerate(names) if n not in seen]
@@ -199,6 +212,7 @@ def run(store: SceneStore, p: SplatsStepParams, ctx: StepContext) -> str:
         normalization=normalization_to_dict(norm),
         metrics=metrics,
         frames=names,
+        poses_digest=poses_digest(w2c),
         train_digest=_train_digest(p),
         extended_from=None if previous is None else start.extended_from(len(previous.frames)),
         curves={k: [float(x) for x in v] for k, v in curves.items()},

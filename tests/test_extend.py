@@ -3,7 +3,9 @@ continue from the existing Gaussians, the history is kept and shown by inspect."
 
 from __future__ import annotations
 
+import hashlib
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -51,6 +53,7 @@ def scenes(tmp_path_factory) -> tuple[Path, dict]:
         "frames": store.meta("splats").frames,
         "sfm": _poses_by_frame(store),
     }
+    shutil.copytree(scene, scene.parent / "before")  # the scene as the extension found it
     results = extend(scene, WORDS, engine="local")
     return scene, {"before": before, "results": {r.step: r.status for r in results}}
 
@@ -94,6 +97,28 @@ def test_splats_continue_from_the_existing_gaussians(scenes) -> None:
     assert set(info["before"]["frames"]) < set(a.frames) and any(f.startswith("s002_") for f in a.frames)
     splats = _config().steps.splats
     assert len(a.curves["total"]) == round(splats.train.iterations * splats.extend_iterations_frac)
+
+
+@pytest.mark.e2e
+def test_the_splats_record_the_poses_they_were_trained_with_and_train_every_view_once_those_moved(scenes) -> None:
+    from tasks.segments import posed_stitched
+    from tasks.splats import _previous, _region
+
+    scene, info = scenes
+    store = SceneStore.open(scene)
+    poses = _poses_by_frame(store)  # the global poses, read from sfm/ as any reader would
+    for folder in (scene, scene.parent / "before"):
+        meta = SceneStore.open(folder).meta("splats")
+        trained = np.stack([poses[(n.split("_")[0], int(n.split("_")[1]))] for n in meta.frames])
+        assert meta.poses_digest == hashlib.sha256(trained.astype(np.float64).tobytes()).hexdigest(), folder
+    p = _config().steps.splats.model_copy(update={"extend_old_views_max": 8})  # an extension that trains a region
+    before = SceneStore.open(scene.parent / "before")
+    _, w2c, names = posed_stitched(store, {})
+    previous = _previous(before, p, names)  # the extension's start: the splats as they were
+    assert previous is not None and _region(store, p, previous, names, w2c) is not None  # poses kept: a region
+    moved = w2c.copy()
+    moved[names.index(previous.frames[0]), 0, 3] += 1e-9  # an old frame solved again, ever so slightly elsewhere
+    assert _region(store, p, previous, names, moved) is None
 
 
 @pytest.mark.e2e

@@ -314,6 +314,9 @@ class SplatsAttrs(StepAttrs):
     metrics: SplatMetrics = Field(default_factory=SplatMetrics)
     frames: list[str] = Field(default_factory=list, description="the frames trained on (`s000_0007`)")
     train_digest: str = Field("", description="what must not change for an extension to continue the training")
+    poses_digest: str | None = Field(
+        None, description="sha256 of the poses of `frames` (W2C float64) trained with: moved, an extension trains all"
+    )
     extended_from: dict[str, int] | None = Field(
         None,
         description="an extension's start: {frames, kept_gaussians (carried over), continued_gaussians (trained "

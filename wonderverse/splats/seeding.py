@@ -30,11 +30,12 @@ if TYPE_CHECKING:
 @dataclass
 class PreviousSplats:
     """A previous training run to continue: its Gaussians (training frame of `normalization`), that
-    normalisation, and the names of the views it was trained on."""
+    normalisation, the names of the views it was trained on and a digest of their poses (None: not recorded)."""
 
     arrays: dict[str, np.ndarray]
     normalization: Sim3
     frames: list[str]
+    poses_digest: str | None = None
 
 
 @dataclass
