@@ -104,7 +104,7 @@ def test_the_splats_record_the_poses_they_were_trained_with_and_train_every_view
     from tasks.segments import posed_stitched
     from tasks.splats import _previous, _region
 
-    scene, info = scenes
+    scene, _ = scenes
     store = SceneStore.open(scene)
     poses = _poses_by_frame(store)  # the global poses, read from sfm/ as any reader would
     for folder in (scene, scene.parent / "before"):
