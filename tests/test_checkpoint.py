@@ -14,7 +14,7 @@ import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from tasks.splats import CHECKPOINT, _load_checkpoint, _save_checkpoint
+from tasks.splats_checkpoint import CHECKPOINT, load_checkpoint, save_checkpoint
 from wonderverse.splats.checkpoint import CheckpointError, pack, unpack
 from wonderverse.splats.model import init_from_points, normalization_from_cameras, voxel_downsample
 from wonderverse.splats.params import DefaultStrategyParams, TrainParams
@@ -77,7 +77,7 @@ def uninterrupted(scene: dict[str, Any]) -> dict[str, Any]:
 
 
 def _load(store: SceneStore) -> dict[str, Any] | None:
-    return _load_checkpoint(store, RUN_KEY, "cpu", T, 3)
+    return load_checkpoint(store, RUN_KEY, "cpu", T, 3)
 
 
 def assert_same_tree(a: Any, b: Any, where: str = "state") -> None:
@@ -193,7 +193,7 @@ def test_resume_from_a_stored_checkpoint_is_the_uninterrupted_run(
     tmp_path: Path, scene: dict[str, Any], uninterrupted: dict[str, Any], caplog: pytest.LogCaptureFixture
 ) -> None:
     store = SceneStore.open_or_create(tmp_path / "scene")
-    _save_checkpoint(store, RUN_KEY, 8, uninterrupted["saved"][8])
+    save_checkpoint(store, RUN_KEY, 8, uninterrupted["saved"][8])
     assert store.cache_key_of(CHECKPOINT) is not None  # complete
     with caplog.at_level(logging.WARNING, logger="wonderverse.splats"):
         state = _load(store)
@@ -213,7 +213,7 @@ def test_resume_from_a_stored_checkpoint_is_the_uninterrupted_run(
 
 def test_a_checkpoint_for_another_run_is_not_read(tmp_path: Path, uninterrupted: dict[str, Any], caplog) -> None:
     store = SceneStore.open_or_create(tmp_path / "scene")
-    _save_checkpoint(store, "b" * 64, 8, uninterrupted["saved"][8])
+    save_checkpoint(store, "b" * 64, 8, uninterrupted["saved"][8])
     with caplog.at_level(logging.WARNING, logger="wonderverse.splats"):
         assert _load(store) is None
     assert not caplog.records  # another run's checkpoint: not ours, nothing to say
@@ -264,7 +264,7 @@ def test_a_checkpoint_that_does_not_fit_is_ignored_with_one_warning(
     tmp_path: Path, uninterrupted: dict[str, Any], caplog: pytest.LogCaptureFixture, damage: str
 ) -> None:
     store = SceneStore.open_or_create(tmp_path / "scene")
-    _save_checkpoint(store, RUN_KEY, 8, uninterrupted["saved"][8])
+    save_checkpoint(store, RUN_KEY, 8, uninterrupted["saved"][8])
     TAMPERED[damage](store)
     with caplog.at_level(logging.WARNING, logger="wonderverse.splats"):
         assert _load(store) is None
