@@ -104,8 +104,11 @@ def _model_tracks(scene: OutputScene) -> Any:
 
 def make_nerfstudio(scene: OutputScene) -> Made:
     """A nerfstudio dataset; the images and depths of frames an earlier export wrote as they are now stay (their
-    depths rendered from the splats of then), unless the new frames' depths need another scale of lengths."""
-    from wonderverse.exports import depth_png_scale
+    depths rendered from the splats of then), unless the new frames' depths do not fit the files' scale of lengths
+    (`depth_png_scale`'s band of three to five significant digits). Any scale that fits will do: asking for the one
+    the new frames alone would get re-rendered every depth of a 15-segment world (27 of the 47 s of its outputs)
+    only to come back to the same scale."""
+    from wonderverse.exports import fits_scale
     from wonderverse.products.datasets import export_nerfstudio
 
     if not scene.p.nerfstudio:
@@ -114,13 +117,14 @@ def make_nerfstudio(scene: OutputScene) -> Made:
     todo = [k for k, name in enumerate(scene.names) if name not in keep]
     new = [d for _, d in scene.views(scene.w2c_sfm[todo], "views rendered for depth")]
     old = before.nerfstudio if before is not None and before.nerfstudio else {}
-    if keep and depth_png_scale(new) != old.get("scale_from_world"):
+    scale = old.get("scale_from_world")
+    if keep and (scale is None or not fits_scale(new, scale)):
         keep, todo = set(), list(range(len(scene.names)))
         new = [d for _, d in scene.views(scene.w2c_sfm, "views rendered for depth")]
     depths: list[np.ndarray | None] = [None] * len(scene.names)
     for k, d in zip(todo, new, strict=True):
         depths[k] = d
-    scale = old.get("scale_from_world") if keep else None
+    scale = scale if keep else None
     args = (scene.frames, scene.K, scene.w2c, scene.names, depths, scene.cloud, scene.world, scene.out)
     files, stats = export_nerfstudio(*args, keep=keep, scale=scale)
     per_frame = {n: c for n, c in (old.get("per_frame") or {}).items() if n in keep} | stats["per_frame"]

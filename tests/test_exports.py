@@ -23,6 +23,7 @@ from wonderverse.exports import (
     OPENCV_TO_OPENGL,
     ColmapTracks,
     depth_png_scale,
+    fits_scale,
     nerfstudio_dataparser_frame,
     project_tracks,
     read_camera_path,
@@ -279,6 +280,10 @@ def test_nerfstudio_depth_units_fit_the_png(tmp_path: Path) -> None:
     assert depth_png_scale([np.full((4, 4), 0.02)]) == 1000.0
     assert depth_png_scale([np.full((4, 4), 3.0), np.full((2, 2), np.inf)]) == 1.0
     assert depth_png_scale([np.full((4, 4), np.inf)]) == 1.0
+    # an extension's frames 30 units away would get 1 alone; files at 0.1 hold them at 3 000 thousandths: kept
+    assert fits_scale([np.full((4, 4), 30.0)], 0.1) and fits_scale([np.full((4, 4), 300.0)], 0.1)
+    assert not fits_scale([np.full((4, 4), 700.0)], 0.1)  # 70 file units: beyond 16 bits of thousandths
+    assert not fits_scale([np.full((4, 4), 3.0)], 0.1)  # 0.3 file units: two significant digits
     w2c = _ring(4, radius=200.0)
     depths = [np.full((H, W), 200.0 + k) for k in range(4)]
     path, stats = write_nerfstudio(tmp_path, _frames(4), intrinsics(W, H, 60.0), w2c, None, depths)

@@ -122,6 +122,15 @@ def test_the_splats_record_the_poses_they_were_trained_with_and_train_every_view
 
 
 @pytest.mark.e2e
+def test_the_datasets_keep_the_files_of_the_frames_they_had(scenes) -> None:
+    scene, _ = scenes
+    for product in ("nerfstudio/images", "nerfstudio/depths", "colmap/images"):
+        before = sorted((scene.parent / "before" / product).iterdir())
+        assert before and all(f.read_bytes() == (scene / product / f.name).read_bytes() for f in before), product
+        assert any(f.name.startswith("s002_") for f in (scene / product).iterdir()), product
+
+
+@pytest.mark.e2e
 def test_history_is_kept_and_inspect_shows_it(scenes) -> None:
     scene, _ = scenes
     r = run_cli("inspect", str(scene), "--json")

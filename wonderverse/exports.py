@@ -389,6 +389,12 @@ def depth_png_scale(depths: list[np.ndarray]) -> float:
     return float(10.0 ** np.floor(np.log10(NERFSTUDIO_DEPTH_MAX / top)))
 
 
+def fits_scale(depths: list[np.ndarray], scale: float) -> bool:
+    """Whether `depths` written at `scale` keep `depth_png_scale`'s band (their 99.9th percentile at 0.65535 to
+    65.535 file units): a dataset extended with them can keep the scale its files were written at."""
+    return depth_png_scale([np.asarray(d, np.float64) * scale for d in depths]) == 1.0
+
+
 def _depth_png(depth: np.ndarray) -> tuple[np.ndarray, int]:
     """(uint16 image of depth / NERFSTUDIO_DEPTH_UNIT, 0 where not finite, not positive or too far; pixels too far)."""
     d = np.asarray(depth, np.float64)
