@@ -336,7 +336,7 @@ class OutputsParams(Model):
 # Below this many pixels of segments to check or give priors, the work runs in the calling process: a LocalCluster's
 # start (spawning its workers, each importing the project) costs more than two workers win back (measured in
 # `benchmarks.cluster_start`, docs/benchmarks.md)
-LOCAL_CLUSTER_MIN_PIXELS = 3_000_000
+LOCAL_CLUSTER_MIN_PIXELS = 2_000_000
 
 
 class ExecutionParams(Model):
