@@ -105,9 +105,8 @@ def _model_tracks(scene: OutputScene) -> Any:
 def make_nerfstudio(scene: OutputScene) -> Made:
     """A nerfstudio dataset; the images and depths of frames an earlier export wrote as they are now stay (their
     depths rendered from the splats of then), unless the new frames' depths do not fit the files' scale of lengths
-    (`depth_png_scale`'s band of three to five significant digits). Any scale that fits will do: asking for the one
-    the new frames alone would get re-rendered every depth of a 15-segment world (27 of the 47 s of its outputs)
-    only to come back to the same scale."""
+    (`depth_png_scale`'s band of three to five significant digits). Any scale that fits will do: the new frames' own
+    scale may be another power of ten whenever they alone fall in another decade."""
     from wonderverse.exports import fits_scale
     from wonderverse.products.datasets import export_nerfstudio
 
