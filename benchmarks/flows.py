@@ -81,7 +81,8 @@ def dask_rows(tmp: Path, cfg: RunConfig) -> tuple[list[dict], float]:
     for workers in (1, 2):
         d = tmp / f"dask_{workers}"
         shutil.copytree(base, d)
-        c = cfg.model_copy(update={"execution": cfg.execution.model_copy(update={"segment_workers": workers})})
+        on = {"segment_workers": workers, "cluster_min_pixels": 0}  # the cluster however small the segments
+        c = cfg.model_copy(update={"execution": cfg.execution.model_copy(update=on)})
         seconds[workers] = _timed(lambda d=d, c=c: execute(d, c, until="check"))
     rows = [{"what": f"check step, 6 segments, {w} worker(s)", "seconds": s} for w, s in seconds.items()]
     return rows, seconds[1] / seconds[2]
