@@ -207,3 +207,20 @@ def test_a_fresh_video_model_replays_the_words_of_earlier_segments(lake_run: dic
     assert second.gt.label_names == {0: "lake (frozen)"}
     assert np.array_equal(second.gt.labels, lake_run["second"].gt.labels)
     replay_content(object(), OUTDOOR, [("left", "a frozen lake on the left", lake_run["path"])])  # no world: no-op
+
+
+@pytest.mark.parametrize("words", ["further ahead, a row of lanterns", "further ahead, a statue", "a house ahead"])
+def test_what_is_placed_ahead_leaves_the_way_ahead_open(words: str) -> None:
+    """A segment's words place content in front of its end; the next segments go on forward from there. Their
+    camera must never come inside what was placed (it would film the inside of a lamp: frames nothing registers),
+    measured by the renderer: along a forward move past everything placed, no labelled pixel is nearer than 1 m."""
+    v = ProceduralVideo(OUTDOOR, 5, 64, 48, 60.0, CLEAN)
+    start = v.world.start_pose()
+    first = v.generate(segment_prompt(OUTDOOR, "forward", words), move_path(start, 0.0, 0.0, 2.0, 0.0, 4), 1, None)
+    assert first.gt.labels is not None and (first.gt.labels[-1] >= 0).mean() > 0.003  # the content is in view
+    on = v.generate(
+        segment_prompt(OUTDOOR, "forward", ""), move_path(first.gt.poses[-1], 0.0, 0.0, 30.0, 0.0, 24), 2, None
+    )
+    labelled = on.gt.labels >= 0
+    assert labelled.any()  # still passed on the way
+    assert on.gt.depth[labelled].min() > 1.0, on.gt.depth[labelled].min()

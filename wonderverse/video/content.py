@@ -221,6 +221,12 @@ class ContentParams(BaseModel):
     camera_clearance_m: float = Field(1.5, ge=0, description="content keeps this far from the camera outdoors")
     indoor_camera_clearance_m: float = Field(1.0, ge=0)
     object_gap_m: float = Field(0.4, ge=0, description="free space kept to the world's objects")
+    way_ahead_weight: float = Field(
+        4.0,
+        ge=0,
+        description="cost per footprint radius of intrusion into the way ahead (the camera's clearance "
+        "either side of its heading, from the camera on): a later forward move does not fly into what was placed",
+    )
     rim_margin_m: float = Field(3.0, ge=0, description="outdoors: stay this far inside the skyline rim")
     wall_margin_m: float = Field(0.15, ge=0, description="indoors: stay this far from the walls")
     overlap_weight: float = Field(4.0, ge=0, description="cost per footprint radius of overlap with objects")
@@ -576,6 +582,7 @@ def place_content(
                 overlap = sum(
                     max(0.0, r + radius + p.object_gap_m - float(np.linalg.norm(xy - q))) for q, r in obstacles
                 )
+                ahead = 0.0 if item.kind == "lake" else _in_way_ahead(xy, radius, centre[:2], heading, clear)
                 across = np.array([-direction[1], direction[0]])
                 probes = _probes(item.kind, xy, radius, spec.probe_height_m * max(item.scale, 1.0), ground, across)
                 hidden, off = _visible_share(world, centre, end_w2c, K, size, probes)
@@ -585,6 +592,7 @@ def place_content(
                     + p.off_screen_weight * off
                     + p.distance_weight * abs(d - d_pref) / d_pref
                     + p.bearing_weight * abs(b - aim) / half_fov
+                    + p.way_ahead_weight * ahead / radius
                 )
                 if item.kind == "lake":
                     lo, hi = _relief(ground, xy, radius)
@@ -598,7 +606,8 @@ def place_content(
             notes.append(f"no room for {item.phrase!r} in view; placed {d:.1f} m ahead")
         else:
             xy = best[1]
-        placement = _build_item(world, item, key, xy, r_inst, radius, (centre[:2], near), heading, rng, obstacles, p)
+        camera = _Camera(centre[:2], heading, near, clear)
+        placement = _build_item(world, item, key, xy, r_inst, radius, camera, rng, obstacles, p)
         placement.notes = (*placement.notes, *notes)
         placed.append(placement)
         obstacles.append((xy, radius))
@@ -612,15 +621,13 @@ def _build_item(
     xy: np.ndarray,
     r_inst: float,
     radius: float,
-    camera: tuple[np.ndarray, float],
-    heading: np.ndarray,
+    camera: _Camera,
     rng: np.random.Generator,
     obstacles: list[tuple[np.ndarray, float]],
     p: ContentParams,
 ) -> Placement:
     """The item's mesh: one instance at xy, or `count` spread over the disc of `radius` around it, each on the
-    ground, clear of the obstacles, of each other and of the camera (camera = (centre xy, nearest distance)) where
-    the tries allow."""
+    ground, clear of the obstacles, of each other, of the camera and of its way ahead where the tries allow."""
     ground = _ground(world)
     b = _Transformed()
     c = _Ctx(b, rng, world.params, world.theme, world.night)
@@ -638,14 +645,15 @@ def _build_item(
                 continue
             clash = sum(max(0.0, p.group_spacing * r_inst * 2 - float(np.linalg.norm(q - s))) for s in spots)
             clash += sum(max(0.0, r_inst + ro - float(np.linalg.norm(q - o))) for o, ro in obstacles)
-            clash += max(0.0, camera[1] - float(np.linalg.norm(q - camera[0])))
+            clash += max(0.0, camera.near - float(np.linalg.norm(q - camera.xy)))
+            clash += _in_way_ahead(q, r_inst, camera.xy, camera.heading, camera.clear)
             if best is None or clash < best[0]:
                 best = (clash, q)
             if clash == 0:
                 break
         if best is not None:
             spots.append(best[1])
-    facing = float(np.arctan2(-heading[0], heading[1]))  # local +y (an item's back) away from the camera
+    facing = float(np.arctan2(-camera.heading[0], camera.heading[1]))  # local +y (an item's back) away from the camera
     for q in spots:
         z = float(ground(q[0], q[1]))
         b.offset, b.scale = np.array([q[0], q[1], z]), item.scale
@@ -657,6 +665,29 @@ def _build_item(
             _instance(c, item, world.kind, obj, facing + rng.uniform(-0.3, 0.3))
     centre = np.array([xy[0], xy[1], float(ground(xy[0], xy[1]))])
     return Placement(item, key, centre, radius, b.arrays() if b.verts else (), b.objects, shore=shore)
+
+
+@dataclass(frozen=True)
+class _Camera:
+    """The camera content is placed for: its ground position, horizontal heading (unit), the distance a group's
+    instances keep from it and the clearance either side of its way ahead."""
+
+    xy: np.ndarray
+    heading: np.ndarray
+    near: float
+    clear: float
+
+
+def _in_way_ahead(xy: np.ndarray, radius: float, camera: np.ndarray, heading: np.ndarray, clear: float) -> float:
+    """How far (metres) a disc at xy of `radius` reaches into the way ahead of a camera at `camera` going along
+    `heading`: the band of `clear` either side of the ray from it. A forward move continues along that ray, so
+    what stands in the band is what a later segment would fly into; 0 for a disc beside or behind it."""
+    rel = np.asarray(xy, dtype=np.float64) - camera
+    along = float(rel @ heading)
+    if along + radius <= 0:
+        return 0.0
+    across = abs(float(rel[0] * heading[1] - rel[1] * heading[0]))
+    return max(0.0, clear + radius - across)
 
 
 def _object_kind(item: ContentItem, world: World) -> str:
