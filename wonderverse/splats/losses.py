@@ -137,17 +137,15 @@ def warp_frames(
 
 
 @torch.no_grad()
-def cross_view_residual(frame: Tensor, warped: Tensor, valid: Tensor, quantile: float = 0.5) -> Tensor:
+def cross_view_residual(frame: Tensor, warped: Tensor, valid: Tensor) -> Tensor:
     """Per-pixel disagreement (H,W) of a frame (H,W,3) with the other views' frames warped into it (`warp_frames`):
-    the `quantile` over those views of mean_c |frame - warped|, 0 where fewer than two see the pixel. The static
-    world looks the same from every view, a mover is elsewhere in most of them, and a ghost in the scene is in no
-    frame: so a high value marks a transient of this frame, whatever the render shows. Above the median it also
-    marks a slow mover, which stays on its pixels in many of the views (at the cost of more disoccluded edges)."""
-    d = torch.where(valid, (frame[None] - warped).abs().mean(-1), torch.inf).sort(dim=0).values
-    n = valid.sum(0)
-    # the lower of two middle values, as torch.nanmedian (torch.nanquantile refuses more than 2**24 values)
-    k = ((n - 1).clamp_min(0) * quantile).floor().long()
-    return torch.where(n >= 2, d.gather(0, k[None])[0], 0.0)
+    the median over those views of mean_c |frame - warped|, 0 where fewer than two see the pixel. The static world
+    looks the same from every view, a mover is elsewhere in most of them, and a ghost in the scene is in no frame:
+    so a high median marks a transient of this frame, whatever the render shows."""
+    d = (frame[None] - warped).abs().mean(-1)
+    d = torch.where(valid, d, torch.nan)
+    med = torch.nanmedian(d, dim=0).values
+    return torch.where(valid.sum(0) >= 2, torch.nan_to_num(med, nan=0.0), 0.0)
 
 
 def fit_scale_shift(prior: Tensor, target: Tensor, mask: Tensor) -> tuple[Tensor, Tensor]:

@@ -31,13 +31,6 @@ class RobustLossParams(BaseModel):
         le=64,
         description="cross_view: the training views nearest in the video order a frame is compared with",
     )
-    residual_quantile: float = Field(
-        0.5,
-        gt=0,
-        lt=1,
-        description="cross_view: a pixel's disagreement is this quantile over the views it is compared with (0.5: "
-        "the median; higher also finds movers slow enough to stay on their pixels in many of those views)",
-    )
     start_frac: float = Field(
         0.0,
         ge=0,

@@ -325,7 +325,7 @@ def _cross_view(
     if len(others) < 2:
         return torch.ones_like(depth), torch.zeros_like(depth, dtype=torch.bool)
     warped, valid = warp_frames(depth, K[i], w2c[i], frames[others], torch.stack([K[j] for j in others]), w2c[others])
-    return outlier_blobs(cross_view_residual(frames[i], warped, valid, rp.residual_quantile), rp)
+    return outlier_blobs(cross_view_residual(frames[i], warped, valid), rp)
 
 
 @torch.no_grad()
