@@ -548,6 +548,9 @@ def place_content(
     heading = f[:2] / np.linalg.norm(f[:2])
     half_fov = float(np.arctan(size[0] / 2 / K[0, 0]))
     obstacles = [(np.array(o.pivot[:2]), o.radius_m) for o in world.objects if o.kind not in ("painting",)]
+    indoor = world.kind == "indoor"
+    clear = p.indoor_camera_clearance_m if indoor else p.camera_clearance_m
+    camera = _Camera(centre[:2], heading, clear)
     placed: list[Placement] = []
     for index, item in enumerate(request.items):
         spec = VOCABULARY[item.kind]
@@ -559,8 +562,6 @@ def place_content(
         rng = np.random.default_rng(seq)
         r_inst = _instance_radius(world, item)
         radius = _group_radius(r_inst, item.count, p.group_spacing)
-        indoor = world.kind == "indoor"
-        clear = p.indoor_camera_clearance_m if indoor else p.camera_clearance_m
         d_pref = (spec.indoor_distance_m if indoor else spec.distance_m) * {"far": p.far_factor, "near": p.near_factor,
                                                                             None: 1.0}[request.distance]  # fmt: skip
         near = p.group_near_share * d_pref if item.count > 1 else 0.0  # a group's front row stays this far away
@@ -582,7 +583,7 @@ def place_content(
                 overlap = sum(
                     max(0.0, r + radius + p.object_gap_m - float(np.linalg.norm(xy - q))) for q, r in obstacles
                 )
-                ahead = 0.0 if item.kind == "lake" else _in_way_ahead(xy, radius, centre[:2], heading, clear)
+                ahead = 0.0 if item.kind == "lake" else camera.in_way_ahead(xy, radius)
                 across = np.array([-direction[1], direction[0]])
                 probes = _probes(item.kind, xy, radius, spec.probe_height_m * max(item.scale, 1.0), ground, across)
                 hidden, off = _visible_share(world, centre, end_w2c, K, size, probes)
@@ -606,8 +607,7 @@ def place_content(
             notes.append(f"no room for {item.phrase!r} in view; placed {d:.1f} m ahead")
         else:
             xy = best[1]
-        camera = _Camera(centre[:2], heading, near, clear)
-        placement = _build_item(world, item, key, xy, r_inst, radius, camera, rng, obstacles, p)
+        placement = _build_item(world, item, key, xy, r_inst, radius, camera, near, rng, obstacles, p)
         placement.notes = (*placement.notes, *notes)
         placed.append(placement)
         obstacles.append((xy, radius))
@@ -622,12 +622,14 @@ def _build_item(
     r_inst: float,
     radius: float,
     camera: _Camera,
+    near: float,
     rng: np.random.Generator,
     obstacles: list[tuple[np.ndarray, float]],
     p: ContentParams,
 ) -> Placement:
     """The item's mesh: one instance at xy, or `count` spread over the disc of `radius` around it, each on the
-    ground, clear of the obstacles, of each other, of the camera and of its way ahead where the tries allow."""
+    ground, clear of the obstacles, of each other, of the camera (by `near`) and of its way ahead where the tries
+    allow."""
     ground = _ground(world)
     b = _Transformed()
     c = _Ctx(b, rng, world.params, world.theme, world.night)
@@ -645,8 +647,8 @@ def _build_item(
                 continue
             clash = sum(max(0.0, p.group_spacing * r_inst * 2 - float(np.linalg.norm(q - s))) for s in spots)
             clash += sum(max(0.0, r_inst + ro - float(np.linalg.norm(q - o))) for o, ro in obstacles)
-            clash += max(0.0, camera.near - float(np.linalg.norm(q - camera.xy)))
-            clash += _in_way_ahead(q, r_inst, camera.xy, camera.heading, camera.clear)
+            clash += max(0.0, near - float(np.linalg.norm(q - camera.xy)))
+            clash += camera.in_way_ahead(q, r_inst)
             if best is None or clash < best[0]:
                 best = (clash, q)
             if clash == 0:
@@ -669,25 +671,22 @@ def _build_item(
 
 @dataclass(frozen=True)
 class _Camera:
-    """The camera content is placed for: its ground position, horizontal heading (unit), the distance a group's
-    instances keep from it and the clearance either side of its way ahead."""
+    """The camera content is placed for: its ground position, horizontal heading (unit) and the clearance kept
+    either side of its way ahead."""
 
     xy: np.ndarray
     heading: np.ndarray
-    near: float
     clear: float
 
-
-def _in_way_ahead(xy: np.ndarray, radius: float, camera: np.ndarray, heading: np.ndarray, clear: float) -> float:
-    """How far (metres) a disc at xy of `radius` reaches into the way ahead of a camera at `camera` going along
-    `heading`: the band of `clear` either side of the ray from it. A forward move continues along that ray, so
-    what stands in the band is what a later segment would fly into; 0 for a disc beside or behind it."""
-    rel = np.asarray(xy, dtype=np.float64) - camera
-    along = float(rel @ heading)
-    if along + radius <= 0:
-        return 0.0
-    across = abs(float(rel[0] * heading[1] - rel[1] * heading[0]))
-    return max(0.0, clear + radius - across)
+    def in_way_ahead(self, xy: np.ndarray, radius: float) -> float:
+        """How far (metres) a disc at xy of `radius` reaches into the way ahead: the band of `clear` either side
+        of the ray from the camera along its heading. A forward move continues along that ray, so what stands in
+        the band is what a later segment would fly into; 0 for a disc beside or behind the camera."""
+        rel = np.asarray(xy, dtype=np.float64) - self.xy
+        if float(rel @ self.heading) + radius <= 0:
+            return 0.0
+        across = abs(float(rel[0] * self.heading[1] - rel[1] * self.heading[0]))
+        return max(0.0, self.clear + radius - across)
 
 
 def _object_kind(item: ContentItem, world: World) -> str:
