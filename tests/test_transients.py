@@ -11,7 +11,14 @@ from pydantic import ValidationError
 
 from wonderverse.config import build_config
 from wonderverse.errors import ConfigError
-from wonderverse.splats.losses import cross_view_residual, outlier_blobs, robust_weights, total_loss, warp_frames
+from wonderverse.splats.losses import (
+    confirmed_by_render,
+    cross_view_residual,
+    outlier_blobs,
+    robust_weights,
+    total_loss,
+    warp_frames,
+)
 from wonderverse.splats.params import LossParams, RobustLossParams
 from wonderverse.splats.trainer import Views, nearest_views, prior_outlier_masks
 from wonderverse.video.movers import Mover, render_movers
@@ -105,6 +112,20 @@ def test_robust_weights_drop_a_blob_and_keep_a_clean_image():
     specks[idx] = 1.0 - specks[idx]
     speck_w, _ = robust_weights(render, specks.reshape(frame.shape), params)
     assert (speck_w == 1).all()
+
+
+def test_the_render_confirms_the_mover_and_clears_the_world_it_walked_over():
+    """The cross-view test flags the mover in this frame and also the world where a slow mover stood in the other
+    frames (its trail). Once the scene is learnt, the render shows that world as the frame does and disagrees only
+    with the mover: `confirmed_by_render` keeps exactly the mover."""
+    render, _, moving, blob = _blob_pair()
+    trail = np.zeros_like(blob)
+    trail[20:32, 44:54] = True  # beside the mover, where the other frames showed it
+    flagged = torch.from_numpy(blob | trail)
+    kept = confirmed_by_render(flagged, render, moving, RobustLossParams(enabled=True)).numpy()
+    assert kept[blob].all() and not kept[trail].any()
+    # the price: a mover the scene already shows (a ghost) agrees with the render and trains as world
+    assert not confirmed_by_render(flagged, moving, moving, RobustLossParams(enabled=True)).any()
 
 
 def test_weighted_loss_ignores_the_dropped_pixels():

@@ -109,6 +109,20 @@ def robust_weights(rgb: Tensor, gt_rgb: Tensor, params: RobustLossParams) -> tup
 
 
 @torch.no_grad()
+def confirmed_by_render(mask: Tensor, rgb: Tensor, gt_rgb: Tensor, params: RobustLossParams) -> Tensor:
+    """The pixels of an outlier `mask` (H,W) where the render rgb (H,W,3) disagrees with its frame gt_rgb (H,W,3)
+    too: more than `confirm_share` of the `patch_px` square around them exceed the render test's threshold (as in
+    `outlier_blobs`). The cross-view test alone also flags the world a slow mover walks over, since the other frames
+    show the mover there; once the scene is learnt, the render shows that world as the frame does. A mover the
+    scene has not taken in disagrees with both."""
+    r = (rgb - gt_rgb).abs().mean(-1)
+    tau = torch.clamp_min(params.residual_ratio * r.median(), params.min_residual)
+    k = params.patch_px
+    density = F.avg_pool2d((r > tau).to(r.dtype)[None, None], k, stride=1, padding=k // 2, count_include_pad=False)
+    return mask & (density[0, 0] > params.confirm_share)
+
+
+@torch.no_grad()
 def warp_frames(
     depth: Tensor, K: Tensor, w2c: Tensor, frames: Tensor, Ks: Tensor, w2cs: Tensor
 ) -> tuple[Tensor, Tensor]:

@@ -67,6 +67,20 @@ class RobustLossParams(BaseModel):
         "rendered depth that does not yet fit (cross_view) or a scene not yet learnt (render)",
     )
     outlier_weight: float = Field(0.0, ge=0, lt=1, description="weight of an outlier pixel (inliers weigh 1)")
+    confirm_from_frac: float | None = Field(
+        0.2,
+        ge=0,
+        le=1,
+        description="cross_view: from this share of the iterations on, a flagged pixel stays an outlier only where the "
+        "render disagrees with its frame too (`losses.confirmed_by_render`): what the scene already shows as this "
+        "frame does is the world, though a slow mover covers it in most other frames; None: never",
+    )
+    confirm_share: float = Field(
+        0.2,
+        gt=0,
+        lt=1,
+        description="a flagged pixel is confirmed when more than this share of its patch disagrees with the render",
+    )
 
     @field_validator("patch_px")
     @classmethod

@@ -42,6 +42,7 @@ import torch
 from wonderverse.progress import ProgressFn, no_progress
 from wonderverse.splats.compiled import Compiled
 from wonderverse.splats.losses import (
+    confirmed_by_render,
     cross_view_residual,
     flatten_loss,
     masked_mean,
@@ -295,8 +296,9 @@ def _robust(
     `robust.start_frac` of the iterations every pixel weighs 1. (None, None) when the robust loss is off.
 
     `test: cross_view`: frame i against the nearest `neighbours` training frames warped into it by the rendered
-    depth (`losses.cross_view_residual`); nothing is kept across steps (checkpoints need no state), and held-out
-    frames are never looked at. `test: render`: frame i against the render (`losses.robust_weights`)."""
+    depth (`losses.cross_view_residual`), from `confirm_from_frac` of the iterations on kept only where the render
+    disagrees too (`losses.confirmed_by_render`); nothing is kept across steps (checkpoints need no state), and
+    held-out frames are never looked at. `test: render`: frame i against the render (`losses.robust_weights`)."""
     rp = params.loss.robust
     if not rp.enabled:
         return None, None
@@ -307,7 +309,11 @@ def _robust(
             return robust_weights(rgb.detach(), data.frames[i], rp)
         a = alpha.detach()[..., 0]
         z = torch.where(a > _MIN_ALPHA, depth.detach()[..., 0] / a.clamp_min(1e-6), _FAR_DEPTH)
-        return _cross_view(data.frames, data.K, data.w2c, i, z, train_ids, rp)
+        weights, mask = _cross_view(data.frames, data.K, data.w2c, i, z, train_ids, rp)
+        if rp.confirm_from_frac is not None and step >= rp.confirm_from_frac * params.iterations:
+            mask = confirmed_by_render(mask, rgb.detach(), data.frames[i], rp)
+            weights = torch.where(mask, rp.outlier_weight, 1.0).to(weights.dtype)
+        return weights, mask
 
 
 def _cross_view(
