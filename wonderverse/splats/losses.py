@@ -75,6 +75,15 @@ def ssim(img: Tensor, ref: Tensor, window: int = 11, sigma: float = 1.5) -> Tens
     return ssim_map(img, ref, window, sigma).mean()
 
 
+def _candidate_density(residual: Tensor, params: RobustLossParams) -> Tensor:
+    """(1,1,H,W): the share of the `patch_px` square around each pixel whose residual (H,W) exceeds max(
+    `residual_ratio` x the view's median, `min_residual`)."""
+    tau = torch.clamp_min(params.residual_ratio * residual.median(), params.min_residual)
+    k = params.patch_px
+    cand = (residual > tau).to(residual.dtype)[None, None]
+    return F.avg_pool2d(cand, k, stride=1, padding=k // 2, count_include_pad=False)
+
+
 def outlier_blobs(residual: Tensor, params: RobustLossParams) -> tuple[Tensor, Tensor]:
     """Per-pixel weights (H,W) and the outlier mask (H,W) bool of a per-pixel residual (H,W) in colour units.
 
@@ -87,11 +96,7 @@ def outlier_blobs(residual: Tensor, params: RobustLossParams) -> tuple[Tensor, T
     the view, is wrong: a depth that does not yet fit). Outliers weigh `outlier_weight`, the rest 1. Fixed shapes and
     no host sync, like the rest of the loss."""
     r = residual
-    tau = torch.clamp_min(params.residual_ratio * r.median(), params.min_residual)
-    cand = (r > tau).to(r.dtype)[None, None]
-    k = params.patch_px
-    density = F.avg_pool2d(cand, k, stride=1, padding=k // 2, count_include_pad=False)
-    out = (density > params.patch_share).to(r.dtype)
+    out = (_candidate_density(r, params) > params.patch_share).to(r.dtype)
     if params.dilate_px > 0:
         d = params.dilate_px
         out = F.max_pool2d(out, 2 * d + 1, stride=1, padding=d)
@@ -115,11 +120,7 @@ def confirmed_by_render(mask: Tensor, rgb: Tensor, gt_rgb: Tensor, params: Robus
     `outlier_blobs`). The cross-view test alone also flags the world a slow mover walks over, since the other frames
     show the mover there; once the scene is learnt, the render shows that world as the frame does. A mover the
     scene has not taken in disagrees with both."""
-    r = (rgb - gt_rgb).abs().mean(-1)
-    tau = torch.clamp_min(params.residual_ratio * r.median(), params.min_residual)
-    k = params.patch_px
-    density = F.avg_pool2d((r > tau).to(r.dtype)[None, None], k, stride=1, padding=k // 2, count_include_pad=False)
-    return mask & (density[0, 0] > params.confirm_share)
+    return mask & (_candidate_density((rgb - gt_rgb).abs().mean(-1), params)[0, 0] > params.confirm_share)
 
 
 @torch.no_grad()
