@@ -8,9 +8,9 @@ guidance for real video models).
 The `sfm` group keeps the COLMAP workspace (`colmap_database`, `colmap_model/<file>`, image names from
 `global_poses.image_names`) and, in its attrs, what it was made from (`segment_sources`, `workspace_key`), the
 Sim(3) from the COLMAP model to the world frame (`model_to_world`), the solve (`solve`: incremental | full,
-`incremental_problems`, `segment_disagreement`, `solves`, `seed_offset`), where K came from (`k_source`,
-`K`, `fov_deg`, `pixel_aspect`), whether it was held fixed and why, in words (`k_held`, `k_reason`: the user's
-camera is held unless `refine_intrinsics`) and the SfM's own report.
+`incremental_problems`, `segment_disagreement`, `segment_turn_error_deg`, `solves`, `seed_offset`), where K came
+from (`k_source`, `K`, `fov_deg`, `pixel_aspect`), whether it was held fixed and why, in words (`k_held`,
+`k_reason`: the user's camera is held unless `refine_intrinsics`) and the SfM's own report.
 """
 
 from __future__ import annotations
@@ -21,7 +21,15 @@ import numpy as np
 
 from tasks.base import Step, StepContext
 from tasks.progress import advance
-from tasks.segments import accepted_attempt, attempt_path, camera_prior, segment_meta, stitched, stitched_order
+from tasks.segments import (
+    accepted_attempt,
+    attempt_path,
+    camera_prior,
+    check_readings,
+    segment_meta,
+    stitched,
+    stitched_order,
+)
 from wonderverse.config import PosesParams, RunConfig
 from wonderverse.errors import WonderError
 from wonderverse.schema import SEGMENT, SFM, SFM_MODEL
@@ -86,18 +94,6 @@ def _previous(store: SceneStore) -> PreviousSolve | None:
         kept_frame=prev.kept_frame,
         load_workspace=(lambda: _load_workspace(store)) if stored else None,
     )
-
-
-def _own_poses(store: SceneStore, segs: list[str]) -> dict[str, np.ndarray]:
-    """Each segment's own SfM poses from its check, where the check passed (a segment kept although its
-    check failed has no trustworthy path of its own)."""
-    out = {}
-    for seg in segs:
-        ap = attempt_path(store, seg)
-        check = store.meta(ap.check)
-        if store.exists(ap.sfm.poses) and check is not None and check.accepted:
-            out[seg] = store.array(ap.sfm.poses)
-    return out
 
 
 def _check_mapper(store: SceneStore, segs: list[str]) -> tuple[str, bool] | None:
@@ -185,7 +181,7 @@ def run(store: SceneStore, p: PosesParams, ctx: StepContext) -> str:
             names=image_names(store, [index[k] for k in select_frames(index, p.frame_stride)]),
             sources=_sources(store, segs),
             workspace_key=_workspace_key(p, held),
-            own=_own_poses(store, segs),
+            **check_readings(store, segs),
             previous=_previous(store),
             progress=lambda done, total, note: advance(done, total, UNIT, note, eta=False),  # stages: no pace
             check_mapper=_check_mapper(store, segs) if guessed else None,

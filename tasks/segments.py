@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import Callable, Collection
+from typing import Any
 
 import numpy as np
 
@@ -116,3 +117,27 @@ def posed_stitched(
         names.append(name)
         kept.append(k)
     return {key: np.stack(r) if r else np.zeros((0,)) for key, r in rows.items()}, poses[kept], names
+
+
+def check_readings(store: SceneStore, segs: list[str]) -> dict[str, dict[str, Any]]:
+    """What the checks read of each segment's path, for the global solve to be held to (`solve_global_poses`):
+    `own`, its own SfM poses where the check passed on them (a segment kept although its check failed has no
+    trustworthy path, nor one whose SfM path two-view geometry contradicted: the planar twin, which a global
+    solve can settle in too), and `turns`, its planned path and the check's reading of its turn against it
+    (`global_poses.segment_turn_error`) where the check judged its plan-following."""
+    from wonderverse.global_poses import turn_angles
+
+    own, turns = {}, {}
+    for seg in segs:
+        ap = attempt_path(store, seg)
+        check = store.meta(ap.check)
+        if check is None or not check.accepted:
+            continue
+        pf = check.plan_following or {}
+        if store.exists(ap.sfm.poses) and pf.get("source", "sfm") == "sfm":
+            own[seg] = store.array(ap.sfm.poses)
+        if pf.get("ok") and pf.get("estimated") and pf.get("planned"):
+            reading = turn_angles(pf["estimated"]) - turn_angles(pf["planned"])
+            if np.isfinite(reading).all():
+                turns[seg] = (store.array(SEGMENT.at(seg=seg).path), reading)
+    return {"own": own, "turns": turns}

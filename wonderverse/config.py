@@ -243,6 +243,11 @@ class PosesParams(Model):
     max_segment_disagreement_frac: float = Field(
         0.05, gt=0, description="a segment's poses this far (ATE, share of its path) from its own SfM: re-solve"
     )
+    max_segment_turn_error_deg: float = Field(
+        5.0,
+        gt=0,
+        description="a segment's turn (yaw, pitch, roll over its path) this far from what its check read: re-solve",
+    )
     disagreement_retries: int = Field(2, ge=0, le=10, description="re-solves (next seeds) while a segment disagrees")
     refine_intrinsics: bool = Field(
         False,

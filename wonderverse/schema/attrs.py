@@ -250,6 +250,9 @@ class SfmAttrs(StepAttrs, KRecord):
     segment_disagreement: dict[str, float] = Field(
         default_factory=dict, description="per segment, its path against its own SfM's (share of the path)"
     )
+    segment_turn_error_deg: dict[str, float] = Field(
+        default_factory=dict, description="per segment, its turn against the one its check read (degrees)"
+    )
     solves: int | None = Field(None, description="full solves tried")
     seed_offset: int | None = Field(None, description="the seed offset of the kept solve")
     mapper: str | None = None
