@@ -23,7 +23,10 @@ of the first) with `frames_growth` (stitched frames after the last / after the f
 `ate_frac_first`, `ate_frac_last`; `psnr_start` (the world before its first extension), `psnr_first`, `psnr_last`
 (dB), `psnr_kept_first`, `psnr_kept_last` (the mean of the per-segment held-out PSNR of the segments the first
 extension left, after it and after the last: does what was built hold?), `psnr_scratch` (the final world built
-from scratch: its held-out PSNR when nothing was grown); `seams`
+from scratch: its held-out PSNR when nothing was grown); `psnr_unchanged_first`, `psnr_unchanged_last` (the
+held-out PSNR over the pixels whose world did not change since the frame was made: content a later extension's
+words placed where an older frame shows something else can be right in the splats for the newer frames or for the
+older one, not both) with `changed_share_last` (the share of held-out pixels the world changed under); `seams`
 (extensions whose stitched path failed the jump test); `scratch_seconds`; `last_extension_seconds`; with `--dask`:
 `dask_speedup` (segment-parallel steps' seconds in one process / on the cluster).
 """
@@ -130,11 +133,55 @@ def child_main(what: str, scene: str, payload: str) -> None:
     print(json.dumps({"steps": steps}), flush=True)
 
 
+def changed_under(store: SceneStore, names: list[str], size: tuple[int, int]) -> dict[str, np.ndarray]:
+    """Per frame name ("s003_0008"), (h,w) bool at `size` (w,h): the pixels where the procedural world now shows
+    other content than the frame was rendered with (the world changed under it: a later segment's words placed
+    something where the frame shows the world, or in front of what it shows). Ground truth: the content each
+    pixel showed when the frame was rendered (its attempt's `gt/labels`), against the content the world shows
+    at the same pose now, every stored segment's words replayed, compared by name."""
+    from flows.inspect import run_config
+    from tasks.attempts import video_model
+    from tasks.segments import attempt_path
+    from wonderverse.config import VideoSource
+    from wonderverse.video.procedural import content_labels
+
+    cfg = run_config(store)
+    model = video_model(store, VideoSource(video=cfg.scene.video, prompt=cfg.scene.prompt, seed=cfg.scene.seed))
+    world, object_label, now_names = model.content.snapshot()
+    out = {}
+    for name in names:
+        seg, frame = name.split("_")
+        ap = attempt_path(store, seg)
+        pose = store.array(ap.gt.poses)[int(frame)].copy()
+        pose[:3, 3] /= model.options.scene_scale  # the world is cast in native metres
+        shape = (model.height, model.width)
+        now = (
+            np.full(shape, -1)
+            if world is None
+            else content_labels(world, object_label, model.K, pose[None], *shape[::-1])[0]
+        )
+        then = store.array(ap.gt.labels)[int(frame)] if store.exists(ap.gt.labels) else np.full(shape, -1)
+        then_names = {int(k): v for k, v in store.meta(ap.gt, complete=False).label_names.items()}
+        changed = _named(now, now_names) != _named(then, then_names)
+        rows = np.arange(size[1]) * shape[0] // size[1]  # each pixel at `size` covers a block: any changed
+        cols = np.arange(size[0]) * shape[1] // size[0]
+        out[name] = np.maximum.reduceat(np.maximum.reduceat(changed, rows, axis=0), cols, axis=1)
+    return out
+
+
+def _named(labels: np.ndarray, names: dict[int, str]) -> np.ndarray:
+    """Label ids (-1: none) as the names they stand for ("" for none), so two labellings compare by content."""
+    table = np.array(["", *(names.get(i, "") for i in range(int(labels.max(initial=-1)) + 1))], dtype=object)
+    return table[labels.astype(np.int64) + 1]
+
+
 def held_out_psnr(scene: Path) -> dict[str, float]:
     """Held-out PSNR of the stored splats (dB), every held-out view rendered again now: `all` (their mean) and per
     segment (the views grouped by the segment they come from), so that a segment can be followed from the
     extension that added it to the last one (does what was built hold?) and compared with the world built from
-    scratch. (The splats step's own figure carries the figures of views an extension's region did not touch.)"""
+    scratch. (The splats step's own figure carries the figures of views an extension's region did not touch.)
+    Also `unchanged`, their mean over the pixels the world did not change under (`changed_under`), and `changed`,
+    the share of held-out pixels it did change under."""
     import torch
 
     from tasks.splats import load_views, stored_sky
@@ -156,17 +203,27 @@ def held_out_psnr(scene: Path) -> dict[str, float]:
     sky = stored_sky(store)
     sky = torch.from_numpy(np.asarray(np.zeros(3) if sky is None else sky, np.float32))
     ids = list(meta.metrics.test_views)
-    per_view = evaluate(model, views, ids, make_renderer("auto"), p.train, sky, per_view=True) if ids else {}
+    if not ids:
+        return {"all": float("nan"), "unchanged": float("nan"), "changed": float("nan")}
+    h, w = views.frames.shape[1:3]
+    changed = changed_under(store, [meta.frames[i] for i in ids], (w, h))
+    keep = {i: ~changed[meta.frames[i]] for i in ids}
+    per_view = evaluate(model, views, ids, make_renderer("auto"), p.train, sky, per_view=True, keep=keep)
     groups: dict[str, list[float]] = {}
-    for i, value in zip(ids, per_view.get("psnr_views", []), strict=True):
+    for i, value in zip(ids, per_view["psnr_views"], strict=True):
         groups.setdefault(meta.frames[i].split("_")[0], []).append(value)
     out = {seg: round(float(np.mean(v)), 3) for seg, v in sorted(groups.items())}
-    return out | {"all": float(np.mean(per_view["psnr_views"])) if ids else float("nan")}
+    return out | {
+        "all": float(np.mean(per_view["psnr_views"])),
+        "unchanged": float(np.nanmean(per_view["psnr_kept_views"])),
+        "changed": float(np.mean([m.mean() for m in changed.values()])),
+    }
 
 
 def _psnr_figures(scene: Path) -> dict[str, Any]:
     by_segment = held_out_psnr(scene)
-    return {"psnr": by_segment.pop("all"), "psnr_by_segment": by_segment}
+    psnr, unchanged, changed = (by_segment.pop(k) for k in ("all", "unchanged", "changed"))
+    return {"psnr": psnr, "psnr_unchanged": unchanged, "changed_share": changed, "psnr_by_segment": by_segment}
 
 
 def measure(scene: Path) -> dict[str, Any]:
@@ -292,6 +349,8 @@ def main() -> None:
             "frames": r["frames"],
             "Gaussians": r["gaussians"],
             "PSNR": r["psnr"],
+            "PSNR unchanged": r["psnr_unchanged"],
+            "changed %": 100 * r["changed_share"],
             "ATE %": 100 * r["ate_frac"],
             "seam": r["seam"],
         }
@@ -311,6 +370,9 @@ def main() -> None:
         "psnr_kept_first": round(kept(first), 3),
         "psnr_kept_last": round(kept(last), 3),
         "psnr_scratch": round(scratch["psnr"], 3),
+        "psnr_unchanged_first": round(first["psnr_unchanged"], 3),
+        "psnr_unchanged_last": round(last["psnr_unchanged"], 3),
+        "changed_share_last": round(last["changed_share"], 4),
         "seams": sum(r["seam"] for r in rows),
         "scratch_seconds": round(scratch["wall_s"], 1),
         "last_extension_seconds": round(last["seconds"], 1),

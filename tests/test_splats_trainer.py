@@ -146,6 +146,28 @@ def test_training_fits_the_frames_and_treats_sky_as_background(scene: dict) -> N
     assert float(alpha[..., 0][~data.sky[3]].mean()) > 0.8
 
 
+def test_evaluate_scores_only_the_pixels_a_view_keeps(scene: dict) -> None:
+    """A corrupted block left out of view 3's kept pixels does not move its kept PSNR, while its full PSNR falls;
+    a view not in `keep` keeps every pixel, and one that keeps none has no figure."""
+    import dataclasses
+
+    params, renderer, model = TrainParams(**FAST), make_renderer("torch"), _model(scene)
+    views: Views = scene["views"]
+    block = np.zeros((H, W), bool)
+    block[: H // 2, : W // 2] = True
+    frames = views.frames.copy()
+    frames[3][block] = np.where((np.indices((H, W)).sum(0) % 2 == 0)[block, None], 255, 0)  # black and white
+    corrupted = dataclasses.replace(views, frames=frames)
+    keep = {3: ~block}
+    clean = evaluate(model, views, [3, 7], renderer, params, torch.zeros(3), per_view=True, keep=keep)
+    bad = evaluate(model, corrupted, [3, 7], renderer, params, torch.zeros(3), per_view=True, keep=keep)
+    assert bad["psnr_kept_views"][0] == pytest.approx(clean["psnr_kept_views"][0], abs=1e-9)
+    assert bad["psnr_views"][0] < clean["psnr_views"][0] - 1.0
+    assert bad["psnr_kept_views"][1] == pytest.approx(bad["psnr_views"][1], abs=1e-9)  # view 7: all kept
+    none = evaluate(model, views, [3], renderer, params, torch.zeros(3), keep={3: np.zeros((H, W), bool)})
+    assert np.isnan(none["psnr_kept_views"][0])
+
+
 def test_densification_and_mcmc_change_the_model_size(scene: dict) -> None:
     renderer = make_renderer("torch")
     dens = DefaultStrategyParams(refine_start_iter=5, refine_every=10, reset_every=30, grow_grad2d=1e-5)

@@ -32,7 +32,7 @@ import copy
 import dataclasses
 import logging
 import time
-from collections.abc import Callable, Collection, Sequence
+from collections.abc import Callable, Collection, Mapping, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -548,17 +548,20 @@ def evaluate(
     background,
     view_gap: int = 1,
     per_view: bool = False,
+    keep: Mapping[int, np.ndarray] | None = None,
 ) -> dict[str, Any]:
     """Mean PSNR / SSIM (wonderverse.metrics) of the renders of `indices` against their frames; with
     `motion_blur_shutter` the renders are smeared as the camera smeared the frames (`train`'s view_gap).
-    With `per_view`, also `psnr_views` and `ssim_views`: each view's figure, in the order of `indices`."""
+    With `per_view`, also `psnr_views` and `ssim_views`: each view's figure, in the order of `indices`. With
+    `keep` (view index -> (H,W) bool at the views' size), also `psnr_kept_views`: each view's PSNR over the pixels
+    it keeps (all of them for a view not in `keep`; NaN for one that keeps none)."""
     from wonderverse.metrics import psnr, ssim
 
     if not indices:
         return {}
     data = _Data(views, params, renderer.device, prior_weights=False)
     sh = min(params.sh_degree, model.sh_degree)
-    ps, ss = [], []
+    ps, ss, kept = [], [], []
     for i in indices:
         rgb, depth, alpha, _, _ = _render_view(model, data, i, renderer, params, background, sh)
         if params.motion_blur_shutter > 0:
@@ -566,6 +569,9 @@ def evaluate(
         rgb = rgb.clamp(0, 1).cpu().numpy()
         gt = data.frames[i].cpu().numpy()
         ps.append(psnr(rgb, gt))
+        if keep is not None:
+            mask = keep.get(i, np.ones(rgb.shape[:2], bool))
+            kept.append(psnr(rgb[mask], gt[mask]) if mask.any() else float("nan"))
         if min(rgb.shape[:2]) >= 11:
             ss.append(ssim(rgb, gt))
     out: dict[str, Any] = {"psnr": float(np.mean(ps))}
@@ -573,6 +579,8 @@ def evaluate(
         out["ssim"] = float(np.mean(ss))
     if per_view:
         out |= {"psnr_views": [float(x) for x in ps], "ssim_views": [float(x) for x in ss]}
+    if keep is not None:
+        out["psnr_kept_views"] = [float(x) for x in kept]
     return out
 
 
