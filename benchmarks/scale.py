@@ -17,18 +17,20 @@
   the grown scene's report shows the same (`report.html`, "Steps and timings").
 
 Usage: `python -m benchmarks.scale [--quick] [--extensions N] [--dask] [--out DIR]`.
-Last line (JSON): `extensions`; `growth` (seconds of the last extension / of the first); `extend_ratio` (seconds
-of the last extension / of building the final world from scratch); `rss_growth` (peak RSS of the last extension /
-of the first) with `frames_growth` (stitched frames after the last / after the first) to compare it with;
+Last line (JSON): `extensions`; `growth` (seconds of the last extension / of the first); `extend_ratio` (seconds of
+the last extension / of building the final world from scratch); `rss_growth` (peak RSS of the last extension / of
+the first) with `frames_growth` (stitched frames after the last / after the first) to compare it with;
 `ate_frac_first`, `ate_frac_last`; `psnr_start` (the world before its first extension), `psnr_first`, `psnr_last`
-(dB), `psnr_kept_first`, `psnr_kept_last` (the mean of the per-segment held-out PSNR of the segments the first
-extension left, after it and after the last: does what was built hold?), `psnr_scratch` (the final world built
-from scratch: its held-out PSNR when nothing was grown); `psnr_unchanged_first`, `psnr_unchanged_last` (the
-held-out PSNR over the pixels whose world did not change since the frame was made: content a later extension's
-words placed where an older frame shows something else can be right in the splats for the newer frames or for the
-older one, not both) with `changed_share_last` (the share of held-out pixels the world changed under); `seams`
-(extensions whose stitched path failed the jump test); `scratch_seconds`; `last_extension_seconds`; with `--dask`:
-`dask_speedup` (segment-parallel steps' seconds in one process / on the cluster).
+(dB), `psnr_new_first`, `psnr_new_last` (the held-out PSNR of the segment the first and the last extension added,
+right after it: does an extension still make its new views as well?), `psnr_kept_first`, `psnr_kept_last` (the mean
+of the per-segment held-out PSNR of the segments the first extension left, after it and after the last: does what
+was built hold?), `psnr_scratch` (the final world built from scratch: its held-out PSNR when nothing was grown);
+`psnr_unchanged_first`, `psnr_unchanged_last` (the held-out PSNR over the pixels whose world did not change since
+the frame was made: content a later extension's words placed where an older frame shows something else can be right
+in the splats for the newer frames or for the older one, not both) with `changed_share_last` (the share of held-out
+pixels the world changed under); `seams` (extensions whose stitched path failed the jump test); `scratch_seconds`;
+`last_extension_seconds`; with `--dask`: `dask_speedup` (segment-parallel steps' seconds in one process / on the
+cluster).
 """
 
 from __future__ import annotations
@@ -336,6 +338,9 @@ def main() -> None:
     def kept(row: dict[str, Any]) -> float:  # what the first extension built, as `row` renders it
         return float(np.mean([row["psnr_by_segment"][s] for s in first["psnr_by_segment"]]))
 
+    def new(row: dict[str, Any], before: dict[str, Any]) -> float:  # the segment(s) the extension added
+        return float(np.mean([v for s, v in row["psnr_by_segment"].items() if s not in before["psnr_by_segment"]]))
+
     table = [
         {
             "extension": r["extension"],
@@ -367,6 +372,8 @@ def main() -> None:
         "psnr_start": round(start["psnr"], 3),
         "psnr_first": round(first["psnr"], 3),
         "psnr_last": round(last["psnr"], 3),
+        "psnr_new_first": round(new(first, start), 3),
+        "psnr_new_last": round(new(last, rows[-2] if len(rows) > 1 else start), 3),
         "psnr_kept_first": round(kept(first), 3),
         "psnr_kept_last": round(kept(last), 3),
         "psnr_scratch": round(scratch["psnr"], 3),
