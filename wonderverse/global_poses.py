@@ -166,6 +166,14 @@ def merge_incremental(
     return poses, registered, model_to_world.apply(res.points) if len(res.points) else res.points
 
 
+def _by_segment(keys: Sequence[Key]) -> dict[str, list[tuple[int, int]]]:
+    """Per segment, (row in `keys`, generation-order index) of each of its frames."""
+    rows: dict[str, list[tuple[int, int]]] = {}
+    for k, (seg, i) in enumerate(keys):
+        rows.setdefault(seg, []).append((k, i))
+    return rows
+
+
 def segment_disagreement(poses: np.ndarray, keys: Sequence[Key], own: Mapping[str, np.ndarray]) -> dict[str, float]:
     """Per segment: how far a global solve's poses of its frames (`poses`, one per `keys` entry) are from
     the segment's own SfM (`own[seg]`: its W2C poses in generation order, an independent solve of fewer
@@ -173,11 +181,8 @@ def segment_disagreement(poses: np.ndarray, keys: Sequence[Key], own: Mapping[st
     `own` (no trustworthy path of their own) or with fewer than 3 frames posed by both are left out."""
     from wonderverse.metrics import ate
 
-    rows: dict[str, list[tuple[int, int]]] = {}
-    for k, (seg, i) in enumerate(keys):
-        rows.setdefault(seg, []).append((k, i))
     out = {}
-    for seg, pairs in rows.items():
+    for seg, pairs in _by_segment(keys).items():
         if seg not in own:
             continue
         ks, own_poses = [k for k, _ in pairs], own[seg][[i for _, i in pairs]]
@@ -201,11 +206,8 @@ def segment_turn_error(
     than planned is no error, the check read that too. Segments with fewer than 2 frames posed are left out."""
     from wonderverse.plan_following import compare_to_plan
 
-    rows: dict[str, list[tuple[int, int]]] = {}
-    for k, (seg, i) in enumerate(keys):
-        rows.setdefault(seg, []).append((k, i))
     out = {}
-    for seg, pairs in rows.items():
+    for seg, pairs in _by_segment(keys).items():
         if seg not in turns:
             continue
         plan, reading = turns[seg]
