@@ -84,6 +84,13 @@ def test_poses_register_only_the_new_frames_and_old_frames_keep_their_poses(scen
     for frame, pose in info["before"]["sfm"].items():
         assert (after[frame] == pose).all() or not np.isfinite(pose).all(), frame  # exactly, where posed before
     assert any(np.isfinite(pose).all() for (seg, _), pose in after.items() if seg == "s002")
+    # the new segment's turn is held to its check's reading (only it: the old frames kept their poses)
+    from tasks.segments import attempt_path
+
+    check = store.meta(attempt_path(store, "s002").check)
+    judged = bool(check and check.accepted and (check.plan_following or {}).get("ok"))
+    assert set(a.segment_turn_error_deg) == ({"s002"} if judged else set())
+    assert all(e <= 5.0 for e in a.segment_turn_error_deg.values()), a.segment_turn_error_deg
 
 
 @pytest.mark.e2e
