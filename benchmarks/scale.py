@@ -150,20 +150,25 @@ def changed_under(store: SceneStore, names: list[str], size: tuple[int, int]) ->
     cfg = run_config(store)
     model = video_model(store, VideoSource(video=cfg.scene.video, prompt=cfg.scene.prompt, seed=cfg.scene.seed))
     world, object_label, now_names = model.content.snapshot()
+    shape = (model.height, model.width)
+    truth: dict[str, tuple[np.ndarray, np.ndarray | None, dict[int, str]]] = {}
     out = {}
     for name in names:
         seg, frame = name.split("_")
-        ap = attempt_path(store, seg)
-        pose = store.array(ap.gt.poses)[int(frame)].copy()
+        if seg not in truth:  # each segment's truth read once, whatever its held-out frames
+            gt = attempt_path(store, seg).gt
+            labels = store.array(gt.labels) if store.exists(gt.labels) else None
+            label_names = {int(k): v for k, v in store.meta(gt, complete=False).label_names.items()}
+            truth[seg] = (store.array(gt.poses), labels, label_names)
+        poses, labels, then_names = truth[seg]
+        pose = poses[int(frame)].copy()
         pose[:3, 3] /= model.options.scene_scale  # the world is cast in native metres
-        shape = (model.height, model.width)
         now = (
             np.full(shape, -1)
             if world is None
             else content_labels(world, object_label, model.K, pose[None], *shape[::-1])[0]
         )
-        then = store.array(ap.gt.labels)[int(frame)] if store.exists(ap.gt.labels) else np.full(shape, -1)
-        then_names = {int(k): v for k, v in store.meta(ap.gt, complete=False).label_names.items()}
+        then = np.full(shape, -1) if labels is None else labels[int(frame)]
         changed = _named(now, now_names) != _named(then, then_names)
         rows = np.arange(size[1]) * shape[0] // size[1]  # each pixel at `size` covers a block: any changed
         cols = np.arange(size[0]) * shape[1] // size[0]

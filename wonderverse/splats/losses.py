@@ -103,7 +103,12 @@ def outlier_blobs(residual: Tensor, params: RobustLossParams) -> tuple[Tensor, T
     mask = out[0, 0] > 0.5
     share = mask.to(r.dtype).mean()
     mask = mask & (share >= params.min_outlier_share) & (share <= params.max_outlier_share)
-    return torch.where(mask, params.outlier_weight, 1.0).to(r.dtype), mask
+    return outlier_weights(mask, params, r.dtype), mask
+
+
+def outlier_weights(mask: Tensor, params: RobustLossParams, dtype: torch.dtype) -> Tensor:
+    """Per-pixel weights (H,W) of an outlier mask (H,W) bool: `outlier_weight` on it, 1 elsewhere."""
+    return torch.where(mask, params.outlier_weight, 1.0).to(dtype)
 
 
 @torch.no_grad()

@@ -47,6 +47,7 @@ from wonderverse.splats.losses import (
     flatten_loss,
     masked_mean,
     outlier_blobs,
+    outlier_weights,
     robust_weights,
     texture_weight,
     total_loss,
@@ -312,7 +313,7 @@ def _robust(
         weights, mask = _cross_view(data.frames, data.K, data.w2c, i, z, train_ids, rp)
         if rp.confirm_from_frac is not None and step >= rp.confirm_from_frac * params.iterations:
             mask = confirmed_by_render(mask, rgb.detach(), data.frames[i], rp)
-            weights = torch.where(mask, rp.outlier_weight, 1.0).to(weights.dtype)
+            weights = outlier_weights(mask, rp, weights.dtype)
         return weights, mask
 
 
