@@ -17,6 +17,7 @@ from typing import Any
 # threads made small splat renders 3-10x slower.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
+import psutil
 import pytest
 
 from wonderverse.config import RunConfig, build_config
@@ -43,6 +44,14 @@ def run_cli(*args: str, env: dict[str, str] | None = None, timeout: float = 300)
         env=full_env,
         cwd=ROOT,
     )
+
+
+def command_of(process: psutil.Process) -> str:
+    """The process's command line, or "" once it has ended (a process listed a moment ago may be gone)."""
+    try:
+        return " ".join(process.cmdline())
+    except psutil.Error:
+        return ""
 
 
 def tree_digest(folder: Path) -> str:

@@ -23,7 +23,7 @@ from pathlib import Path
 import psutil
 import pytest
 import yaml
-from conftest import ROOT, SHORT_STEPS, run_cli, tiny_config
+from conftest import ROOT, SHORT_STEPS, command_of, run_cli, tiny_config
 
 MARKER = "WONDERVERSE_TEST_RUN"
 OUTPUTS = ("splats.ply", "mesh.ply", "points.ply")
@@ -131,7 +131,7 @@ def test_kill_9_of_wonderverse_alone_leaves_no_prefect_server_and_no_run(tmp_pat
     try:
 
         def server() -> list[psutil.Process]:
-            return [p for p in marked(marker) if "uvicorn" in " ".join(p.cmdline())]
+            return [p for p in marked(marker) if "uvicorn" in command_of(p)]
 
         servers = wait_until("Prefect's server (uvicorn)", server, 300, proc, lines)
         wait_until("a step of the flow", lambda: any("] plan:" in ln for ln in lines), 300, proc, lines)

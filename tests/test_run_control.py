@@ -15,7 +15,7 @@ from pathlib import Path
 import psutil
 import pytest
 import yaml
-from conftest import ROOT, SHORT_STEPS, TINY_VIDEO, run_cli, tree_digest
+from conftest import ROOT, SHORT_STEPS, TINY_VIDEO, command_of, run_cli, tree_digest
 
 from flows.pipeline import execute
 from tasks.segments import segment_ids
@@ -104,7 +104,7 @@ def test_a_signal_stops_the_run_at_once_and_the_same_command_resumes(tmp_path, e
     assert not any("Traceback" in ln or "***" in ln for ln in before + after), "".join(before) + err
     time.sleep(0.5)
     alive = [p for p in processes if p.is_running() and p.status() != psutil.STATUS_ZOMBIE]
-    assert not alive, f"left running: {[p.cmdline() for p in alive]}"
+    assert not alive, f"left running: {[command_of(p) for p in alive]}"
 
     r = run_cli(*args, env=env, timeout=900)
     assert r.returncode == 0, r.stderr[-3000:]
@@ -174,8 +174,8 @@ def test_kill_9_of_the_command_takes_its_run_and_prefects_server_down(tmp_path):
     proc = start_cli(*args, env=prefect_env(tmp_path))
     wait_for_line(proc, "] generate_segments:")  # Prefect's ephemeral server is up by now
     run = psutil.Process(proc.pid).children(recursive=True)
-    assert any("uvicorn" in " ".join(p.cmdline()) for p in run), [p.cmdline() for p in run]
+    assert any("uvicorn" in command_of(p) for p in run), [command_of(p) for p in run]
     proc.kill()
     proc.wait()
     _, alive = psutil.wait_procs(run, timeout=5)
-    assert not alive, [p.cmdline() for p in alive]
+    assert not alive, [command_of(p) for p in alive]
