@@ -42,6 +42,7 @@ and against gsplat 1.5.3 on a GPU (tests/test_splats_gpu.py: outputs agree to ~3
 
 from __future__ import annotations
 
+import functools
 import math
 import warnings
 from dataclasses import dataclass
@@ -50,6 +51,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from wonderverse.splats import native_raster
 from wonderverse.splats.model import quat_to_rotmat, sh_colors
 
 TILE_SIZE = 16  # gsplat's; the image does not depend on it (tested)
@@ -191,30 +193,36 @@ def _tile_intersections(
 class _Pairs:
     """Candidate (Gaussian, pixel) pairs, each pixel's pairs contiguous and front to back (a "run").
 
-    gid (M,) int32 Gaussian of each pair; seg (M,) int32 run of each pair; crow (S+1,) int32 run
-    boundaries; seg_pixel (S,) int64 flat pixel index (v * width + u) of each run; seg_cx, seg_cy (S,) its
-    pixel centre (u + 0.5, v + 0.5) in the working dtype.
+    gid (M,) int32 Gaussian of each pair; crow (S+1,) int32 run boundaries; seg_pixel (S,) int64 flat pixel
+    index (v * width + u) of each run; seg_cx, seg_cy (S,) its pixel centre (u + 0.5, v + 0.5) in the working
+    dtype; `seg` (M,) int32 the run of each pair.
     """
 
     gid: Tensor
-    seg: Tensor
     crow: Tensor
     seg_pixel: Tensor
     seg_cx: Tensor
     seg_cy: Tensor
 
+    @functools.cached_property
+    def seg(self) -> Tensor:
+        first = torch.zeros(len(self.gid), dtype=torch.int32, device=self.gid.device)
+        first[self.crow[1:-1].long()] = 1
+        return torch.cumsum(first, 0, dtype=torch.int32)
+
+    @staticmethod
+    def from_crow(gid: Tensor, crow: Tensor, run_pixel: Tensor, width: int, dtype: torch.dtype) -> _Pairs:
+        """Pairs from their Gaussian ids (int32), run boundaries (no empty runs) and the runs' flat pixel indices."""
+        u = run_pixel % width
+        v = torch.div(run_pixel, width, rounding_mode="floor")
+        return _Pairs(gid, crow, run_pixel, u.to(dtype) + 0.5, v.to(dtype) + 0.5)
+
     @staticmethod
     def from_runs(gid: Tensor, run_lengths: Tensor, run_pixel: Tensor, width: int, dtype: torch.dtype) -> _Pairs:
         """Pairs from their Gaussian ids and the lengths and flat pixel indices of the runs (no empty runs)."""
-        device = gid.device
-        crow = torch.zeros(len(run_lengths) + 1, dtype=torch.int32, device=device)
+        crow = torch.zeros(len(run_lengths) + 1, dtype=torch.int32, device=gid.device)
         torch.cumsum(run_lengths, 0, out=crow[1:])
-        first = torch.zeros(len(gid), dtype=torch.int32, device=device)
-        first[crow[1:-1].long()] = 1
-        seg = torch.cumsum(first, 0, dtype=torch.int32)
-        u = run_pixel % width
-        v = torch.div(run_pixel, width, rounding_mode="floor")
-        return _Pairs(gid.int(), seg, crow, run_pixel, u.to(dtype) + 0.5, v.to(dtype) + 0.5)
+        return _Pairs.from_crow(gid.int(), crow, run_pixel, width, dtype)
 
     @staticmethod
     def from_pixels(gid: Tensor, px: Tensor, py: Tensor, width: int, height: int, dtype: torch.dtype) -> _Pairs:
@@ -250,8 +258,11 @@ def _candidate_pairs(
     live (row, entry) chords, ordered by row then entry, become the columns of one boolean
     (pixel column x, chord) matrix; reading its hits row by row lists each pixel's entries in list order
     (front to back) contiguously, so no sort is needed. `_Composite` re-tests the candidates exactly, so the
-    margin only adds work and never changes the image.
+    margin only adds work and never changes the image. The C++ kernel (`native_raster`) makes the same pairs.
     """
+    if native_raster.usable(means2d):
+        pairs = native_raster.candidates(means2d, conics, opacities, gid, tile, tile_size, tiles_x, width, height)
+        return _Pairs.from_crow(*pairs, width, means2d.dtype)
     device = means2d.device
     dtype = means2d.dtype
     ts = tile_size
@@ -370,117 +381,156 @@ class _Composite(torch.autograd.Function):
     def forward(ctx, means2d, conics, opacities, features, pairs: _Pairs, n_pix, for_backward: bool):  # type: ignore[override]
         dtype = features.dtype
         dev = features.device
-        n_feat = features.shape[1]
-        n_runs = len(pairs.seg_pixel)
         # Per-Gaussian coefficients of -sigma = (-a/2 dx) dx + (-c/2 dy) dy + (-b dx) dy: halving and
         # negation are exact, so this is bit for bit -(0.5 (a dx dx + c dy dy) + b dx dy).
         mx, my = means2d.detach().t().contiguous()
         nha, nb, nhc = (conics.detach() * torch.tensor([-0.5, -1.0, -0.5], dtype=dtype, device=dev)).t().contiguous()
-        op = opacities.detach().contiguous()
-        acc_runs = torch.zeros(n_runs, n_feat, dtype=dtype, device=dev)
-        tf_runs = torch.ones(n_runs, dtype=dtype, device=dev)
-        chunks: list[tuple[int, int]] = []
-        chunk_tensors: tuple[Tensor, ...] = ()
-        n_drawn = 0
-        for p0, p1, r0, r1 in _chunks(pairs.crow, CHUNK_PAIRS):
-            g = pairs.gid[p0:p1]
-            sg = pairs.seg[p0:p1] - r0  # the pair's run within the chunk
-            crow = pairs.crow[r0 : r1 + 1] - p0
-            dx = mx.index_select(0, g) - pairs.seg_cx[r0:r1].index_select(0, sg)
-            dy = my.index_select(0, g) - pairs.seg_cy[r0:r1].index_select(0, sg)
-            neg_sigma = nha.index_select(0, g).mul_(dx).mul_(dx)
-            neg_sigma += nhc.index_select(0, g).mul_(dy).mul_(dy)
-            neg_sigma += nb.index_select(0, g).mul_(dx).mul_(dy)
-            e = torch.exp(neg_sigma)
-            raw = op.index_select(0, g).mul_(e)
-            alpha = raw.clamp_max(ALPHA_MAX)
-            hit = (alpha >= ALPHA_THRESHOLD) & (neg_sigma <= 0)
-            log1m = torch.where(hit, torch.log1p(-alpha), 0.0).double()
-            # Σ_{j<=i} log(1 - alpha_j) within the pixel: a float64 running sum less its value before the run.
-            incl = torch.cumsum(log1m, 0)
-            starts = crow[:-1]
-            incl -= (incl.index_select(0, starts) - log1m.index_select(0, starts)).index_select(0, sg)
-            keep = hit & (incl > LOG_TRANSMITTANCE_MIN)
-            trans = (incl - log1m).to(dtype).exp_()
-            w = torch.where(keep, alpha * trans, 0.0)
-            with warnings.catch_warnings():  # "CSR support is in beta": the product below is tested
-                warnings.simplefilter("ignore", UserWarning)
-                weights = torch.sparse_csr_tensor(crow, g, w, (r1 - r0, features.shape[0]), check_invariants=False)
-            acc_runs[r0:r1] = weights @ features
-            # log T_final: the running sum of the drawn pairs' log(1 - alpha) at each run's end.
-            drawn = torch.where(keep, log1m, 0.0)
-            run_sum = torch.cumsum(drawn, 0)
-            log_tf = run_sum.index_select(0, crow[1:] - 1) - run_sum.index_select(0, starts)
-            tf_runs[r0:r1] = (log_tf + drawn.index_select(0, starts)).exp_().to(dtype)
-            n_keep = int(keep.sum())
-            n_drawn += n_keep
-            chunks.append((r0, r1))
-            if not for_backward:
-                continue
-            mask = keep & (raw <= ALPHA_MAX)  # the drawn pairs whose alpha has a gradient
-            saved = (g, sg, dx, dy, e, raw, alpha, trans, mask, w)
-            if n_keep < COMPACT_BELOW * len(g):  # most pairs lie behind opaque surfaces: drop them
-                idx = torch.nonzero(keep)[:, 0]
-                saved = tuple(v.index_select(0, idx) for v in saved)
-                crow = torch.zeros_like(crow)
-                torch.cumsum(torch.bincount(saved[1].long(), minlength=r1 - r0), 0, out=crow[1:])
-            chunk_tensors += (crow, *saved)
-        acc = torch.zeros(n_pix, n_feat, dtype=dtype, device=dev)
+        per_gaussian = (mx, my, nha, nb, nhc, opacities.detach().contiguous())
+        ctx.native = native_raster.usable(features)
+        if ctx.native:
+            feats = features.detach().contiguous()
+            run_tensors = (pairs.gid, pairs.crow, pairs.seg_cx, pairs.seg_cy)
+            acc_runs, tf_runs, n_drawn = native_raster.forward(per_gaussian, feats, *run_tensors)
+            saved: tuple[Tensor, ...] = (*per_gaussian, feats, *run_tensors) if for_backward else ()
+        else:
+            acc_runs, tf_runs, n_drawn, ctx.chunks, saved = _forward_chunks(per_gaussian, features, pairs, for_backward)
+        acc = torch.zeros(n_pix, features.shape[1], dtype=dtype, device=dev)
         t_final = torch.ones(n_pix, dtype=dtype, device=dev)
         acc[pairs.seg_pixel] = acc_runs
         t_final[pairs.seg_pixel] = tf_runs
-        ctx.chunks = chunks
         ctx.n_pix = n_pix
-        ctx.save_for_backward(conics, features, pairs.seg_pixel, tf_runs, *chunk_tensors)
+        ctx.save_for_backward(conics, features, pairs.seg_pixel, tf_runs, *saved)
         n_drawn_t = torch.tensor(n_drawn)
         ctx.mark_non_differentiable(n_drawn_t)
         return acc, t_final, n_drawn_t
 
     @staticmethod
     def backward(ctx, g_acc, g_tf, _g_n):  # type: ignore[override]
-        conics, features, seg_pixel, tf_runs, *chunk_tensors = ctx.saved_tensors
-        per_chunk = len(chunk_tensors) // max(1, len(ctx.chunks))
-        dtype = features.dtype
-        dev = features.device
-        n = len(conics)
-        n_feat = features.shape[1]
-        grad_features = torch.zeros(n_feat, n, dtype=dtype, device=dev)
-        grads = torch.zeros(5, n, dtype=dtype, device=dev)  # Σ g_sigma (dx, dy, dx^2, dx dy, dy^2)
-        grad_op = torch.zeros(n, dtype=dtype, device=dev)
+        conics, features, seg_pixel, tf_runs, *saved = ctx.saved_tensors
         if g_acc is None:
-            g_acc = torch.zeros(ctx.n_pix, n_feat, dtype=dtype, device=dev)
-        g_runs = g_acc.index_select(0, seg_pixel).t().contiguous()  # (F, runs)
-        rest_runs = (g_tf.index_select(0, seg_pixel) * tf_runs).double() if g_tf is not None else None
-        f_t = features.t().contiguous()  # (F, N)
-        for i, (r0, r1) in enumerate(ctx.chunks):
-            crow, g, sg, dx, dy, e, raw, alpha, trans, mask, w = chunk_tensors[i * per_chunk : (i + 1) * per_chunk]
-            g64 = g.long()  # scatters take int64 indices
-            gdotf = torch.zeros_like(w)
-            for k in range(n_feat):
-                gk = g_runs[k, r0:r1].index_select(0, sg)
-                gdotf.addcmul_(f_t[k].index_select(0, g), gk)
-                grad_features[k].scatter_add_(0, g64, gk.mul_(w))
-            # Σ_{j>i} w_j (f_j . G_p) + g_T T_final: the pixel's total less a float64 running sum.
-            incl = torch.cumsum((w * gdotf).double(), 0)
-            rest = incl.index_select(0, (crow[1:] - 1).clamp_min(0))  # empty runs are never read
-            if rest_runs is not None:
-                rest += rest_runs[r0:r1]
-            suffix = (rest.index_select(0, sg) - incl).to(dtype)
-            g_raw = torch.where(mask, trans * gdotf - suffix / (1.0 - alpha), 0.0)
-            grad_op.scatter_add_(0, g64, e * g_raw)
-            g_sigma = g_raw.mul_(raw).neg_()
-            gx = g_sigma * dx
-            grads[0].scatter_add_(0, g64, gx)
-            grads[2].scatter_add_(0, g64, gx * dx)
-            grads[3].scatter_add_(0, g64, gx.mul_(dy))
-            gy = g_sigma.mul_(dy)
-            grads[1].scatter_add_(0, g64, gy)
-            grads[4].scatter_add_(0, g64, gy.mul_(dy))
+            g_acc = torch.zeros(ctx.n_pix, features.shape[1], dtype=features.dtype, device=features.device)
+        g_runs = g_acc.index_select(0, seg_pixel)  # (runs, F)
+        rest_runs = g_tf.index_select(0, seg_pixel) * tf_runs if g_tf is not None else None  # g_T T_final
+        if ctx.native:
+            if rest_runs is None:
+                rest_runs = torch.zeros_like(tf_runs)
+            *per_gaussian, feats, gid, crow, cx, cy = saved
+            grad_features, grad_op, grads = native_raster.backward(
+                tuple(per_gaussian), feats, gid, crow, cx, cy, g_runs, rest_runs.contiguous()
+            )
+        else:
+            grad_features, grad_op, grads = _backward_chunks(features, ctx.chunks, saved, g_runs, rest_runs)
         sx, sy, sxx, sxy, syy = grads
         a, b, c = conics.unbind(1)
         g_means2d = torch.stack([a * sx + b * sy, b * sx + c * sy], 1)
         g_conics = torch.stack([0.5 * sxx, sxy, 0.5 * syy], 1)
-        return g_means2d, g_conics, grad_op, grad_features.t(), None, None, None
+        return g_means2d, g_conics, grad_op, grad_features, None, None, None
+
+
+def _forward_chunks(
+    per_gaussian: tuple[Tensor, ...], features: Tensor, pairs: _Pairs, for_backward: bool
+) -> tuple[Tensor, Tensor, int, list[tuple[int, int]], tuple[Tensor, ...]]:
+    """`_Composite`'s forward in vectorised torch, chunk by chunk: (acc per run, T_final per run, pairs drawn,
+    the chunks' run ranges, and the per-pair tensors the backward needs)."""
+    mx, my, nha, nb, nhc, op = per_gaussian
+    dtype = features.dtype
+    dev = features.device
+    n_runs = len(pairs.seg_pixel)
+    acc_runs = torch.zeros(n_runs, features.shape[1], dtype=dtype, device=dev)
+    tf_runs = torch.ones(n_runs, dtype=dtype, device=dev)
+    chunks: list[tuple[int, int]] = []
+    chunk_tensors: tuple[Tensor, ...] = ()
+    n_drawn = 0
+    for p0, p1, r0, r1 in _chunks(pairs.crow, CHUNK_PAIRS):
+        g = pairs.gid[p0:p1]
+        sg = pairs.seg[p0:p1] - r0  # the pair's run within the chunk
+        crow = pairs.crow[r0 : r1 + 1] - p0
+        dx = mx.index_select(0, g) - pairs.seg_cx[r0:r1].index_select(0, sg)
+        dy = my.index_select(0, g) - pairs.seg_cy[r0:r1].index_select(0, sg)
+        neg_sigma = nha.index_select(0, g).mul_(dx).mul_(dx)
+        neg_sigma += nhc.index_select(0, g).mul_(dy).mul_(dy)
+        neg_sigma += nb.index_select(0, g).mul_(dx).mul_(dy)
+        e = torch.exp(neg_sigma)
+        raw = op.index_select(0, g).mul_(e)
+        alpha = raw.clamp_max(ALPHA_MAX)
+        hit = (alpha >= ALPHA_THRESHOLD) & (neg_sigma <= 0)
+        log1m = torch.where(hit, torch.log1p(-alpha), 0.0).double()
+        # Σ_{j<=i} log(1 - alpha_j) within the pixel: a float64 running sum less its value before the run.
+        incl = torch.cumsum(log1m, 0)
+        starts = crow[:-1]
+        incl -= (incl.index_select(0, starts) - log1m.index_select(0, starts)).index_select(0, sg)
+        keep = hit & (incl > LOG_TRANSMITTANCE_MIN)
+        trans = (incl - log1m).to(dtype).exp_()
+        w = torch.where(keep, alpha * trans, 0.0)
+        with warnings.catch_warnings():  # "CSR support is in beta": the product below is tested
+            warnings.simplefilter("ignore", UserWarning)
+            weights = torch.sparse_csr_tensor(crow, g, w, (r1 - r0, features.shape[0]), check_invariants=False)
+        acc_runs[r0:r1] = weights @ features.detach()
+        # log T_final: the running sum of the drawn pairs' log(1 - alpha) at each run's end.
+        drawn = torch.where(keep, log1m, 0.0)
+        run_sum = torch.cumsum(drawn, 0)
+        log_tf = run_sum.index_select(0, crow[1:] - 1) - run_sum.index_select(0, starts)
+        tf_runs[r0:r1] = (log_tf + drawn.index_select(0, starts)).exp_().to(dtype)
+        n_keep = int(keep.sum())
+        n_drawn += n_keep
+        chunks.append((r0, r1))
+        if not for_backward:
+            continue
+        mask = keep & (raw <= ALPHA_MAX)  # the drawn pairs whose alpha has a gradient
+        saved = (g, sg, dx, dy, e, raw, alpha, trans, mask, w)
+        if n_keep < COMPACT_BELOW * len(g):  # most pairs lie behind opaque surfaces: drop them
+            idx = torch.nonzero(keep)[:, 0]
+            saved = tuple(v.index_select(0, idx) for v in saved)
+            crow = torch.zeros_like(crow)
+            torch.cumsum(torch.bincount(saved[1].long(), minlength=r1 - r0), 0, out=crow[1:])
+        chunk_tensors += (crow, *saved)
+    return acc_runs, tf_runs, n_drawn, chunks, chunk_tensors
+
+
+def _backward_chunks(
+    features: Tensor,
+    chunks: list[tuple[int, int]],
+    chunk_tensors: list[Tensor],
+    g_runs: Tensor,
+    rest_runs: Tensor | None,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """`_Composite`'s backward in vectorised torch over `_forward_chunks`' chunks: dL/dfeatures (N, F), dL/dopacity
+    (N,) and Σ g_sigma (dx, dy, dx², dx dy, dy²) (5, N)."""
+    per_chunk = len(chunk_tensors) // max(1, len(chunks))
+    dtype = features.dtype
+    dev = features.device
+    n, n_feat = features.shape
+    grad_features = torch.zeros(n_feat, n, dtype=dtype, device=dev)
+    grads = torch.zeros(5, n, dtype=dtype, device=dev)  # Σ g_sigma (dx, dy, dx^2, dx dy, dy^2)
+    grad_op = torch.zeros(n, dtype=dtype, device=dev)
+    g_runs = g_runs.t().contiguous()  # (F, runs)
+    rest_runs = rest_runs.double() if rest_runs is not None else None
+    f_t = features.detach().t().contiguous()  # (F, N)
+    for i, (r0, r1) in enumerate(chunks):
+        crow, g, sg, dx, dy, e, raw, alpha, trans, mask, w = chunk_tensors[i * per_chunk : (i + 1) * per_chunk]
+        g64 = g.long()  # scatters take int64 indices
+        gdotf = torch.zeros_like(w)
+        for k in range(n_feat):
+            gk = g_runs[k, r0:r1].index_select(0, sg)
+            gdotf.addcmul_(f_t[k].index_select(0, g), gk)
+            grad_features[k].scatter_add_(0, g64, gk.mul_(w))
+        # Σ_{j>i} w_j (f_j . G_p) + g_T T_final: the pixel's total less a float64 running sum.
+        incl = torch.cumsum((w * gdotf).double(), 0)
+        rest = incl.index_select(0, (crow[1:] - 1).clamp_min(0))  # empty runs are never read
+        if rest_runs is not None:
+            rest += rest_runs[r0:r1]
+        suffix = (rest.index_select(0, sg) - incl).to(dtype)
+        g_raw = torch.where(mask, trans * gdotf - suffix / (1.0 - alpha), 0.0)
+        grad_op.scatter_add_(0, g64, e * g_raw)
+        g_sigma = g_raw.mul_(raw).neg_()
+        gx = g_sigma * dx
+        grads[0].scatter_add_(0, g64, gx)
+        grads[2].scatter_add_(0, g64, gx * dx)
+        grads[3].scatter_add_(0, g64, gx.mul_(dy))
+        gy = g_sigma.mul_(dy)
+        grads[1].scatter_add_(0, g64, gy)
+        grads[4].scatter_add_(0, g64, gy.mul_(dy))
+    return grad_features.t(), grad_op, grads
 
 
 def composite(

@@ -1,0 +1,184 @@
+"""The CPU rasteriser's inner loops in C++ (`native/raster.cpp`), built with the machine's C++ compiler on first use.
+
+The vectorised torch versions in `render_torch` (candidate pairs, compositing and its backward) are exact but
+spend their time moving pair-sized tensors through memory; the kernels walk each tile's and each pixel's lists
+in registers and are several times faster (`python -m benchmarks.splats`). They need no torch headers: a plain
+shared library, called through ctypes on the tensors' memory (ctypes lets go of the GIL meanwhile), compiled in
+a few seconds and cached under the user's cache folder by a hash of its source and flags. Work is split among
+`torch.get_num_threads()` threads. Where there is no compiler, or `WONDERVERSE_NATIVE=0`, or the tensors are not
+on the CPU, the torch versions run instead (the same pairs; images and gradients equal to rounding:
+tests/test_splats_render_autograd.py).
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import hashlib
+import logging
+import os
+import shutil
+import subprocess
+import tempfile
+from pathlib import Path
+
+import torch
+from torch import Tensor
+
+log = logging.getLogger(__name__)
+
+SOURCE = Path(__file__).with_name("native") / "raster.cpp"
+FLAGS = ("-O3", "-shared", "-fPIC", "-std=c++17", "-ffp-contract=off", "-pthread")
+_SUFFIX = {torch.float32: "f32", torch.float64: "f64"}
+
+
+def cache_dir() -> Path:
+    base = os.environ.get("XDG_CACHE_HOME") or str(Path.home() / ".cache")
+    return Path(base) / "wonderverse"
+
+
+def _build(target: Path) -> None:
+    """Compile into a temporary file beside `target`, then rename: concurrent builders never see half a file."""
+    compiler = os.environ.get("CXX") or shutil.which("c++") or shutil.which("g++")
+    if compiler is None:
+        raise RuntimeError("no C++ compiler (c++ or g++) on PATH")
+    fd, tmp = tempfile.mkstemp(suffix=".so", dir=target.parent)
+    os.close(fd)
+    try:
+        cmd = [compiler, *FLAGS, str(SOURCE), "-o", tmp]
+        done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
+        if done.returncode != 0:
+            raise RuntimeError(f"{compiler} failed: {done.stderr.strip()[-500:]}")
+        os.replace(tmp, target)
+    finally:
+        Path(tmp).unlink(missing_ok=True)
+
+
+def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
+    ptr, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
+    for suffix in _SUFFIX.values():
+        fwd = getattr(lib, f"wv_composite_forward_{suffix}")
+        fwd.argtypes = [ptr] * 7 + [i64] + [ptr] * 4 + [i64, ptr, ptr, i32]
+        fwd.restype = i64
+        bwd = getattr(lib, f"wv_composite_backward_{suffix}")
+        bwd.argtypes = [ptr] * 7 + [i64] + [ptr] * 4 + [i64, i64, ptr, ptr, ptr, i32]
+        bwd.restype = None
+        cand = getattr(lib, f"wv_candidates_{suffix}")
+        cand.argtypes = [ptr] * 5 + [i64, i32, i64, i64, i64] + [ptr] * 4 + [i32]
+        cand.restype = None
+    return lib
+
+
+@functools.cache
+def library() -> ctypes.CDLL | None:
+    """The compiled kernels, or None (logged once) where they cannot be had."""
+    if os.environ.get("WONDERVERSE_NATIVE", "1") == "0":
+        return None
+    try:
+        key = hashlib.sha256(SOURCE.read_bytes() + " ".join(FLAGS).encode()).hexdigest()[:16]
+        folder = cache_dir()
+        try:
+            folder.mkdir(parents=True, exist_ok=True)
+        except OSError:  # a cache that cannot be written: a folder of this process's own
+            folder = Path(tempfile.mkdtemp(prefix="wonderverse-"))
+        target = folder / f"raster-{key}.so"
+        if not target.exists():
+            _build(target)
+        return _declare(ctypes.CDLL(str(target)))
+    except (OSError, RuntimeError, subprocess.SubprocessError) as e:
+        log.warning("the rasteriser's C++ kernels are unavailable (%s); rasterising with torch alone", e)
+        return None
+
+
+def usable(values: Tensor) -> bool:
+    """Whether the kernels take tensors like `values` (on the CPU, float32 or float64) here."""
+    return values.device.type == "cpu" and values.dtype in _SUFFIX and library() is not None
+
+
+def candidates(
+    means2d: Tensor,
+    conics: Tensor,
+    opacities: Tensor,
+    gid: Tensor,
+    tile: Tensor,
+    tile_size: int,
+    tiles_x: int,
+    width: int,
+    height: int,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """`render_torch._candidate_pairs`' pairs from the tile lists (gid, tile: sorted by tile, then depth): the
+    pairs' Gaussians (M,) int32, the runs' boundaries (S+1,) int32 and each run's flat pixel (S,) int64."""
+    lib = library()
+    assert lib is not None
+    n_tiles = tiles_x * ((height + tile_size - 1) // tile_size)
+    tile_start = torch.zeros(n_tiles + 1, dtype=torch.int32)
+    torch.cumsum(torch.bincount(tile, minlength=n_tiles), 0, out=tile_start[1:])
+    gid32 = gid.int().contiguous()
+    per_gaussian = [t.detach().contiguous() for t in (means2d, conics, opacities)]
+    fn = getattr(lib, f"wv_candidates_{_SUFFIX[means2d.dtype]}")
+    shape = (n_tiles, tile_size, tiles_x, width, height)
+    counts = torch.zeros(n_tiles, 2, dtype=torch.int64)
+    fn(*_ptrs(*per_gaussian, gid32, tile_start), *shape, counts.data_ptr(), None, None, None, _threads())
+    totals = counts.sum(0).tolist()
+    counts = torch.cumsum(counts, 0) - counts  # each tile's first pair and first run
+    out_gid = torch.empty(totals[0], dtype=torch.int32)
+    crow = torch.zeros(totals[1] + 1, dtype=torch.int32)
+    pixel = torch.empty(totals[1], dtype=torch.int64)
+    fn(*_ptrs(*per_gaussian, gid32, tile_start), *shape, *_ptrs(counts, out_gid, crow[1:], pixel), _threads())
+    return out_gid, crow, pixel
+
+
+def _ptrs(*tensors: Tensor) -> list[int]:
+    return [t.data_ptr() for t in tensors]
+
+
+def forward(
+    per_gaussian: tuple[Tensor, ...], features: Tensor, gid: Tensor, crow: Tensor, cx: Tensor, cy: Tensor
+) -> tuple[Tensor, Tensor, int]:
+    """Per run (pixel): Σ w_i f_i (S, F) and the final transmittance (S,); and the number of pairs drawn.
+    `per_gaussian` = (mx, my, -a/2, -b, -c/2, opacity), each (N,) contiguous in the features' dtype."""
+    lib = library()
+    assert lib is not None
+    n_runs, n_feat = len(cx), features.shape[1]
+    acc = torch.empty(n_runs, n_feat, dtype=features.dtype)
+    t_final = torch.empty(n_runs, dtype=features.dtype)
+    fn = getattr(lib, f"wv_composite_forward_{_SUFFIX[features.dtype]}")
+    drawn = fn(
+        *_ptrs(*per_gaussian, features), n_feat, *_ptrs(gid, crow, cx, cy), n_runs, *_ptrs(acc, t_final), _threads()
+    )
+    return acc, t_final, int(drawn)
+
+
+def backward(
+    per_gaussian: tuple[Tensor, ...],
+    features: Tensor,
+    gid: Tensor,
+    crow: Tensor,
+    cx: Tensor,
+    cy: Tensor,
+    g_acc: Tensor,
+    g_tf_t: Tensor,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Per Gaussian: dL/dfeatures (N, F), dL/dopacity (N,) and Σ g_sigma (dx, dy, dx², dx dy, dy²) (5, N), given
+    per run dL/dacc (S, F) and dL/dT_final times T_final (S,)."""
+    lib = library()
+    assert lib is not None
+    n_gauss, n_feat = features.shape
+    threads = _threads()
+    grad = torch.zeros(threads, n_gauss, n_feat + 6, dtype=features.dtype)
+    fn = getattr(lib, f"wv_composite_backward_{_SUFFIX[features.dtype]}")
+    fn(
+        *_ptrs(*per_gaussian, features),
+        n_feat,
+        *_ptrs(gid, crow, cx, cy),
+        len(cx),
+        n_gauss,
+        *_ptrs(g_acc, g_tf_t, grad),
+        threads,
+    )
+    total = grad.sum(0)
+    return total[:, :n_feat], total[:, n_feat], total[:, n_feat + 1 :].t()
+
+
+def _threads() -> int:
+    return max(1, torch.get_num_threads())
