@@ -1,7 +1,8 @@
 """Splats on the CPU: rasteriser speed, and quality with and without the depth and normal losses.
 
-- Speed: seconds per forward + backward of the torch rasteriser, 20k image-filling Gaussians at 256x144
-  (depth 2-8, on-screen sigma log-normal about 1.5 px, one thread).
+- Speed: seconds per forward + backward of the CPU rasteriser, 20k image-filling Gaussians at 256x144
+  (depth 2-8, on-screen sigma log-normal about 1.5 px, one thread), with its C++ kernels (`native_raster`) and
+  with the vectorised torch code alone, measured in alternation.
 - Quality (the paper's ablation, small scale for a CPU): a procedural scene (12 views at 96x64, every 4th
   held out) trained 300 iterations from back-projected prior depth, with priors at the oracle's
   "realistic" level aligned to sparse ground-truth depths: held-out PSNR/SSIM and rendered-depth AbsRel
@@ -10,7 +11,8 @@
   points, then 300 iterations at 160 px; held-out PSNR (every 8th frame).
 GPU figures come from `benchmarks.gpu_step` on the device machine.
 
-Last-line keys: `cpu_s_per_iter`, `psnr_heldout`, `depth_absrel`, `psnr_heldout_no_geo`, `psnr_fox`.
+Last-line keys: `cpu_s_per_iter` (with the kernels), `cpu_s_per_iter_torch` (without), `kernel_speedup` (their
+ratio), `psnr_heldout`, `depth_absrel`, `psnr_heldout_no_geo`, `psnr_fox`.
 """
 
 from __future__ import annotations
@@ -28,12 +30,20 @@ from benchmarks.common import parse_args, report
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
-def cpu_seconds_per_iter(n: int = 20_000, width: int = 256, height: int = 144, reps: int = 3) -> float:
-    """Median seconds of one forward + backward of the torch rasteriser on an image-filling random scene."""
+def cpu_seconds_per_iter(
+    n: int = 20_000, width: int = 256, height: int = 144, reps: int = 3, kernels: bool = True
+) -> float:
+    """Median seconds of one forward + backward of the CPU rasteriser on an image-filling random scene, with its
+    C++ kernels or (`kernels` False) with the torch code alone."""
     import torch
 
     from wonderverse.camera import intrinsics
+    from wonderverse.splats import native_raster
     from wonderverse.splats.render_torch import render
+
+    usable = native_raster.usable
+    if not kernels:
+        native_raster.usable = lambda values: False  # type: ignore[assignment]
 
     g = torch.Generator().manual_seed(0)
     K = torch.tensor(intrinsics(width, height, 60.0), dtype=torch.float32)
@@ -51,6 +61,7 @@ def cpu_seconds_per_iter(n: int = 20_000, width: int = 256, height: int = 144, r
         rgb, depth, _, normals, _ = render(means, quats, scales, opac, colors, torch.eye(4), K, width, height)
         (rgb.sum() + depth.sum() + normals.sum()).backward()
         times.append(time.perf_counter() - t)
+    native_raster.usable = usable  # type: ignore[assignment]
     return float(np.median(times[1:]))
 
 
@@ -172,26 +183,32 @@ def main() -> None:
 
     torch.set_num_threads(1)
     iters = 100 if args.quick else 300
-    s_per_iter = cpu_seconds_per_iter(reps=1 if args.quick else 3)
+    # in alternation, so that the machine's other load falls on both alike
+    reps = 1 if args.quick else 3
+    both = [(cpu_seconds_per_iter(reps=reps), cpu_seconds_per_iter(reps=reps, kernels=False)) for _ in range(reps)]
+    s_per_iter, s_torch = (float(np.median(v)) for v in zip(*both, strict=True))
     rows = [
         {
-            "what": "torch rasteriser fwd+bwd, 20k Gaussians 256x144 (s)",
+            "what": f"rasteriser fwd+bwd, 20k Gaussians 256x144 (s){label}",
             "psnr": float("nan"),
             "ssim": float("nan"),
             "depth_absrel": float("nan"),
-            "seconds": s_per_iter,
+            "seconds": seconds,
         }
+        for label, seconds in (("", s_per_iter), (", torch alone", s_torch))
     ]
     rows += ablation(iters)
     f = fox(iters)
     if f:
         rows.append(f)
-    geo, rgb = rows[2], rows[1]
+    rgb, geo = rows[2], rows[3]
     report(
         "splats (CPU)",
         rows,
         {
             "cpu_s_per_iter": round(s_per_iter, 3),
+            "cpu_s_per_iter_torch": round(s_torch, 3),
+            "kernel_speedup": round(s_torch / s_per_iter, 2),
             "psnr_heldout": round(geo["psnr"], 2),
             "depth_absrel": round(geo["depth_absrel"], 4),
             "psnr_heldout_no_geo": round(rgb["psnr"], 2),
