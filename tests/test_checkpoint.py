@@ -5,6 +5,8 @@ ignored with one warning (training starts over) instead of failing."""
 from __future__ import annotations
 
 import logging
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -36,12 +38,22 @@ TRAIN = TrainParams(
 )
 
 
+@contextmanager
+def one_thread_only() -> Iterator[None]:
+    # two OpenMP threads on a shared 2-core machine spin-wait for each other; and gradients summed over another
+    # number of threads may differ in their last bits, so every run here uses one
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(n)
+
+
 @pytest.fixture(autouse=True)
 def one_thread():
-    n = torch.get_num_threads()  # two OpenMP threads on a shared 2-core machine spin-wait for each other
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+    with one_thread_only():
+        yield
 
 
 @pytest.fixture(scope="module")
@@ -69,9 +81,10 @@ def _model(scene: dict[str, Any]):
 def uninterrupted(scene: dict[str, Any]) -> dict[str, Any]:
     """The uninterrupted run and its checkpoint states by step (as the trainer hands them over)."""
     saved: dict[int, dict] = {}
-    model, curves, _ = train(
-        _model(scene), scene["views"], TRAIN, make_renderer("torch"), checkpoint_cb=saved.__setitem__
-    )
+    with one_thread_only():  # a module fixture starts before the autouse one
+        model, curves, _ = train(
+            _model(scene), scene["views"], TRAIN, make_renderer("torch"), checkpoint_cb=saved.__setitem__
+        )
     assert sorted(saved) == [8, 16]
     return {"model": model, "curves": curves, "saved": saved}
 

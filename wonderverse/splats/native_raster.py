@@ -5,7 +5,9 @@ spend their time moving pair-sized tensors through memory; the kernels walk each
 in registers and are several times faster (`python -m benchmarks.splats`). They need no torch headers: a plain
 shared library, called through ctypes on the tensors' memory (ctypes lets go of the GIL meanwhile), compiled in
 a few seconds and cached under the user's cache folder by a hash of its source and flags. Work is split among
-`torch.get_num_threads()` threads. Where there is no compiler, or `WONDERVERSE_NATIVE=0`, or the tensors are not
+`torch.get_num_threads()` threads; each sums its pixels' gradients, and the sums are added in thread order, so
+gradients repeat bit for bit at the same thread count and may differ in their last bits at another (as torch's own
+parallel sums do): a resumed training run matches the uninterrupted one on the same machine. Where there is no compiler, or `WONDERVERSE_NATIVE=0`, or the tensors are not
 on the CPU, the torch versions run instead (the same pairs; images and gradients equal to rounding:
 tests/test_splats_render_autograd.py).
 """
