@@ -138,7 +138,7 @@ def run(store: SceneStore, p: SplatsStepParams, ctx: StepContext) -> str:
     test = held_out(names, p.train.holdout_every)
     held = {names[i] for i in test}
     points, colors = store.array(SFM.points3d), store.array(SFM.colors)
-    start = start_training(views, local, points, colors, p, previous, region)
+    start = start_training(views, local, points, colors, p, previous, region, held)
     model, fixed, norm = start.model, start.fixed, start.normalization
     if previous is not None:
         log.info("extending the splats: %s", start.describe(p.extend_new_view_share))

@@ -13,6 +13,7 @@ from wonderverse.errors import WonderError
 from wonderverse.splats.model import SH_C0, init_from_points, knn_mean_distance
 from wonderverse.splats.seeding import (
     PreviousSplats,
+    TrainingStart,
     extended_model,
     extension_seeds,
     initial_model,
@@ -106,6 +107,28 @@ def test_start_training_continues_from_the_previous_run() -> None:
     again = start_training(views, names, np.zeros((0, 3)), np.zeros((0, 3), np.uint8), PARAMS, previous)
     assert again.fixed == first.model.num_gaussians and again.new_views == [2, 3]
     assert again.train.iterations == round(PARAMS.train.iterations * PARAMS.extend_iterations_frac)
+
+
+def test_held_out_frames_seed_nothing() -> None:
+    """A held-out view that alone sees a second wall: no Gaussian starts there, first run or extension, so its
+    held-out PSNR measures what training made of the other views."""
+    views = _wall_views(4)
+    views.prior_depth[3] = 2 * Z  # the last view sees a wall twice as far, which no other view sees
+    names = [f"s000_{i:04d}" for i in range(2)] + [f"s001_{i:04d}" for i in range(2)]
+    empty = (np.zeros((0, 3)), np.zeros((0, 3), np.uint8))
+
+    def far_gaussians(start: TrainingStart) -> int:
+        means = start.normalization.apply_inverse(start.model.to_numpy()["means"].astype(np.float64))
+        return int((np.abs(means[:, 2] - 2 * Z) < 1e-3).sum())
+
+    assert far_gaussians(start_training(views, names, *empty, PARAMS)) > 50  # seen, and seeded, when not held out
+    assert far_gaussians(start_training(views, names, *empty, PARAMS, held_out=["s001_0001"])) == 0
+    first = start_training(views.subset([0, 1]), names[:2], *empty, PARAMS)
+    previous = PreviousSplats(first.model.to_numpy(), first.normalization, names[:2])
+    views.prior_depth[2] = 3 * Z  # the new, trained view sees a third wall: it seeds
+    extended = start_training(views, names, *empty, PARAMS, previous, held_out=["s001_0001"])
+    assert extended.new_views == [2, 3] and extended.fixed == first.model.num_gaussians
+    assert far_gaussians(extended) == 0 and extended.model.num_gaussians > extended.fixed
 
 
 def test_views_subset_keeps_every_per_frame_field() -> None:

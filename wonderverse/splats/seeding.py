@@ -10,7 +10,7 @@ then keeps the previous ones fixed in number and spends part of its steps on the
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -149,13 +149,16 @@ def start_training(
     params: SplatsStepParams,
     previous: PreviousSplats | None = None,
     region: Region | None = None,
+    held_out: Collection[str] = (),
 ) -> TrainingStart:
     """Training set up from world-frame `views` (one per name in `names`) and SfM `points` (P,3) with
     `colors` (P,3) uint8: frames downscaled to `max_side_px`, everything moved into a frame centred on the
     cameras with unit extent (`model.normalization_from_cameras`), and the Gaussians to start from: a new
     model, or `previous` continued (`extended_model`, a shortened schedule, `trainer.continuation_params`).
     With a `region` (`wonderverse.splats.region`), `views` are the region's and only the previous Gaussians
-    of `region.gaussians` are continued; the others are returned as `kept`, for `merged` after training."""
+    of `region.gaussians` are continued; the others are returned as `kept`, for `merged` after training.
+    The frames named in `held_out` (the views training holds out to score itself) seed nothing: what only they
+    see must not be in the model before training, or their PSNR would not measure it."""
     from wonderverse.splats.data import downscale_views
     from wonderverse.splats.model import normalization_from_cameras
     from wonderverse.splats.trainer import continuation_params, normalize_views
@@ -164,8 +167,10 @@ def start_training(
     views = downscale_views(views, p.max_side_px)
     norm = normalization_from_cameras(views.w2c, points)  # train in a unit-sized frame
     nviews = normalize_views(views, norm)
+    held = set(held_out)
     if previous is None:
-        model = initial_model(nviews, norm.apply(points), colors, p)
+        seeding = [i for i, n in enumerate(names) if n not in held]
+        model = initial_model(nviews.subset(seeding), norm.apply(points), colors, p)
         return TrainingStart(nviews, norm, model, 0, [], p.train)
     seen = set(previous.frames)
     new_views = [i for i, n in enumerate(names) if n not in seen]
@@ -175,7 +180,7 @@ def start_training(
         order = np.concatenate([np.flatnonzero(region.rendered & ~region.trained), np.flatnonzero(region.trained)])
         frozen = int((region.rendered & ~region.trained).sum())
         previous = PreviousSplats({k: a[order] for k, a in previous.arrays.items()}, previous.normalization, [])
-    model, fixed = extended_model(previous, nviews, norm, new_views, p)
+    model, fixed = extended_model(previous, nviews, norm, [i for i in new_views if names[i] not in held], p)
     train = continuation_params(p.train, p.extend_iterations_frac)
     return TrainingStart(nviews, norm, model, fixed, new_views, train, kept, frozen)
 
