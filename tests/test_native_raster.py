@@ -74,3 +74,19 @@ def test_without_the_kernels_the_torch_code_renders_the_same_image(fresh: Path, 
     assert ("rasterising with torch alone" in caplog.text) == ("CXX" in env)  # a missing compiler is said once
     assert float(with_kernels.mean()) > 0.05
     torch.testing.assert_close(without, with_kernels, rtol=1e-5, atol=1e-6)
+
+
+def test_a_library_others_could_have_written_is_never_loaded(fresh: Path, monkeypatch) -> None:
+    """A cache folder anyone may write: the file of the kernels' name in it is not loaded (here it is garbage, which
+    would fail to load), the kernels are built in a private folder instead, and the file is left as it was."""
+    assert native_raster.library() is not None
+    built = next((fresh / "cache" / "wonderverse").glob("raster-*.so"))
+    shared = fresh / "shared" / "wonderverse"
+    shared.mkdir(parents=True)
+    shared.chmod(0o777)
+    planted = shared / built.name
+    planted.write_bytes(b"not a library")
+    native_raster.library.cache_clear()
+    monkeypatch.setenv("XDG_CACHE_HOME", str(fresh / "shared"))
+    assert native_raster.library() is not None
+    assert planted.read_bytes() == b"not a library"

@@ -2,18 +2,21 @@
 
 The vectorised torch versions in `render_torch` (candidate pairs, compositing and its backward) are exact but
 spend their time moving pair-sized tensors through memory; the kernels walk each tile's and each pixel's lists
-in registers and are several times faster (`python -m benchmarks.splats`). They need no torch headers: a plain
-shared library, called through ctypes on the tensors' memory (ctypes lets go of the GIL meanwhile), compiled in
-a few seconds and cached under the user's cache folder by a hash of its source and flags. Work is split among
-`torch.get_num_threads()` threads; each sums its pixels' gradients, and the sums are added in thread order, so
-gradients repeat bit for bit at the same thread count and may differ in their last bits at another (as torch's own
-parallel sums do): a resumed training run matches the uninterrupted one on the same machine. Where there is no compiler, or `WONDERVERSE_NATIVE=0`, or the tensors are not
-on the CPU, the torch versions run instead (the same pairs; images and gradients equal to rounding:
-tests/test_splats_render_autograd.py).
+in registers and are 2-5x faster (`python -m benchmarks.splats`). They need no torch headers: a plain shared
+library, called through ctypes on the tensors' memory (ctypes lets go of the GIL meanwhile), compiled in a few
+seconds and cached under the user's cache folder by a hash of its source and flags; a library is loaded only from
+a folder and a file that this user owns and nobody else may write (else it is built in a private temporary folder).
+
+Work is split among `torch.get_num_threads()` threads; each sums its pixels' gradients, and the sums are added in
+thread order, so gradients repeat bit for bit at the same thread count and may differ in their last bits at another
+(as torch's own parallel sums do): a resumed training run matches the uninterrupted one on the same machine.
+Where there is no compiler, or `WONDERVERSE_NATIVE=0`, or the tensors are not on the CPU, the torch versions run
+instead (the same pairs; images and gradients equal to rounding: tests/test_splats_render_autograd.py).
 """
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import functools
 import hashlib
@@ -56,6 +59,15 @@ def _build(target: Path) -> None:
         Path(tmp).unlink(missing_ok=True)
 
 
+def _private(path: Path) -> bool:
+    """Whether `path` is a folder or file of this user's that no one else may write."""
+    try:
+        st = path.stat()
+    except OSError:
+        return False
+    return st.st_uid == os.getuid() and not st.st_mode & 0o022
+
+
 def _declare(lib: ctypes.CDLL) -> ctypes.CDLL:
     ptr, i64, i32 = ctypes.c_void_p, ctypes.c_int64, ctypes.c_int
     for suffix in _SUFFIX.values():
@@ -79,11 +91,12 @@ def library() -> ctypes.CDLL | None:
     try:
         key = hashlib.sha256(SOURCE.read_bytes() + " ".join(FLAGS).encode()).hexdigest()[:16]
         folder = cache_dir()
-        try:
-            folder.mkdir(parents=True, exist_ok=True)
-        except OSError:  # a cache that cannot be written: a folder of this process's own
-            folder = Path(tempfile.mkdtemp(prefix="wonderverse-"))
+        with contextlib.suppress(OSError):  # unwritable: judged below
+            folder.mkdir(mode=0o700, parents=True, exist_ok=True)
         target = folder / f"raster-{key}.so"
+        if not (_private(folder) and (not target.exists() or _private(target))):
+            # a cache that cannot be written, or that others could have put a library in: a folder of our own
+            target = Path(tempfile.mkdtemp(prefix="wonderverse-")) / target.name
         if not target.exists():
             _build(target)
         return _declare(ctypes.CDLL(str(target)))
