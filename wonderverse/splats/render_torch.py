@@ -36,7 +36,7 @@ Implementation (vectorised: no Python loop over Gaussians or pixels):
     a back-to-front loop). Pairs go in cache-sized chunks of whole pixels. Projection, SH and normals use
     ordinary autograd.
   * On the CPU, candidate pairs, compositing and its backward run in C++ (`native_raster`: the same pairs, the
-    same sums to rounding, several times faster); the torch code above is their reference and their fallback.
+    same sums to rounding, 2-5x faster); the torch code above is their reference and their fallback.
 The returned `info["means2d"]` is the graph node densification reads view-space gradients from. Checked
 against an independent float64 brute-force renderer and finite differences (tests/test_splats_render.py)
 and against gsplat 1.5.3 on a GPU (tests/test_splats_gpu.py: outputs agree to ~3e-7, gradients ~6e-6).
