@@ -5,8 +5,6 @@ ignored with one warning (training starts over) instead of failing."""
 from __future__ import annotations
 
 import logging
-from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -22,6 +20,7 @@ from wonderverse.splats.model import init_from_points, normalization_from_camera
 from wonderverse.splats.params import DefaultStrategyParams, TrainParams
 from wonderverse.splats.renderer import make_renderer
 from wonderverse.splats.trainer import Views, normalize_views, train
+from wonderverse.splats.views import torch_threads
 from wonderverse.store import SceneStore, cache_key, write_array
 from wonderverse.video.procedural import ProceduralVideo, demo_path
 
@@ -38,21 +37,11 @@ TRAIN = TrainParams(
 )
 
 
-@contextmanager
-def one_thread_only() -> Iterator[None]:
-    # two OpenMP threads on a shared 2-core machine spin-wait for each other; and gradients summed over another
-    # number of threads may differ in their last bits, so every run here uses one
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(n)
-
-
 @pytest.fixture(autouse=True)
 def one_thread():
-    with one_thread_only():
+    # two OpenMP threads on a shared 2-core machine spin-wait for each other; and gradients summed over another
+    # number of threads may differ in their last bits, so every run here uses one
+    with torch_threads(1):
         yield
 
 
@@ -81,7 +70,7 @@ def _model(scene: dict[str, Any]):
 def uninterrupted(scene: dict[str, Any]) -> dict[str, Any]:
     """The uninterrupted run and its checkpoint states by step (as the trainer hands them over)."""
     saved: dict[int, dict] = {}
-    with one_thread_only():  # a module fixture starts before the autouse one
+    with torch_threads(1):  # a module fixture starts before the autouse one
         model, curves, _ = train(
             _model(scene), scene["views"], TRAIN, make_renderer("torch"), checkpoint_cb=saved.__setitem__
         )

@@ -26,6 +26,7 @@ import shutil
 import subprocess
 import tempfile
 from pathlib import Path
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -123,24 +124,29 @@ def candidates(
 ) -> tuple[Tensor, Tensor, Tensor]:
     """`render_torch._candidate_pairs`' pairs from the tile lists (gid, tile: sorted by tile, then depth): the
     pairs' Gaussians (M,) int32, the runs' boundaries (S+1,) int32 and each run's flat pixel (S,) int64."""
-    lib = library()
-    assert lib is not None
     n_tiles = tiles_x * ((height + tile_size - 1) // tile_size)
     tile_start = torch.zeros(n_tiles + 1, dtype=torch.int32)
     torch.cumsum(torch.bincount(tile, minlength=n_tiles), 0, out=tile_start[1:])
     gid32 = gid.int().contiguous()
     per_gaussian = [t.detach().contiguous() for t in (means2d, conics, opacities)]
-    fn = getattr(lib, f"wv_candidates_{_SUFFIX[means2d.dtype]}")
-    shape = (n_tiles, tile_size, tiles_x, width, height)
+    fn = _kernel("candidates", means2d.dtype)
+    inputs = (*_ptrs(*per_gaussian, gid32, tile_start), n_tiles, tile_size, tiles_x, width, height)
     counts = torch.zeros(n_tiles, 2, dtype=torch.int64)
-    fn(*_ptrs(*per_gaussian, gid32, tile_start), *shape, counts.data_ptr(), None, None, None, _threads())
+    fn(*inputs, counts.data_ptr(), None, None, None, _threads())  # count each tile's pairs and runs
     totals = counts.sum(0).tolist()
     counts = torch.cumsum(counts, 0) - counts  # each tile's first pair and first run
     out_gid = torch.empty(totals[0], dtype=torch.int32)
     crow = torch.zeros(totals[1] + 1, dtype=torch.int32)
     pixel = torch.empty(totals[1], dtype=torch.int64)
-    fn(*_ptrs(*per_gaussian, gid32, tile_start), *shape, *_ptrs(counts, out_gid, crow[1:], pixel), _threads())
+    fn(*inputs, *_ptrs(counts, out_gid, crow[1:], pixel), _threads())  # fill them in
     return out_gid, crow, pixel
+
+
+def _kernel(name: str, dtype: torch.dtype) -> Any:
+    """The kernel `wv_NAME_f32` or `_f64` for `dtype` (callers have checked `usable`)."""
+    lib = library()
+    assert lib is not None
+    return getattr(lib, f"wv_{name}_{_SUFFIX[dtype]}")
 
 
 def _ptrs(*tensors: Tensor) -> list[int]:
@@ -152,13 +158,10 @@ def forward(
 ) -> tuple[Tensor, Tensor, int]:
     """Per run (pixel): Σ w_i f_i (S, F) and the final transmittance (S,); and the number of pairs drawn.
     `per_gaussian` = (mx, my, -a/2, -b, -c/2, opacity), each (N,) contiguous in the features' dtype."""
-    lib = library()
-    assert lib is not None
     n_runs, n_feat = len(cx), features.shape[1]
     acc = torch.empty(n_runs, n_feat, dtype=features.dtype)
     t_final = torch.empty(n_runs, dtype=features.dtype)
-    fn = getattr(lib, f"wv_composite_forward_{_SUFFIX[features.dtype]}")
-    drawn = fn(
+    drawn = _kernel("composite_forward", features.dtype)(
         *_ptrs(*per_gaussian, features), n_feat, *_ptrs(gid, crow, cx, cy), n_runs, *_ptrs(acc, t_final), _threads()
     )
     return acc, t_final, int(drawn)
@@ -176,13 +179,10 @@ def backward(
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Per Gaussian: dL/dfeatures (N, F), dL/dopacity (N,) and Σ g_sigma (dx, dy, dx², dx dy, dy²) (5, N), given
     per run dL/dacc (S, F) and dL/dT_final times T_final (S,)."""
-    lib = library()
-    assert lib is not None
     n_gauss, n_feat = features.shape
     threads = _threads()
     grad = torch.zeros(threads, n_gauss, n_feat + 6, dtype=features.dtype)
-    fn = getattr(lib, f"wv_composite_backward_{_SUFFIX[features.dtype]}")
-    fn(
+    _kernel("composite_backward", features.dtype)(
         *_ptrs(*per_gaussian, features),
         n_feat,
         *_ptrs(gid, crow, cx, cy),

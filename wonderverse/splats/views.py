@@ -108,14 +108,14 @@ def render_views(
             yield view
             report(i + 1, n, "")
         return
-    with _torch_threads(1):
+    with torch_threads(1):
         for i, view in enumerate(ordered_map(one, cameras, workers)):
             yield view
             report(i + 1, n, "")
 
 
 @contextmanager
-def _torch_threads(n: int) -> Iterator[None]:
+def torch_threads(n: int) -> Iterator[None]:
     """torch's intra-op thread count set to `n` meanwhile (it is process-wide)."""
     before = torch.get_num_threads()
     torch.set_num_threads(n)
