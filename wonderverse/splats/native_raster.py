@@ -4,8 +4,9 @@ The vectorised torch versions in `render_torch` (candidate pairs, compositing an
 spend their time moving pair-sized tensors through memory; the kernels walk each tile's and each pixel's lists
 in registers and are 2-5x faster (`python -m benchmarks.splats`). They need no torch headers: a plain shared
 library, called through ctypes on the tensors' memory (ctypes lets go of the GIL meanwhile), compiled in a few
-seconds and cached under the user's cache folder by a hash of its source and flags; a library is loaded only from
-a folder and a file that this user owns and nobody else may write (else it is built in a private temporary folder).
+seconds and cached under the user's cache folder by a hash of its source, flags and the machine's architecture; a
+library is loaded only from a folder and a file that this user owns and nobody else may write (else it is built in a
+private temporary folder).
 
 Work is split among `torch.get_num_threads()` threads; each sums its pixels' gradients, and the sums are added in
 thread order, so gradients repeat bit for bit at the same thread count and may differ in their last bits at another
@@ -22,6 +23,7 @@ import functools
 import hashlib
 import logging
 import os
+import platform
 import shutil
 import subprocess
 import tempfile
@@ -90,7 +92,9 @@ def library() -> ctypes.CDLL | None:
     if os.environ.get("WONDERVERSE_NATIVE", "1") == "0":
         return None
     try:
-        key = hashlib.sha256(SOURCE.read_bytes() + " ".join(FLAGS).encode()).hexdigest()[:16]
+        # the machine's architecture too: a home folder shared by an x86 and an ARM machine keeps one library each
+        build = f"{' '.join(FLAGS)} {platform.machine()}".encode()
+        key = hashlib.sha256(SOURCE.read_bytes() + build).hexdigest()[:16]
         folder = cache_dir()
         with contextlib.suppress(OSError):  # unwritable: judged below
             folder.mkdir(mode=0o700, parents=True, exist_ok=True)
