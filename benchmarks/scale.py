@@ -28,7 +28,9 @@ was built hold?), `psnr_scratch` (the final world built from scratch: its held-o
 `psnr_unchanged_first`, `psnr_unchanged_last` (the held-out PSNR over the pixels whose world did not change since
 the frame was made: content a later extension's words placed where an older frame shows something else can be right
 in the splats for the newer frames or for the older one, not both) with `changed_share_last` (the share of held-out
-pixels the world changed under); `seams` (extensions whose stitched path failed the jump test); `scratch_seconds`;
+pixels the world changed under); `psnr_now_first`, `psnr_now_last` (the held-out PSNR against the world as it now
+is: each held-out frame with the pixels the world changed under rendered as the procedural world now shows them);
+`seams` (extensions whose stitched path failed the jump test); `scratch_seconds`;
 `last_extension_seconds`; with `--dask`: `dask_speedup` (segment-parallel steps' seconds in one process / on the
 cluster).
 """
@@ -135,12 +137,13 @@ def child_main(what: str, scene: str, payload: str) -> None:
     print(json.dumps({"steps": steps}), flush=True)
 
 
-def changed_under(store: SceneStore, names: list[str], size: tuple[int, int]) -> dict[str, np.ndarray]:
-    """Per frame name ("s003_0008"), (h,w) bool at `size` (w,h): the pixels where the procedural world now shows
-    other content than the frame was rendered with (the world changed under it: a later segment's words placed
-    something where the frame shows the world, or in front of what it shows). Ground truth: the content each
-    pixel showed when the frame was rendered (its attempt's `gt/labels`), against the content the world shows
-    at the same pose now, every stored segment's words replayed, compared by name."""
+def world_now(store: SceneStore, names: list[str]) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
+    """Per frame name ("s003_0008"): the (H,W) bool pixels where the procedural world now shows other content than
+    the frame was rendered with (the world changed under it: a later segment's words placed something where the
+    frame shows the world, or in front of what it shows), and where any did, the world as it now is, rendered clean
+    at the frame's pose ((H,W,3) uint8; else None). Ground truth: the content each pixel showed when the frame was
+    rendered (its attempt's `gt/labels`), against the content the world shows at the same pose now, every stored
+    segment's words replayed, compared by name."""
     from flows.inspect import run_config
     from tasks.attempts import video_model
     from tasks.segments import attempt_path
@@ -161,19 +164,25 @@ def changed_under(store: SceneStore, names: list[str], size: tuple[int, int]) ->
             label_names = {int(k): v for k, v in store.meta(gt, complete=False).label_names.items()}
             truth[seg] = (store.array(gt.poses), labels, label_names)
         poses, labels, then_names = truth[seg]
-        pose = poses[int(frame)].copy()
-        pose[:3, 3] /= model.options.scene_scale  # the world is cast in native metres
+        pose = poses[int(frame)]
+        native = pose.copy()
+        native[:3, 3] /= model.options.scene_scale  # the world is cast in native metres
         now = (
             np.full(shape, -1)
             if world is None
-            else content_labels(world, object_label, model.K, pose[None], *shape[::-1])[0]
+            else content_labels(world, object_label, model.K, native[None], *shape[::-1])[0]
         )
         then = np.full(shape, -1) if labels is None else labels[int(frame)]
         changed = _named(now, now_names) != _named(then, then_names)
-        rows = np.arange(size[1]) * shape[0] // size[1]  # each pixel at `size` covers a block: any changed
-        cols = np.arange(size[0]) * shape[1] // size[0]
-        out[name] = np.maximum.reduceat(np.maximum.reduceat(changed, rows, axis=0), cols, axis=1)
+        out[name] = (changed, model.render(pose)[0] if changed.any() else None)
     return out
+
+
+def changed_under(changed: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """`changed` (H,W) at `size` (w,h): each pixel there covers a block, changed if any of it is."""
+    rows = np.arange(size[1]) * changed.shape[0] // size[1]
+    cols = np.arange(size[0]) * changed.shape[1] // size[0]
+    return np.maximum.reduceat(np.maximum.reduceat(changed, rows, axis=0), cols, axis=1)
 
 
 def _named(labels: np.ndarray, names: dict[int, str]) -> np.ndarray:
@@ -187,8 +196,9 @@ def held_out_psnr(scene: Path) -> dict[str, float]:
     segment (the views grouped by the segment they come from), so that a segment can be followed from the
     extension that added it to the last one (does what was built hold?) and compared with the world built from
     scratch. (The splats step's own figure carries the figures of views an extension's region did not touch.)
-    Also `unchanged`, their mean over the pixels the world did not change under (`changed_under`), and `changed`,
-    the share of held-out pixels it did change under."""
+    Also, as `world_now` tells the pixels the world changed under: `unchanged`, the mean over the pixels it did not
+    change under, `changed`, the share of held-out pixels it did change under, and `now`, the mean against the
+    world as it now is (each frame with the pixels the world changed under rendered as the world shows them now)."""
     import torch
 
     from tasks.splats import load_views, stored_sky
@@ -203,19 +213,38 @@ def held_out_psnr(scene: Path) -> dict[str, float]:
     model = GaussianModel.from_numpy({k: store.array(getattr(SPLATS, k)) for k in GaussianModel.PARAM_NAMES})
     views, names = load_views(store)
     at = {n: i for i, n in enumerate(names)}
-    trained = [at[n] for n in meta.frames]  # the frames the splats were trained on, in their order
-    views = normalize_views(
-        downscale_views(views.subset(trained), p.max_side_px), normalization_from_dict(meta.normalization)
-    )
-    sky = stored_sky(store)
-    sky = torch.from_numpy(np.asarray(np.zeros(3) if sky is None else sky, np.float32))
+    views = views.subset([at[n] for n in meta.frames])  # the frames the splats were trained on, in their order
     ids = list(meta.metrics.test_views)
     if not ids:
-        return {"all": float("nan"), "unchanged": float("nan"), "changed": float("nan")}
+        return {"all": float("nan"), "unchanged": float("nan"), "changed": float("nan"), "now": float("nan")}
+    now = world_now(store, [meta.frames[i] for i in ids])
+    frames_now = views.frames.copy()
+    for i in ids:
+        changed, render = now[meta.frames[i]]
+        if render is not None:
+            frames_now[i] = np.where(changed[..., None], render, frames_now[i])
+
+    def prepared(v):  # as the splats step sees the views
+        return normalize_views(downscale_views(v, p.max_side_px), normalization_from_dict(meta.normalization))
+
+    views, views_now = prepared(views), prepared(views.replace(frames=frames_now))
+    sky = stored_sky(store)
+    sky = torch.from_numpy(np.asarray(np.zeros(3) if sky is None else sky, np.float32))
     h, w = views.frames.shape[1:3]
-    changed = changed_under(store, [meta.frames[i] for i in ids], (w, h))
-    keep = {i: ~changed[meta.frames[i]] for i in ids}
-    per_view = evaluate(model, views, ids, make_renderer("auto"), p.train, sky, per_view=True, keep=keep)
+    changed = {i: changed_under(now[meta.frames[i]][0], (w, h)) for i in ids}
+    renderer = make_renderer("auto")
+    per_view = evaluate(
+        model, views, ids, renderer, p.train, sky, per_view=True, keep={i: ~c for i, c in changed.items()}
+    )
+    psnr_now = dict(zip(ids, per_view["psnr_views"], strict=True))
+    moved = [i for i in ids if now[meta.frames[i]][1] is not None]  # the other views' references are their frames
+    psnr_now |= dict(
+        zip(
+            moved,
+            evaluate(model, views_now, moved, renderer, p.train, sky, per_view=True).get("psnr_views", []),
+            strict=True,
+        )
+    )
     groups: dict[str, list[float]] = {}
     for i, value in zip(ids, per_view["psnr_views"], strict=True):
         groups.setdefault(meta.frames[i].split("_")[0], []).append(value)
@@ -223,14 +252,21 @@ def held_out_psnr(scene: Path) -> dict[str, float]:
     return out | {
         "all": float(np.mean(per_view["psnr_views"])),
         "unchanged": float(np.nanmean(per_view["psnr_kept_views"])),
-        "changed": float(np.mean([m.mean() for m in changed.values()])),
+        "changed": float(np.mean([c.mean() for c in changed.values()])),
+        "now": float(np.mean(list(psnr_now.values()))),
     }
 
 
 def _psnr_figures(scene: Path) -> dict[str, Any]:
     by_segment = held_out_psnr(scene)
-    psnr, unchanged, changed = (by_segment.pop(k) for k in ("all", "unchanged", "changed"))
-    return {"psnr": psnr, "psnr_unchanged": unchanged, "changed_share": changed, "psnr_by_segment": by_segment}
+    psnr, unchanged, changed, now = (by_segment.pop(k) for k in ("all", "unchanged", "changed", "now"))
+    return {
+        "psnr": psnr,
+        "psnr_unchanged": unchanged,
+        "changed_share": changed,
+        "psnr_now": now,
+        "psnr_by_segment": by_segment,
+    }
 
 
 def measure(scene: Path) -> dict[str, Any]:
@@ -360,6 +396,7 @@ def main() -> None:
             "Gaussians": r["gaussians"],
             "PSNR": r["psnr"],
             "PSNR unchanged": r["psnr_unchanged"],
+            "PSNR now": r["psnr_now"],
             "changed %": 100 * r["changed_share"],
             "ATE %": 100 * r["ate_frac"],
             "seam": r["seam"],
@@ -385,6 +422,8 @@ def main() -> None:
         "psnr_unchanged_first": round(first["psnr_unchanged"], 3),
         "psnr_unchanged_last": round(last["psnr_unchanged"], 3),
         "changed_share_last": round(last["changed_share"], 4),
+        "psnr_now_first": round(first["psnr_now"], 3),
+        "psnr_now_last": round(last["psnr_now"], 3),
         "seams": sum(r["seam"] for r in rows),
         "scratch_seconds": round(scratch["wall_s"], 1),
         "last_extension_seconds": round(last["seconds"], 1),
