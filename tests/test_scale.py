@@ -77,3 +77,28 @@ def test_an_extension_spends_the_same_steps_on_the_old_frames_however_many_there
         old_steps.append(sum(i < n_old for i in taken))
     expected = (1 - p.extend_new_view_share) * steps
     assert abs(np.mean(old_steps) - expected) < 0.08 * steps, (np.mean(old_steps), expected)
+
+
+@pytest.mark.e2e
+def test_the_world_as_it_now_is_shows_in_an_older_frame_what_later_words_placed(tmp_path: Path) -> None:
+    """`benchmarks.scale.world_now`, the reference of `psnr_now`: words that place a clock tower ahead of a forward
+    move put it where the first segment looked. Ground truth: the procedural world's labels and its renders. Where the
+    world did not change under a frame, the world's render at the frame's pose is the frame; where it did, it is not."""
+    from benchmarks.scale import world_now
+    from tasks.segments import attempt_path
+    from wonderverse.metrics import psnr
+
+    cfg = tiny_config(extensions={"rounds": 0, "added": ["further ahead, a clock tower"]})
+    scene = tmp_path / "scene"
+    execute(scene, cfg, until="generate_segments")
+    store = SceneStore.open(scene)
+    frames = store.array(attempt_path(store, "s000").frames)
+    now = world_now(store, [f"s000_{i:04d}" for i in range(len(frames))])
+    assert any(render is not None for _, render in now.values()), "the tower stands outside the first segment's view"
+    for name, (changed, render) in now.items():
+        frame = frames[int(name.split("_")[1])]
+        if render is None:
+            assert not changed.any()
+            continue
+        assert changed.any() and (render != frame).any(axis=-1)[changed].mean() > 0.5
+        assert psnr(render[~changed] / 255.0, frame[~changed] / 255.0) > 30, name  # the same world elsewhere

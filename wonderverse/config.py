@@ -281,6 +281,15 @@ class SplatsStepParams(Model):
     init_depth_frame_stride: int = Field(4, ge=1, description="views back-projected: every Nth")
     init_voxel_frac: float = Field(0.01, gt=0, description="seeding voxel size, fraction of the scene scale")
     init_opacity: float = Field(0.1, gt=0, lt=1, description="opacity every seeded Gaussian starts with")
+    newest_frames_win: bool = Field(
+        True,
+        description="where a later segment's frames show a surface in front of what an earlier frame shows there (the "
+        "world changed under it: later words placed something), the earlier frame's pixels leave the losses "
+        "(`splats.superseded`); else the splats blend both",
+    )
+    superseded_margin: float = Field(
+        0.15, gt=0, lt=1, description="a later surface supersedes a pixel when nearer than this share of its depth"
+    )
     # 0.4 and 0.75 (were 0.2 and 0.5): the old frames keep the same 0.1 of the iterations, the new frames get three
     # times as many. Measured (docs/benchmarks.md, benchmarks.scale): the old segments' held-out PSNR rose through
     # every extension either way, while a new segment arrived 3-6 dB below what training the world from scratch

@@ -35,7 +35,7 @@ def downscale_views(views: Views, max_side_px: int) -> Views:
     nw, nh, K = fit_intrinsics(w, h, views.K, max_side_px)
     opt = {
         name: None if getattr(views, name) is None else _resize(getattr(views, name), (nw, nh), True)
-        for name in ("prior_depth", "prior_normals", "masks", "sky")
+        for name in ("prior_depth", "prior_normals", "masks", "sky", "superseded")
     }
     return views.replace(frames=_resize(views.frames, (nw, nh), False), K=K, **opt)
 

@@ -68,7 +68,7 @@ log = logging.getLogger(__name__)
 _FLUSH_EVERY = 50  # steps between copies of the loss terms to the host (each copy waits for the device)
 
 
-PER_FRAME = ("frames", "w2c", "prior_depth", "prior_aligned", "prior_normals", "masks", "sky")
+PER_FRAME = ("frames", "w2c", "prior_depth", "prior_aligned", "prior_normals", "masks", "sky", "superseded")
 
 
 @dataclass(kw_only=True)
@@ -77,7 +77,8 @@ class Views:
     K (3,3) or (T,3,3) pixels; prior_depth (T,H,W) camera z, +inf/NaN/<=0 invalid, in the views' units where
     prior_aligned (T,) bool says so (None: every frame), else at any affine scale;
     prior_normals (T,H,W,3) camera-space unit normals facing the camera (zero = invalid);
-    masks (T,H,W) bool, pixels whose priors may be used; sky (T,H,W) bool, pixels of sky.
+    masks (T,H,W) bool, pixels whose priors may be used; sky (T,H,W) bool, pixels of sky; superseded (T,H,W) bool,
+    pixels a later segment's frames contradict (`splats.superseded`): they leave every loss term.
     Built by keyword only; `subset` and `replace` give changed copies without dropping a field."""
 
     frames: np.ndarray
@@ -88,6 +89,7 @@ class Views:
     prior_normals: np.ndarray | None = None
     masks: np.ndarray | None = None
     sky: np.ndarray | None = None
+    superseded: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.frames)
@@ -207,6 +209,11 @@ class _Data:
         if params.sky_from_invalid_prior and views.prior_depth is not None:
             with np.errstate(invalid="ignore"):
                 sky |= ~(np.isfinite(views.prior_depth) & (views.prior_depth > 0))
+        self.keep = None  # pixels a later segment's frames left the view (a weight of 0 in every term)
+        if views.superseded is not None:
+            superseded = np.asarray(views.superseded, bool)
+            sky &= ~superseded  # the sky an older frame shows where the world now has something
+            self.keep = torch.from_numpy((~superseded).astype(np.float32)).to(device)
         self.sky = torch.from_numpy(sky).to(device)
         valid = ~sky if views.masks is None else (np.asarray(views.masks, bool) & ~sky)
         self.valid = torch.from_numpy(valid).to(device)
@@ -734,6 +741,8 @@ def train(
         if strategy is not None and model.num_gaussians:
             strategy.step_pre_backward(pdict, optimizers, strategy_state, step, info)
         rgb_weight, outliers = _robust(rgb, depth, alpha, data, i, params, step, train_ids)
+        if data.keep is not None:
+            rgb_weight = data.keep[i] if rgb_weight is None else rgb_weight * data.keep[i]
         loss, terms, grads = loss_fn(
             rgb.detach(),
             data.frames[i],
