@@ -128,7 +128,6 @@ def run(store: SceneStore, p: SplatsStepParams, ctx: StepContext) -> str:
     from wonderverse.splats.region import held_out, scene_figures
     from wonderverse.splats.renderer import make_renderer
     from wonderverse.splats.seeding import merged, start_training
-    from wonderverse.splats.superseded import with_superseded
     from wonderverse.splats.trainer import train
 
     _, w2c, names = posed_stitched(store, {})
@@ -140,13 +139,6 @@ def run(store: SceneStore, p: SplatsStepParams, ctx: StepContext) -> str:
     held = {names[i] for i in test}
     points, colors = store.array(SFM.points3d), store.array(SFM.colors)
     start = start_training(views, local, points, colors, p, previous, region, held)
-    if p.newest_frames_win:  # where later words changed the world under older frames, the splats show it
-        start.views = with_superseded(start.views, local, held, p.superseded_margin)
-        if start.views.superseded is not None:
-            masks = start.views.superseded[start.views.superseded.any(axis=(1, 2))]
-            log.info(
-                "later segments supersede %.1f %% of the pixels of %d older frames", 100 * masks.mean(), len(masks)
-            )
     model, fixed, norm = start.model, start.fixed, start.normalization
     if previous is not None:
         log.info("extending the splats: %s", start.describe(p.extend_new_view_share))

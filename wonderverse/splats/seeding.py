@@ -158,15 +158,19 @@ def start_training(
     With a `region` (`wonderverse.splats.region`), `views` are the region's and only the previous Gaussians
     of `region.gaussians` are continued; the others are returned as `kept`, for `merged` after training.
     The frames named in `held_out` (the views training holds out to score itself) seed nothing: what only they
-    see must not be in the model before training, or their PSNR would not measure it."""
+    see must not be in the model before training, or their PSNR would not measure it. With `newest_frames_win`,
+    the views' `superseded` pixels are set (`splats.superseded`)."""
     from wonderverse.splats.data import downscale_views
     from wonderverse.splats.model import normalization_from_cameras
+    from wonderverse.splats.superseded import with_superseded
     from wonderverse.splats.trainer import continuation_params, normalize_views
 
     p = params
     views = downscale_views(views, p.max_side_px)
     norm = normalization_from_cameras(views.w2c, points)  # train in a unit-sized frame
     nviews = normalize_views(views, norm)
+    if p.newest_frames_win:  # where later words changed the world under older frames, the splats show it
+        nviews = with_superseded(nviews, names, held_out, p.superseded_margin)
     held = set(held_out)
     if previous is None:
         seeding = [i for i, n in enumerate(names) if n not in held]

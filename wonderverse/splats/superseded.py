@@ -14,6 +14,7 @@ earlier ones never supersede it: only the segments made after it can have change
 
 from __future__ import annotations
 
+import logging
 from collections.abc import Collection, Sequence
 from typing import TYPE_CHECKING
 
@@ -24,6 +25,8 @@ from wonderverse.camera import pixels_to_world, world_to_pixels
 
 if TYPE_CHECKING:
     from wonderverse.splats.trainer import Views
+
+log = logging.getLogger(__name__)
 
 
 def _far_where_invalid(depth: np.ndarray) -> np.ndarray:
@@ -121,4 +124,8 @@ def with_superseded(views: Views, names: Sequence[str], held_out: Collection[str
     witnesses = [i for seg in range(len(segments)) for i in [j for j in train if order[j] == seg][::4]]
     K = [views.K_of(i) for i in range(len(views))]
     masks = superseded_masks(views.prior_depth, K, views.w2c, order, train, witnesses, margin=margin)
-    return views if masks is None else views.replace(superseded=masks)
+    if masks is None:
+        return views
+    older = masks[masks.any(axis=(1, 2))]
+    log.info("later segments supersede %.1f %% of the pixels of %d older frames", 100 * older.mean(), len(older))
+    return views.replace(superseded=masks)
