@@ -67,9 +67,14 @@ def poses_digest(w2c: np.ndarray) -> str:
     return hashlib.sha256(np.ascontiguousarray(w2c, np.float64).tobytes()).hexdigest()
 
 
+# which pixels count, not what the Gaussians are: the optimisation continues across a change of these
+_CONTINUABLE = {"newest_frames_win", "superseded_margin"}
+
+
 def _train_digest(p: SplatsStepParams) -> str:
     """What must not change for an extension to continue the previous optimisation instead of restarting."""
-    kept = p.model_dump(exclude={name for name in SplatsStepParams.model_fields if name.startswith("extend_")})
+    fields = SplatsStepParams.model_fields
+    kept = p.model_dump(exclude={name for name in fields if name.startswith("extend_") or name in _CONTINUABLE})
     return cache_key("splats_train", 2, {"splats": kept})
 
 

@@ -162,4 +162,6 @@ def test_the_extension_settings_do_not_stop_a_continuation() -> None:
     p = _config().steps.splats
     base = _train_digest(p)
     assert _train_digest(p.model_copy(update={"extend_iterations_frac": 0.5, "extend_new_view_share": 0.9})) == base
+    # which pixels of older frames count, not what the Gaussians are
+    assert _train_digest(p.model_copy(update={"newest_frames_win": False, "superseded_margin": 0.3})) == base
     assert _train_digest(p.model_copy(update={"init_opacity": 0.2})) != base  # the optimisation itself changed
