@@ -30,6 +30,8 @@ the frame was made: content a later extension's words placed where an older fram
 in the splats for the newer frames or for the older one, not both) with `changed_share_last` (the share of held-out
 pixels the world changed under); `psnr_now_first`, `psnr_now_last` (the held-out PSNR against the world as it now
 is: each held-out frame with the pixels the world changed under rendered as the procedural world now shows them);
+`superseded_precision`, `superseded_recall` (the grown world's training views: the share of the pixels the splats
+step leaves to later frames that the world did change under, and of those it changed under that are left);
 `seams` (extensions whose stitched path failed the jump test); `scratch_seconds`;
 `last_extension_seconds`; with `--dask`: `dask_speedup` (segment-parallel steps' seconds in one process / on the
 cluster).
@@ -137,13 +139,15 @@ def child_main(what: str, scene: str, payload: str) -> None:
     print(json.dumps({"steps": steps}), flush=True)
 
 
-def world_now(store: SceneStore, names: list[str]) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
+def world_now(
+    store: SceneStore, names: list[str], render: bool = True
+) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
     """Per frame name ("s003_0008"): the (H,W) bool pixels where the procedural world now shows other content than
     the frame was rendered with (the world changed under it: a later segment's words placed something where the
     frame shows the world, or in front of what it shows), and where any did, the world as it now is, rendered clean
     at the frame's pose ((H,W,3) uint8; else None). Ground truth: the content each pixel showed when the frame was
     rendered (its attempt's `gt/labels`), against the content the world shows at the same pose now, every stored
-    segment's words replayed, compared by name."""
+    segment's words replayed, compared by name. Without `render`, no render."""
     from flows.inspect import run_config
     from tasks.attempts import video_model
     from tasks.segments import attempt_path
@@ -174,7 +178,7 @@ def world_now(store: SceneStore, names: list[str]) -> dict[str, tuple[np.ndarray
         )
         then = np.full(shape, -1) if labels is None else labels[int(frame)]
         changed = _named(now, now_names) != _named(then, then_names)
-        out[name] = (changed, model.render(pose)[0] if changed.any() else None)
+        out[name] = (changed, model.render(pose)[0] if render and changed.any() else None)
     return out
 
 
@@ -255,6 +259,36 @@ def held_out_psnr(scene: Path) -> dict[str, float]:
         "changed": float(np.mean([c.mean() for c in changed.values()])),
         "now": float(np.mean(list(psnr_now.values()))),
     }
+
+
+def superseded_agreement(scene: Path) -> dict[str, float]:
+    """How the training views' superseded pixels (`wonderverse.splats.superseded`, as the splats step sets them)
+    agree with the pixels the world changed under (`world_now`, at the views' size): `precision` (the share of
+    superseded pixels that changed) and `recall` (the share of changed pixels superseded)."""
+    from tasks.splats import load_views
+    from wonderverse.splats.data import downscale_views
+    from wonderverse.splats.model import normalization_from_dict
+    from wonderverse.splats.region import held_out
+    from wonderverse.splats.superseded import with_superseded
+    from wonderverse.splats.trainer import normalize_views
+
+    store = SceneStore.open(scene)
+    meta, p = store.meta(SPLATS.path), config().steps.splats
+    views, names = load_views(store)
+    at = {n: i for i, n in enumerate(names)}
+    views = views.subset([at[n] for n in meta.frames])
+    views = normalize_views(downscale_views(views, p.max_side_px), normalization_from_dict(meta.normalization))
+    held = {meta.frames[i] for i in held_out(meta.frames, p.train.holdout_every)}
+    marked = with_superseded(views, meta.frames, held, p.superseded_margin).superseded
+    train = [i for i, n in enumerate(meta.frames) if n not in held]
+    h, w = views.frames.shape[1:3]
+    changed = world_now(store, [meta.frames[i] for i in train], render=False)
+    both = marked_all = changed_all = 0
+    for i in train:
+        c = changed_under(changed[meta.frames[i]][0], (w, h))
+        m = np.zeros_like(c) if marked is None else marked[i]
+        both, marked_all, changed_all = both + (c & m).sum(), marked_all + m.sum(), changed_all + c.sum()
+    return {"precision": both / max(marked_all, 1), "recall": both / max(changed_all, 1)}
 
 
 def _psnr_figures(scene: Path) -> dict[str, Any]:
@@ -424,6 +458,7 @@ def main() -> None:
         "changed_share_last": round(last["changed_share"], 4),
         "psnr_now_first": round(first["psnr_now"], 3),
         "psnr_now_last": round(last["psnr_now"], 3),
+        **{f"superseded_{k}": round(float(v), 3) for k, v in superseded_agreement(scene).items()},
         "seams": sum(r["seam"] for r in rows),
         "scratch_seconds": round(scratch["wall_s"], 1),
         "last_extension_seconds": round(last["seconds"], 1),

@@ -209,11 +209,14 @@ class _Data:
         if params.sky_from_invalid_prior and views.prior_depth is not None:
             with np.errstate(invalid="ignore"):
                 sky |= ~(np.isfinite(views.prior_depth) & (views.prior_depth > 0))
-        self.keep = None  # pixels a later segment's frames left the view (a weight of 0 in every term)
+        # per view with superseded pixels, the weights that leave them out of every term (a later segment's
+        # frames show the world there); the other views take the unweighted loss, which is cheaper
+        self.keep: dict[int, torch.Tensor] = {}
         if views.superseded is not None:
             superseded = np.asarray(views.superseded, bool)
             sky &= ~superseded  # the sky an older frame shows where the world now has something
-            self.keep = torch.from_numpy((~superseded).astype(np.float32)).to(device)
+            for i in np.flatnonzero(superseded.any(axis=(1, 2))):
+                self.keep[int(i)] = torch.from_numpy((~superseded[i]).astype(np.float32)).to(device)
         self.sky = torch.from_numpy(sky).to(device)
         valid = ~sky if views.masks is None else (np.asarray(views.masks, bool) & ~sky)
         self.valid = torch.from_numpy(valid).to(device)
@@ -741,7 +744,7 @@ def train(
         if strategy is not None and model.num_gaussians:
             strategy.step_pre_backward(pdict, optimizers, strategy_state, step, info)
         rgb_weight, outliers = _robust(rgb, depth, alpha, data, i, params, step, train_ids)
-        if data.keep is not None:
+        if i in data.keep:
             rgb_weight = data.keep[i] if rgb_weight is None else rgb_weight * data.keep[i]
         loss, terms, grads = loss_fn(
             rgb.detach(),
