@@ -88,9 +88,11 @@ def test_the_world_as_it_now_is_shows_in_an_older_frame_what_later_words_placed(
     from tasks.segments import attempt_path
     from wonderverse.metrics import psnr
 
-    cfg = tiny_config(extensions={"rounds": 0, "added": ["further ahead, a clock tower"]})
     scene = tmp_path / "scene"
-    execute(scene, cfg, until="generate_segments")
+    execute(scene, tiny_config(extensions={"rounds": 0}), until="generate_segments")
+    grown = tiny_config(extensions={"rounds": 0, "added": ["further ahead, a clock tower"]})
+    results = {r.step: r for r in execute(scene, grown, until="generate_segments")}
+    assert "1 rendered, 1 cached" in results["generate_segments"].detail  # the first segment was made before
     store = SceneStore.open(scene)
     frames = store.array(attempt_path(store, "s000").frames)
     now = world_now(store, [f"s000_{i:04d}" for i in range(len(frames))])
