@@ -195,6 +195,25 @@ def _named(labels: np.ndarray, names: dict[int, str]) -> np.ndarray:
     return table[labels.astype(np.int64) + 1]
 
 
+def _trained_views(store: SceneStore, meta: Any) -> Any:
+    """The frames the stored splats (`meta`) were trained on, in their order, at full size in the world frame."""
+    from tasks.splats import load_views
+
+    views, names = load_views(store)
+    at = {n: i for i, n in enumerate(names)}
+    return views.subset([at[n] for n in meta.frames])
+
+
+def _as_trained(views: Any, meta: Any) -> Any:
+    """`views` as the splats step saw them: downscaled, in the stored splats' training frame."""
+    from wonderverse.splats.data import downscale_views
+    from wonderverse.splats.model import normalization_from_dict
+    from wonderverse.splats.trainer import normalize_views
+
+    views = downscale_views(views, config().steps.splats.max_side_px)
+    return normalize_views(views, normalization_from_dict(meta.normalization))
+
+
 def held_out_psnr(scene: Path) -> dict[str, float]:
     """Held-out PSNR of the stored splats (dB), every held-out view rendered again now: `all` (their mean) and per
     segment (the views grouped by the segment they come from), so that a segment can be followed from the
@@ -205,19 +224,16 @@ def held_out_psnr(scene: Path) -> dict[str, float]:
     world as it now is (each frame with the pixels the world changed under rendered as the world shows them now)."""
     import torch
 
-    from tasks.splats import load_views, stored_sky
-    from wonderverse.splats.data import downscale_views
-    from wonderverse.splats.model import GaussianModel, normalization_from_dict
+    from tasks.splats import stored_sky
+    from wonderverse.splats.model import GaussianModel
     from wonderverse.splats.renderer import make_renderer
-    from wonderverse.splats.trainer import evaluate, normalize_views
+    from wonderverse.splats.trainer import evaluate
 
     store = SceneStore.open(scene)
     meta = store.meta(SPLATS.path)
     p = config().steps.splats
     model = GaussianModel.from_numpy({k: store.array(getattr(SPLATS, k)) for k in GaussianModel.PARAM_NAMES})
-    views, names = load_views(store)
-    at = {n: i for i, n in enumerate(names)}
-    views = views.subset([at[n] for n in meta.frames])  # the frames the splats were trained on, in their order
+    views = _trained_views(store, meta)
     ids = list(meta.metrics.test_views)
     if not ids:
         return {"all": float("nan"), "unchanged": float("nan"), "changed": float("nan"), "now": float("nan")}
@@ -227,11 +243,7 @@ def held_out_psnr(scene: Path) -> dict[str, float]:
         changed, render = now[meta.frames[i]]
         if render is not None:
             frames_now[i] = np.where(changed[..., None], render, frames_now[i])
-
-    def prepared(v):  # as the splats step sees the views
-        return normalize_views(downscale_views(v, p.max_side_px), normalization_from_dict(meta.normalization))
-
-    views, views_now = prepared(views), prepared(views.replace(frames=frames_now))
+    views, views_now = _as_trained(views, meta), _as_trained(views.replace(frames=frames_now), meta)
     sky = stored_sky(store)
     sky = torch.from_numpy(np.asarray(np.zeros(3) if sky is None else sky, np.float32))
     h, w = views.frames.shape[1:3]
@@ -265,19 +277,12 @@ def superseded_agreement(scene: Path) -> dict[str, float]:
     """How the training views' superseded pixels (`wonderverse.splats.superseded`, as the splats step sets them)
     agree with the pixels the world changed under (`world_now`, at the views' size): `precision` (the share of
     superseded pixels that changed) and `recall` (the share of changed pixels superseded)."""
-    from tasks.splats import load_views
-    from wonderverse.splats.data import downscale_views
-    from wonderverse.splats.model import normalization_from_dict
     from wonderverse.splats.region import held_out
     from wonderverse.splats.superseded import with_superseded
-    from wonderverse.splats.trainer import normalize_views
 
     store = SceneStore.open(scene)
     meta, p = store.meta(SPLATS.path), config().steps.splats
-    views, names = load_views(store)
-    at = {n: i for i, n in enumerate(names)}
-    views = views.subset([at[n] for n in meta.frames])
-    views = normalize_views(downscale_views(views, p.max_side_px), normalization_from_dict(meta.normalization))
+    views = _as_trained(_trained_views(store, meta), meta)
     held = {meta.frames[i] for i in held_out(meta.frames, p.train.holdout_every)}
     marked = with_superseded(views, meta.frames, held, p.superseded_margin).superseded
     train = [i for i, n in enumerate(meta.frames) if n not in held]
