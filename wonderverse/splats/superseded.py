@@ -100,7 +100,8 @@ def superseded_masks(
 ) -> np.ndarray | None:
     """(T,H,W) bool of views with camera-z depth priors `depth` (T,H,W) in one frame of units, K per view and W2C
     (T,4,4): for each view in `targets`, the pixels the `sources` of a later segment contradict (`order`: each
-    view's segment in the order they were made); None when none is. Sources are sampled every `stride_px`."""
+    view's segment in the order they were made); None when none is. The sources' depth is sampled every
+    `stride_px` pixels, and a target's cells are `stride_px` wide."""
     order = np.asarray(order)
     points = {j: surface_points(depth[j], K[j], w2c[j], stride_px) for j in sources}
     out = np.zeros(depth.shape, bool)
