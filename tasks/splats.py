@@ -145,8 +145,9 @@ def run(store: SceneStore, p: SplatsStepParams, ctx: StepContext) -> str:
     points, colors = store.array(SFM.points3d), store.array(SFM.colors)
     start = start_training(views, local, points, colors, p, previous, region, held)
     model, fixed, norm = start.model, start.fixed, start.normalization
+    focus = start.focus(p.extend_new_view_share, p.extend_near_view_share)
     if previous is not None:
-        log.info("extending the splats: %s", start.describe(p.extend_new_view_share))
+        log.info("extending the splats: %s", start.describe(focus))
     renderer = make_renderer(ctx.execution.renderer)
     model, curves, metrics = train(
         model,
@@ -156,8 +157,7 @@ def run(store: SceneStore, p: SplatsStepParams, ctx: StepContext) -> str:
         checkpoint_cb=lambda step, state: save_checkpoint(store, ctx.key, step, state),
         resume_state=load_checkpoint(store, ctx.key, renderer.device, len(start.views), model.shN.shape[1]),
         fixed_gaussians=fixed,
-        focus_views=start.new_views,
-        focus_share=p.extend_new_view_share,
+        focus=focus,
         progress=callback("iterations"),
         view_gap=p.frame_stride,
         test_views=[i for i, n in enumerate(local) if n in held],

@@ -72,7 +72,7 @@ def test_an_extension_spends_the_same_steps_on_the_old_frames_however_many_there
         taken = []
         for _ in range(steps):
             if not order:
-                order = view_order(list(range(n_old + 14)), new, p.extend_new_view_share, gen)
+                order = view_order(list(range(n_old + 14)), [(new, p.extend_new_view_share)], gen)
             taken.append(order.pop())
         old_steps.append(sum(i < n_old for i in taken))
     expected = (1 - p.extend_new_view_share) * steps

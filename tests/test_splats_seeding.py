@@ -17,6 +17,7 @@ from wonderverse.splats.seeding import (
     extended_model,
     extension_seeds,
     initial_model,
+    near_views,
     start_training,
 )
 from wonderverse.splats.trainer import Views, normalize_views
@@ -79,6 +80,20 @@ def test_extended_model_keeps_the_old_gaussians_in_the_new_frame_then_seeds() ->
     # each seed sized by its nearest Gaussians, old ones included (not by the distant other seeds alone)
     size = knn_mean_distance(seeds, 3, arrays["means"][:n_old].astype(np.float64))
     np.testing.assert_allclose(np.exp(arrays["log_scales"][n_old:, 0]), size, rtol=1e-5)
+
+
+def test_the_old_views_near_the_new_ones_are_those_that_see_what_they_see() -> None:
+    """Views of the wall, shifted sideways (a camera at x = c sees the wall's x in [c - 4, c + 4]): the new one (3) at
+    c = -6 sees the Gaussians at x <= -2 of the left half; view 0 at -6 sees them all, view 1 at 1.8 a sliver of
+    them (x >= -2.2), view 2 (turned away) none."""
+    w2c = np.repeat(np.eye(4)[None], 4, axis=0)
+    w2c[:, 0, 3] = [6.0, -1.8, 0.0, 6.0]  # W2C translation: minus the camera's x
+    w2c[2] = look_at(np.array([-6.0, 0, 0]), np.array([-6.0, 0, -4.0]), np.array([0, -1.0, 0]))
+    views = _wall_views(4).replace(w2c=w2c)
+    old = _left_half()
+    assert near_views(old, views, [3], min_overlap=0.05) == [0, 1]
+    assert near_views(old, views, [3], min_overlap=0.5) == [0]
+    assert near_views(np.zeros((0, 3)), views, [3], 0.05) == []  # no old Gaussian: nothing to hold
 
 
 def test_initial_model_starts_at_the_sfm_points_plus_the_prior_depth() -> None:

@@ -91,14 +91,24 @@ def test_split_views() -> None:
 def test_view_order_gives_the_focus_views_their_share() -> None:
     ids, focus = list(range(40)), {30, 31, 32, 33, 34, 35, 36, 37, 38, 39}
     gen = torch.Generator().manual_seed(0)
-    order = view_order(ids, focus, 0.5, gen)
+    order = view_order(ids, [(focus, 0.5)], gen)
     counts = np.bincount(order, minlength=40)
     assert (counts[:30] == 1).all() and (counts[30:] == 3).all()  # 30 others once, 10 focus views 3 times
     assert sum(i in focus for i in order) / len(order) == 0.5
-    assert sorted(view_order(ids, focus, 0.0, gen)) == ids  # no share: one plain pass
-    assert sorted(view_order(ids, set(), 0.5, gen)) == ids  # no focus views: one plain pass
-    assert sorted(view_order(ids, set(ids), 0.5, gen)) == ids  # all focus: nothing to favour them over
-    assert view_order(ids, focus, 0.5, torch.Generator().manual_seed(1)) != order  # shuffled by the generator
+    assert sorted(view_order(ids, [(focus, 0.0)], gen)) == ids  # no share: one plain pass
+    assert sorted(view_order(ids, [(set(), 0.5)], gen)) == ids  # no focus views: one plain pass
+    assert sorted(view_order(ids, [(set(ids), 0.5)], gen)) == ids  # all focus: nothing to favour them over
+    assert view_order(ids, [(focus, 0.5)], torch.Generator().manual_seed(1)) != order  # shuffled by the generator
+
+
+def test_view_order_gives_each_focus_group_its_share() -> None:
+    """New views half the steps, the old views near them 0.4, the 20 others 0.1 (each once); a view in both
+    groups counts in the first."""
+    ids, new, near = list(range(40)), set(range(30, 40)), set(range(20, 32))
+    counts = np.bincount(view_order(ids, [(new, 0.5), (near, 0.4)], torch.Generator().manual_seed(0)), minlength=40)
+    assert (counts[:20] == 1).all() and (counts[20:30] == 8).all() and (counts[30:] == 10).all()
+    assert np.isclose(counts[30:].sum() / counts.sum(), 0.5, atol=0.01)
+    assert np.isclose(counts[20:30].sum() / counts.sum(), 0.4, atol=0.01)
 
 
 def test_continuation_compresses_the_schedule() -> None:

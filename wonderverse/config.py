@@ -294,14 +294,25 @@ class SplatsStepParams(Model):
     # times as many. Measured (docs/benchmarks.md, benchmarks.scale): the old segments' held-out PSNR rose through
     # every extension either way, while a new segment arrived 3-6 dB below what training the world from scratch
     # gives it; the continuation's steps on the new frames, not the old Gaussians, were what the quality lacked.
+    # Then 0.6 on the new frames and 0.75 of the rest on the old frames that see what they see (were 0.75 and none):
+    # a world grown "further ahead" overlaps its last few segments, whose frames' share of the steps shrank as the
+    # world grew while the new frames' steps moved their Gaussians; they lost 0.7-1.8 dB an extension
+    # (docs/benchmarks.md, benchmarks.scale).
     extend_iterations_frac: float = Field(
         0.4, gt=0, le=1, description="after `extend`: iterations (share of train.iterations) continuing the old splats"
     )
     extend_new_view_share: float = Field(
-        0.75,
+        0.6,
         ge=0,
         lt=1,
         description="after `extend`: share of those iterations on the new frames (the rest keep the old)",
+    )
+    extend_near_view_share: float = Field(
+        0.75,
+        ge=0,
+        lt=1,
+        description="after `extend`: share of the old frames' iterations on those that see what the new frames see "
+        "(at least `extend_min_overlap` of it): the new frames' steps move their Gaussians",
     )
     # None (the whole world) by default: on the 2-core CPU a region cost as much as the whole world (forward
     # segments see nearly all of it, and rendering, not the views, is the cost) and froze what the old views show

@@ -62,6 +62,17 @@ def visibility(
     return out
 
 
+def overlap(
+    means: np.ndarray, w2c: np.ndarray, Ks: np.ndarray, width: int, height: int, new: Sequence[int], margin_frac: float
+) -> np.ndarray:
+    """(V,) float: for each view, the share of the Gaussians (centres `means` (N,3)) the `new` views see that it
+    sees too; NaN for every view when the new views see none. Ks (V,3,3)."""
+    seen_new = visibility(means, w2c[list(new)], Ks[list(new)], width, height, margin_frac).any(axis=0)
+    if not seen_new.any():
+        return np.full(len(w2c), np.nan)
+    return visibility(means[seen_new], w2c, Ks, width, height, margin_frac).mean(axis=1)
+
+
 def extension_region(
     means: np.ndarray,
     w2c: np.ndarray,
@@ -85,9 +96,8 @@ def extension_region(
     Ks = K if K.ndim == 3 else np.broadcast_to(K, (len(w2c), 3, 3))
     new = sorted(set(new))
     old = np.setdiff1d(np.arange(len(w2c)), new)
-    seen_new = visibility(means, w2c[new], Ks[new], width, height, margin_frac).any(axis=0)
-    if seen_new.any():
-        score = visibility(means[seen_new], w2c[old], Ks[old], width, height, margin_frac).mean(axis=1)
+    score = overlap(means, w2c, Ks, width, height, new, margin_frac)[old]
+    if np.isfinite(score).all():
         eligible = score >= min_overlap
     else:
         centres = camera_centers(w2c)

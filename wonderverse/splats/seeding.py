@@ -11,7 +11,7 @@ then keeps the previous ones fixed in number and spends part of its steps on the
 from __future__ import annotations
 
 from collections.abc import Collection, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -45,7 +45,8 @@ class TrainingStart:
     new_views: indices of the views the previous run did not see; train: the training schedule (a
     shortened continuation after an extension); kept: the previous Gaussians a region's training does not change
     (arrays in the previous run's training frame, `previous.normalization`), None when every one is trained;
-    frozen: how many of them the model starts with (rendered, never changed: they come first)."""
+    frozen: how many of them the model starts with (rendered, never changed: they come first); near_views: the old
+    views that see what the new ones see (`near_views`), whose Gaussians the new views' steps move."""
 
     views: Views
     normalization: Sim3
@@ -55,6 +56,7 @@ class TrainingStart:
     train: TrainParams
     kept: dict[str, np.ndarray] | None = None
     frozen: int = 0
+    near_views: list[int] = field(default_factory=list)
 
     def extended_from(self, frames: int) -> dict[str, int]:
         """What a continuation started from: the previous run's `frames`, its Gaussians carried over (kept as
@@ -67,14 +69,20 @@ class TrainingStart:
             "views": len(self.views),
         }
 
-    def describe(self, new_view_share: float) -> str:
-        """What a continuation does, in words (`new_view_share`: the share of its steps on the new views)."""
+    def focus(self, new_share: float, near_share: float) -> list[tuple[list[int], float]]:
+        """The views a continuation favours (`trainer.view_order`): the new ones `new_share` of the steps, the old
+        ones near them (`near_views`) `near_share` of the rest."""
+        return [(self.new_views, new_share), (self.near_views, (1.0 - new_share) * near_share)]
+
+    def describe(self, focus: list[tuple[list[int], float]]) -> str:
+        """What a continuation does, in words (`focus`: as `focus` gives it)."""
         kept = 0 if self.kept is None else len(self.kept["means"])
         continued, new = self.fixed - self.frozen, self.model.num_gaussians - self.fixed
+        (_, new_share), (near, near_share) = focus
         return (
             f"{kept} Gaussians kept as they are ({self.frozen} of them rendered), {continued} continued, {new} new; "
-            f"{self.train.iterations} iterations on {len(self.views)} views, {100 * new_view_share:.0f} % on the "
-            f"{len(self.new_views)} new"
+            f"{self.train.iterations} iterations on {len(self.views)} views, {100 * new_share:.0f} % on the "
+            f"{len(self.new_views)} new, {100 * near_share:.0f} % on the {len(near)} old ones that see what they see"
         )
 
 
@@ -186,7 +194,22 @@ def start_training(
         previous = PreviousSplats({k: a[order] for k, a in previous.arrays.items()}, previous.normalization, [])
     model, fixed = extended_model(previous, nviews, norm, [i for i in new_views if names[i] not in held], p)
     train = continuation_params(p.train, p.extend_iterations_frac)
-    return TrainingStart(nviews, norm, model, fixed, new_views, train, kept, frozen)
+    near = near_views(model.to_numpy()["means"][:fixed], nviews, new_views, p.extend_min_overlap)
+    return TrainingStart(nviews, norm, model, fixed, new_views, train, kept, frozen, near)
+
+
+def near_views(old_means: np.ndarray, views: Views, new: Sequence[int], min_overlap: float) -> list[int]:
+    """The views other than `new` that see at least `min_overlap` of the old Gaussians (centres (N,3), in the
+    views' frame) the `new` views see (`region.overlap`); none when the new views see no old Gaussian."""
+    from wonderverse.splats.region import overlap
+
+    if not len(old_means) or not len(new):
+        return []
+    h, w = views.frames.shape[1:3]
+    Ks = np.stack([views.K_of(i) for i in range(len(views))])
+    share = overlap(np.asarray(old_means, np.float64), views.w2c, Ks, w, h, new, margin_frac=0.0)
+    mine = set(new)
+    return [i for i in np.flatnonzero(share >= min_overlap).tolist() if i not in mine]
 
 
 def merged(start: TrainingStart, trained: dict[str, np.ndarray], previous: PreviousSplats) -> dict[str, np.ndarray]:

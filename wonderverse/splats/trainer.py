@@ -391,14 +391,21 @@ def outlier_masks(
     return out
 
 
-def view_order(train_ids: list[int], focus: Collection[int], share: float, gen: torch.Generator) -> list[int]:
-    """One shuffled pass over `train_ids` (popped from the end). With `focus` views and 0 < share < 1, the
-    focus views are repeated so that about `share` of the pass is theirs (each other view still appears once)."""
+def view_order(train_ids: list[int], focus: Sequence[tuple[Collection[int], float]], gen: torch.Generator) -> list[int]:
+    """One shuffled pass over `train_ids` (popped from the end). Each (views, share) of `focus` is repeated so that
+    about `share` of the pass is its views' (a view counts in the first group it is in); every other view appears
+    once. With no other view, or no share left for them, there is nothing to favour a group over: one plain pass."""
     ids = list(train_ids)
-    mine = [i for i in ids if i in focus]
-    if mine and len(mine) < len(ids) and 0 < share < 1:
-        repeats = max(1, round(share / (1 - share) * (len(ids) - len(mine)) / len(mine)))
-        ids += mine * (repeats - 1)
+    groups, taken = [], set()
+    for views, share in focus:
+        mine = [i for i in ids if i in views and i not in taken]
+        taken.update(mine)
+        if mine and share > 0:
+            groups.append((mine, share))
+    rest, rest_share = len(ids) - sum(len(m) for m, _ in groups), 1.0 - sum(s for _, s in groups)
+    if groups and rest > 0 and rest_share > 0:
+        for mine, share in groups:
+            ids += mine * (max(1, round(share / rest_share * rest / len(mine))) - 1)
     return [ids[j] for j in torch.randperm(len(ids), generator=gen).tolist()]
 
 
@@ -608,8 +615,7 @@ def train(
     checkpoint_cb: Callable[[int, dict[str, Any]], None] | None = None,
     resume_state: dict[str, Any] | None = None,
     fixed_gaussians: int = 0,
-    focus_views: Collection[int] = (),
-    focus_share: float = 0.0,
+    focus: Sequence[tuple[Collection[int], float]] = (),
     progress: ProgressFn | None = None,
     view_gap: int = 1,
     test_views: Sequence[int] | None = None,
@@ -623,7 +629,8 @@ def train(
     checkpoint_cb(step, state) is called every `checkpoint_every_iters` iterations and at the end; passing
     such a state as `resume_state` continues training from it (same views and params). The first
     `fixed_gaussians` Gaussians (an extended scene's existing ones) are optimised but never densified;
-    about `focus_share` of the steps train on `focus_views` (an extension's new frames), see `view_order`.
+    each (views, share) of `focus` takes about `share` of the steps (an extension's new frames, and the old ones
+    that see what they see), see `view_order`.
     Consecutive views are `view_gap` video frames apart (the motion-blur model's frame interval).
     `test_views`: the views held out (indices; None: every `holdout_every`-th, `split_views`). `sky_start`: the sky
     to start from, (3,) or a (R, 2R, 3) map (a continued scene's; None: from the sky pixels or `background_rgb`).
@@ -731,7 +738,7 @@ def train(
     for step in range(start, params.iterations):
         t0 = time.perf_counter()
         if not order:
-            order = view_order(train_ids, focus_views, focus_share, gen)
+            order = view_order(train_ids, focus, gen)
         i = order.pop()
         lr_m = _lr_means(params, scene_scale, step)
         for g in optimizer.param_groups:
