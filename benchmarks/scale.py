@@ -30,6 +30,8 @@ the frame was made: content a later extension's words placed where an older fram
 in the splats for the newer frames or for the older one, not both) with `changed_share_last` (the share of held-out
 pixels the world changed under); `psnr_now_first`, `psnr_now_last` (the held-out PSNR against the world as it now
 is: each held-out frame with the pixels the world changed under rendered as the procedural world now shows them);
+`psnr_seen_first`, `psnr_seen_last` (the same, over the pixels whose content as the world now has it some frame
+shows: changed pixels whose new content no later frame shows (`shown_later`) are left out);
 `superseded_precision`, `superseded_recall` (the grown world's training views: the share of the pixels the splats
 step leaves to later frames that the world did change under, and of those it changed under that are left);
 `seams` (extensions whose stitched path failed the jump test); `scratch_seconds`;
@@ -148,14 +150,10 @@ def world_now(
     at the frame's pose ((H,W,3) uint8; else None). Ground truth: the content each pixel showed when the frame was
     rendered (its attempt's `gt/labels`), against the content the world shows at the same pose now, every stored
     segment's words replayed, compared by name. Without `render`, no render."""
-    from flows.inspect import run_config
-    from tasks.attempts import video_model
     from tasks.segments import attempt_path
-    from wonderverse.config import VideoSource
     from wonderverse.video.procedural import content_labels
 
-    cfg = run_config(store)
-    model = video_model(store, VideoSource(video=cfg.scene.video, prompt=cfg.scene.prompt, seed=cfg.scene.seed))
+    model = _world(store)
     world, object_label, now_names = model.content.snapshot()
     shape = (model.height, model.width)
     truth: dict[str, tuple[np.ndarray, np.ndarray | None, dict[int, str]]] = {}
@@ -179,6 +177,49 @@ def world_now(
         then = np.full(shape, -1) if labels is None else labels[int(frame)]
         changed = _named(now, now_names) != _named(then, then_names)
         out[name] = (changed, model.render(pose)[0] if render and changed.any() else None)
+    return out
+
+
+def _world(store: SceneStore) -> Any:
+    """The scene's procedural world as it now is (every stored segment's words replayed)."""
+    from flows.inspect import run_config
+    from tasks.attempts import video_model
+    from wonderverse.config import VideoSource
+
+    cfg = run_config(store)
+    return video_model(store, VideoSource(video=cfg.scene.video, prompt=cfg.scene.prompt, seed=cfg.scene.seed))
+
+
+def shown_later(store: SceneStore, changed: dict[str, np.ndarray], depth_tol: float = 0.02) -> dict[str, np.ndarray]:
+    """Per frame name ("s003_0008") of `changed` ((H,W) bool: the pixels the world changed under, `world_now`): those
+    of them whose content as the world now has it a frame of a later segment shows (every other frame of each: in its
+    view and unoccluded, its true depth at the point within `depth_tol` of the point's). The rest no frame ever showed:
+    no reconstruction from the frames can show it. Ground truth: the world's depth now at the frame's true pose, and
+    the later frames' true poses and depth (`gt`)."""
+    from tasks.segments import attempt_path, segment_ids
+    from wonderverse.camera import pixels_to_world, world_to_pixels
+
+    model = _world(store)
+    segments = sorted(segment_ids(store))  # ids count up as segments are made
+    truth = {seg: attempt_path(store, seg).gt for seg in segments}
+    out = {}
+    for name, mask in changed.items():
+        seg, frame = name.split("_")
+        pose = store.array(truth[seg].poses)[int(frame)]
+        depth = model.render(pose)[1]
+        v, u = np.nonzero(mask & np.isfinite(depth))
+        points = pixels_to_world(u + 0.5, v + 0.5, depth[v, u].astype(np.float64), model.K, pose)
+        seen = np.zeros(len(points), bool)
+        for other in (s for s in segments if s > seg):
+            poses, true_depth = store.array(truth[other].poses), store.array(truth[other].depth)
+            for w2c, d in zip(poses[::2], true_depth[::2], strict=True):
+                h, w = d.shape
+                pu, pv, z, framed = world_to_pixels(points, model.K, w2c, h, w)
+                at = d[pv[framed].astype(int), pu[framed].astype(int)]
+                seen[np.flatnonzero(framed)[np.abs(at - z[framed]) <= depth_tol * z[framed]]] = True
+        shown = np.zeros_like(mask)
+        shown[v[seen], u[seen]] = True
+        out[name] = shown
     return out
 
 
@@ -221,7 +262,8 @@ def held_out_psnr(scene: Path) -> dict[str, float]:
     scratch. (The splats step's own figure carries the figures of views an extension's region did not touch.)
     Also, as `world_now` tells the pixels the world changed under: `unchanged`, the mean over the pixels it did not
     change under, `changed`, the share of held-out pixels it did change under, and `now`, the mean against the
-    world as it now is (each frame with the pixels the world changed under rendered as the world shows them now)."""
+    world as it now is (each frame with the pixels the world changed under rendered as the world shows them now), and
+    `seen`, the same over the pixels whose content now some frame shows (`shown_later`)."""
     import torch
 
     from tasks.splats import stored_sky
@@ -236,7 +278,7 @@ def held_out_psnr(scene: Path) -> dict[str, float]:
     views = _trained_views(store, meta)
     ids = list(meta.metrics.test_views)
     if not ids:
-        return {"all": float("nan"), "unchanged": float("nan"), "changed": float("nan"), "now": float("nan")}
+        return dict.fromkeys(("all", "unchanged", "changed", "now", "seen"), float("nan"))
     now = world_now(store, [meta.frames[i] for i in ids])
     frames_now = views.frames.copy()
     for i in ids:
@@ -254,13 +296,14 @@ def held_out_psnr(scene: Path) -> dict[str, float]:
     )
     psnr_now = dict(zip(ids, per_view["psnr_views"], strict=True))
     moved = [i for i in ids if now[meta.frames[i]][1] is not None]  # the other views' references are their frames
-    psnr_now |= dict(
-        zip(
-            moved,
-            evaluate(model, views_now, moved, renderer, p.train, sky, per_view=True).get("psnr_views", []),
-            strict=True,
-        )
+    shown = shown_later(store, {meta.frames[i]: now[meta.frames[i]][0] for i in moved})
+    unseen = {i: changed_under(now[meta.frames[i]][0] & ~shown[meta.frames[i]], (w, h)) for i in moved}
+    against_now = evaluate(
+        model, views_now, moved, renderer, p.train, sky, per_view=True, keep={i: ~unseen[i] for i in moved}
     )
+    psnr_now |= dict(zip(moved, against_now.get("psnr_views", []), strict=True))
+    psnr_seen = dict(zip(ids, per_view["psnr_views"], strict=True))
+    psnr_seen |= dict(zip(moved, against_now.get("psnr_kept_views", []), strict=True))
     groups: dict[str, list[float]] = {}
     for i, value in zip(ids, per_view["psnr_views"], strict=True):
         groups.setdefault(meta.frames[i].split("_")[0], []).append(value)
@@ -270,6 +313,7 @@ def held_out_psnr(scene: Path) -> dict[str, float]:
         "unchanged": float(np.nanmean(per_view["psnr_kept_views"])),
         "changed": float(np.mean([c.mean() for c in changed.values()])),
         "now": float(np.mean(list(psnr_now.values()))),
+        "seen": float(np.nanmean(list(psnr_seen.values()))),
     }
 
 
@@ -298,12 +342,13 @@ def superseded_agreement(scene: Path) -> dict[str, float]:
 
 def _psnr_figures(scene: Path) -> dict[str, Any]:
     by_segment = held_out_psnr(scene)
-    psnr, unchanged, changed, now = (by_segment.pop(k) for k in ("all", "unchanged", "changed", "now"))
+    psnr, unchanged, changed, now, seen = (by_segment.pop(k) for k in ("all", "unchanged", "changed", "now", "seen"))
     return {
         "psnr": psnr,
         "psnr_unchanged": unchanged,
         "changed_share": changed,
         "psnr_now": now,
+        "psnr_seen": seen,
         "psnr_by_segment": by_segment,
     }
 
@@ -436,6 +481,7 @@ def main() -> None:
             "PSNR": r["psnr"],
             "PSNR unchanged": r["psnr_unchanged"],
             "PSNR now": r["psnr_now"],
+            "PSNR seen": r.get("psnr_seen", float("nan")),
             "changed %": 100 * r["changed_share"],
             "ATE %": 100 * r["ate_frac"],
             "seam": r["seam"],
@@ -463,6 +509,8 @@ def main() -> None:
         "changed_share_last": round(last["changed_share"], 4),
         "psnr_now_first": round(first["psnr_now"], 3),
         "psnr_now_last": round(last["psnr_now"], 3),
+        "psnr_seen_first": round(first["psnr_seen"], 3),
+        "psnr_seen_last": round(last["psnr_seen"], 3),
         **{f"superseded_{k}": round(float(v), 3) for k, v in superseded_agreement(scene).items()},
         "seams": sum(r["seam"] for r in rows),
         "scratch_seconds": round(scratch["wall_s"], 1),

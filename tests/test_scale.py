@@ -104,3 +104,30 @@ def test_the_world_as_it_now_is_shows_in_an_older_frame_what_later_words_placed(
             continue
         assert changed.any() and (render != frame).any(axis=-1)[changed].mean() > 0.5
         assert psnr(render[~changed] / 255.0, frame[~changed] / 255.0) > 30, name  # the same world elsewhere
+
+
+@pytest.mark.e2e
+def test_a_later_frame_shows_what_it_saw_of_the_world_now_and_nothing_else(tmp_path: Path) -> None:
+    """`benchmarks.scale.shown_later`, what `psnr_seen` leaves in: the pixels of an older frame whose content now some
+    later frame shows. The same tiny world as above: the second segment, a forward move, sees much of what the first
+    saw (were a convention wrong, its points would land elsewhere and match nothing); of the tower its words placed,
+    it shows part, and only changed pixels are counted; the last segment has no later frame to show anything."""
+    from benchmarks.scale import shown_later, world_now
+
+    scene = tmp_path / "scene"
+    execute(scene, tiny_config(extensions={"rounds": 0}), until="generate_segments")
+    execute(
+        scene,
+        tiny_config(extensions={"rounds": 0, "added": ["further ahead, a clock tower"]}),
+        until="generate_segments",
+    )
+    store = SceneStore.open(scene)
+    names = [f"s000_{i:04d}" for i in range(6)]
+    everything = shown_later(store, {n: np.ones((64, 96), bool) for n in names})
+    share = np.mean([m.mean() for m in everything.values()])
+    assert share > 0.3, share
+    now = world_now(store, names, render=False)
+    tower = shown_later(store, {n: c for n, (c, _) in now.items()})
+    assert all(not (m & ~now[n][0]).any() for n, m in tower.items())
+    assert any(m.any() for m in tower.values()) and not all(m[now[n][0]].all() for n, m in tower.items())
+    assert not any(m.any() for m in shown_later(store, {"s001_0003": np.ones((64, 96), bool)}).values())
