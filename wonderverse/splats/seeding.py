@@ -75,7 +75,7 @@ class TrainingStart:
         return [(self.new_views, new_share), (self.near_views, (1.0 - new_share) * near_share)]
 
     def describe(self, focus: list[tuple[list[int], float]]) -> str:
-        """What a continuation does, in words (`focus`: as `focus` gives it)."""
+        """What a continuation does, in words (`focus`: as `TrainingStart.focus` gives it)."""
         kept = 0 if self.kept is None else len(self.kept["means"])
         continued, new = self.fixed - self.frozen, self.model.num_gaussians - self.fixed
         (_, new_share), (near, near_share) = focus
@@ -194,7 +194,7 @@ def start_training(
         previous = PreviousSplats({k: a[order] for k, a in previous.arrays.items()}, previous.normalization, [])
     model, fixed = extended_model(previous, nviews, norm, [i for i in new_views if names[i] not in held], p)
     train = continuation_params(p.train, p.extend_iterations_frac)
-    near = near_views(model.to_numpy()["means"][:fixed], nviews, new_views, p.extend_min_overlap)
+    near = near_views(model.means[:fixed].detach().cpu().numpy(), nviews, new_views, p.extend_min_overlap)
     return TrainingStart(nviews, norm, model, fixed, new_views, train, kept, frozen, near)
 
 
