@@ -142,18 +142,19 @@ def child_main(what: str, scene: str, payload: str) -> None:
 
 
 def world_now(
-    store: SceneStore, names: list[str], render: bool = True
-) -> dict[str, tuple[np.ndarray, np.ndarray | None]]:
+    store: SceneStore, names: list[str], render: bool = True, world: Any = None
+) -> dict[str, tuple[np.ndarray, np.ndarray | None, np.ndarray | None]]:
     """Per frame name ("s003_0008"): the (H,W) bool pixels where the procedural world now shows other content than
     the frame was rendered with (the world changed under it: a later segment's words placed something where the
     frame shows the world, or in front of what it shows), and where any did, the world as it now is, rendered clean
-    at the frame's pose ((H,W,3) uint8; else None). Ground truth: the content each pixel showed when the frame was
-    rendered (its attempt's `gt/labels`), against the content the world shows at the same pose now, every stored
-    segment's words replayed, compared by name. Without `render`, no render."""
+    at the frame's pose ((H,W,3) uint8, and its camera z (H,W) float32; else None, None). Ground truth: the content
+    each pixel showed when the frame was rendered (its attempt's `gt/labels`), against the content the world shows at
+    the same pose now, every stored segment's words replayed, compared by name. Without `render`, no render. `world`:
+    the scene's procedural world (`_world`), when the caller has it already."""
     from tasks.segments import attempt_path
     from wonderverse.video.procedural import content_labels
 
-    model = _world(store)
+    model = _world(store) if world is None else world
     world, object_label, now_names = model.content.snapshot()
     shape = (model.height, model.width)
     truth: dict[str, tuple[np.ndarray, np.ndarray | None, dict[int, str]]] = {}
@@ -176,7 +177,7 @@ def world_now(
         )
         then = np.full(shape, -1) if labels is None else labels[int(frame)]
         changed = _named(now, now_names) != _named(then, then_names)
-        out[name] = (changed, model.render(pose)[0] if render and changed.any() else None)
+        out[name] = (changed, *(model.render(pose)[:2] if render and changed.any() else (None, None)))
     return out
 
 
@@ -190,23 +191,30 @@ def _world(store: SceneStore) -> Any:
     return video_model(store, VideoSource(video=cfg.scene.video, prompt=cfg.scene.prompt, seed=cfg.scene.seed))
 
 
-def shown_later(store: SceneStore, changed: dict[str, np.ndarray], depth_tol: float = 0.02) -> dict[str, np.ndarray]:
+def shown_later(
+    store: SceneStore,
+    changed: dict[str, np.ndarray],
+    depth_tol: float = 0.02,
+    world: Any = None,
+    depth_now: dict[str, np.ndarray] | None = None,
+) -> dict[str, np.ndarray]:
     """Per frame name ("s003_0008") of `changed` ((H,W) bool: the pixels the world changed under, `world_now`): those
     of them whose content as the world now has it a frame of a later segment shows (every other frame of each: in its
     view and unoccluded, its true depth at the point within `depth_tol` of the point's). The rest no frame ever showed:
     no reconstruction from the frames can show it. Ground truth: the world's depth now at the frame's true pose, and
-    the later frames' true poses and depth (`gt`)."""
+    the later frames' true poses and depth (`gt`). `world` and `depth_now` (per name, the world's camera z at the
+    frame's pose): as `world_now` gave them, when the caller has them already."""
     from tasks.segments import attempt_path, segment_ids
     from wonderverse.camera import pixels_to_world, world_to_pixels
 
-    model = _world(store)
+    model = _world(store) if world is None else world
     segments = sorted(segment_ids(store))  # ids count up as segments are made
     truth = {seg: attempt_path(store, seg).gt for seg in segments}
     out = {}
     for name, mask in changed.items():
         seg, frame = name.split("_")
         pose = store.array(truth[seg].poses)[int(frame)]
-        depth = model.render(pose)[1]
+        depth = model.render(pose)[1] if depth_now is None else depth_now[name]
         v, u = np.nonzero(mask & np.isfinite(depth))
         points = pixels_to_world(u + 0.5, v + 0.5, depth[v, u].astype(np.float64), model.K, pose)
         seen = np.zeros(len(points), bool)
@@ -279,10 +287,11 @@ def held_out_psnr(scene: Path) -> dict[str, float]:
     ids = list(meta.metrics.test_views)
     if not ids:
         return dict.fromkeys(("all", "unchanged", "changed", "now", "seen"), float("nan"))
-    now = world_now(store, [meta.frames[i] for i in ids])
+    world = _world(store)
+    now = world_now(store, [meta.frames[i] for i in ids], world=world)
     frames_now = views.frames.copy()
     for i in ids:
-        changed, render = now[meta.frames[i]]
+        changed, render, _ = now[meta.frames[i]]
         if render is not None:
             frames_now[i] = np.where(changed[..., None], render, frames_now[i])
     views, views_now = _as_trained(views, meta), _as_trained(views.replace(frames=frames_now), meta)
@@ -296,7 +305,8 @@ def held_out_psnr(scene: Path) -> dict[str, float]:
     )
     psnr_now = dict(zip(ids, per_view["psnr_views"], strict=True))
     moved = [i for i in ids if now[meta.frames[i]][1] is not None]  # the other views' references are their frames
-    shown = shown_later(store, {meta.frames[i]: now[meta.frames[i]][0] for i in moved})
+    names = [meta.frames[i] for i in moved]
+    shown = shown_later(store, {n: now[n][0] for n in names}, world=world, depth_now={n: now[n][2] for n in names})
     unseen = {i: changed_under(now[meta.frames[i]][0] & ~shown[meta.frames[i]], (w, h)) for i in moved}
     against_now = evaluate(
         model, views_now, moved, renderer, p.train, sky, per_view=True, keep={i: ~unseen[i] for i in moved}

@@ -96,8 +96,8 @@ def test_the_world_as_it_now_is_shows_in_an_older_frame_what_later_words_placed(
     store = SceneStore.open(scene)
     frames = store.array(attempt_path(store, "s000").frames)
     now = world_now(store, [f"s000_{i:04d}" for i in range(len(frames))])
-    assert any(render is not None for _, render in now.values()), "the tower stands outside the first segment's view"
-    for name, (changed, render) in now.items():
+    assert any(render is not None for _, render, _ in now.values()), "the tower stands outside the first segment's view"
+    for name, (changed, render, _) in now.items():
         frame = frames[int(name.split("_")[1])]
         if render is None:
             assert not changed.any()
@@ -127,7 +127,7 @@ def test_a_later_frame_shows_what_it_saw_of_the_world_now_and_nothing_else(tmp_p
     share = np.mean([m.mean() for m in everything.values()])
     assert share > 0.3, share
     now = world_now(store, names, render=False)
-    tower = shown_later(store, {n: c for n, (c, _) in now.items()})
+    tower = shown_later(store, {n: c for n, (c, _, _) in now.items()})
     assert all(not (m & ~now[n][0]).any() for n, m in tower.items())
     assert any(m.any() for m in tower.values()) and not all(m[now[n][0]].all() for n, m in tower.items())
     assert not any(m.any() for m in shown_later(store, {"s001_0003": np.ones((64, 96), bool)}).values())

@@ -398,7 +398,8 @@ def view_order(train_ids: list[int], focus: Sequence[tuple[Collection[int], floa
     ids = list(train_ids)
     groups, taken = [], set()
     for views, share in focus:
-        mine = [i for i in ids if i in views and i not in taken]
+        members = set(views)  # a continuation's groups are lists: one pass over `ids`, not one per member
+        mine = [i for i in ids if i in members and i not in taken]
         taken.update(mine)
         if mine and share > 0:
             groups.append((mine, share))
