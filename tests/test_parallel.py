@@ -24,6 +24,12 @@ def _pid(_: Any) -> int:
     return os.getpid()
 
 
+def _threads(_: Any) -> tuple[str | None, int]:
+    import torch
+
+    return os.environ.get("OMP_NUM_THREADS"), torch.get_num_threads()
+
+
 def _fails(item: int) -> int:
     raise WonderError(f"segment s{item:03d}: it cannot be checked")
 
@@ -64,6 +70,17 @@ def test_a_pool_starts_one_cluster_and_every_call_uses_it(monkeypatch: pytest.Mo
     while any(psutil.pid_exists(p) for p in workers) and time.monotonic() < deadline:
         time.sleep(0.2)
     assert not any(psutil.pid_exists(p) for p in workers)  # shut down with the block
+
+
+@pytest.mark.e2e
+def test_a_cluster_leaves_this_process_environment_as_it_was() -> None:
+    """Dask's nanny sets OMP_NUM_THREADS=1 (and more) in its own process, this one, before it spawns a worker: torch
+    started after that trained the splats on one thread, and a resumed run (no cluster) then gave other splats.
+    The workers still get their one thread each."""
+    before = dict(os.environ)
+    assert parallel.map_segments(_threads, [1, 2], workers=2) == [("1", 1), ("1", 1)]
+    changed = {k for k in set(before) | set(os.environ) if before.get(k) != os.environ.get(k)}
+    assert not changed, changed
 
 
 def test_without_workers_everything_runs_in_process_when_its_result_is_asked_for(
