@@ -16,7 +16,8 @@
 - A plot of the seconds of every extension, stacked by step, is written to `--out` (default: a temporary folder);
   the grown scene's report shows the same (`report.html`, "Steps and timings").
 
-Usage: `python -m benchmarks.scale [--quick] [--extensions N] [--dask] [--out DIR]`.
+Usage: `python -m benchmarks.scale [--quick] [--extensions N] [--dask] [--out DIR] [--seed N]` (`--seed`: another
+world for the same prompt and words).
 Last line (JSON): `extensions`; `growth` (seconds of the last extension / of the first); `extend_ratio` (seconds of
 the last extension / of building the final world from scratch); `rss_growth` (peak RSS of the last extension / of
 the first) with `frames_growth` (stitched frames after the last / after the first) to compare it with;
@@ -90,15 +91,17 @@ WORDS = (
 PARALLEL_STEPS = ("check", "priors")  # per-segment work on Dask (map_segments)
 
 
-def config(extensions: tuple[str, ...] = (), dask_address: str | None = None) -> RunConfig:
+def config(extensions: tuple[str, ...] = (), dask_address: str | None = None, seed: int | None = None) -> RunConfig:
     """The preview preset on the procedural world, its initial segment with one left and one right extension,
-    and `extensions` (the user's words) added; one SfM thread, so that runs repeat."""
+    and `extensions` (the user's words) added; one SfM thread, so that runs repeat. `seed`: the scene's (another
+    world for the same words), else the default one."""
     execution: dict[str, Any] = {"dask_address": dask_address} if dask_address else {}
+    scene: dict[str, Any] = {"extensions": {"added": list(extensions)}} | ({} if seed is None else {"seed": seed})
     return build_config(
         PROMPT,
         preset="preview",
         overrides={
-            "scene": {"extensions": {"added": list(extensions)}},
+            "scene": scene,
             "steps": {"poses": {"sfm": {"num_threads": 1}}, "check": {"sfm": {"num_threads": 1}}},
             "execution": execution,
         },
@@ -124,7 +127,8 @@ def _child(args: list[str]) -> dict[str, Any]:
 
 
 def child_main(what: str, scene: str, payload: str) -> None:
-    """In the child: `generate` (payload: JSON of the words) or `extend` (payload: the words), then the report, as
+    """In the child: `generate` (payload: JSON of [words, Dask address, seed]) or `extend` (payload: the words), then
+    the report, as
     the CLI does; prints the seconds of every step that ran and of the report, as JSON."""
     from flows.extend import extend
     from flows.pipeline import execute
@@ -133,8 +137,8 @@ def child_main(what: str, scene: str, payload: str) -> None:
     if what == "extend":
         results = extend(scene, payload, engine="local")
     else:
-        words, address = json.loads(payload)
-        results = execute(scene, config(tuple(words), address))
+        words, address, seed = json.loads(payload)
+        results = execute(scene, config(tuple(words), address, seed))
     t = time.perf_counter()
     write_report(scene)
     steps = {r.step: r.seconds for r in results if r.status == "ran"} | {"report": time.perf_counter() - t}
@@ -437,6 +441,7 @@ def main() -> None:
     p.add_argument("--extensions", type=int, default=None)
     p.add_argument("--dask", action="store_true", help="also build the final world on a real Dask cluster")
     p.add_argument("--out", type=Path, default=None, help="folder for the plot and the rows (default: temporary)")
+    p.add_argument("--seed", type=int, default=None, help="the scene's seed (another world; default: the preset's)")
     p.add_argument("--child", nargs=3, help=argparse.SUPPRESS)
     a = p.parse_args()
     if a.child:
@@ -448,7 +453,7 @@ def main() -> None:
     out = a.out or tmp
     out.mkdir(parents=True, exist_ok=True)
     scene = tmp / "grown"
-    start = _child(["generate", str(scene), json.dumps([[], None])])
+    start = _child(["generate", str(scene), json.dumps([[], None, a.seed])])
     start |= measure(scene)
     rows = []
     for k, w in enumerate(words, 1):
@@ -458,12 +463,12 @@ def main() -> None:
         )
         steps = ", ".join(f"{step} {sec:.1f}" for step, sec in r["steps"].items())
         print(f"extension {k}: {r['wall_s']:.1f} s ({steps}), {rows[-1]['frames']} frames", file=sys.stderr, flush=True)
-    scratch = _child(["generate", str(tmp / "scratch"), json.dumps([list(words), None])])
+    scratch = _child(["generate", str(tmp / "scratch"), json.dumps([list(words), None, a.seed])])
     scratch |= measure(tmp / "scratch")  # the same world trained whole: how hard it is, apart from growing it
     head: dict[str, Any] = {}
     if a.dask:
         with dask_cluster(tmp) as address:
-            on_dask = _child(["generate", str(tmp / "scratch_dask"), json.dumps([list(words), address])])
+            on_dask = _child(["generate", str(tmp / "scratch_dask"), json.dumps([list(words), address, a.seed])])
         local = sum(scratch["steps"].get(s, 0.0) for s in PARALLEL_STEPS)
         head["dask_speedup"] = round(local / max(sum(on_dask["steps"].get(s, 0.0) for s in PARALLEL_STEPS), 1e-9), 3)
     plot(rows, out / "scale.png")
