@@ -128,8 +128,7 @@ def _child(args: list[str]) -> dict[str, Any]:
 
 def child_main(what: str, scene: str, payload: str) -> None:
     """In the child: `generate` (payload: JSON of [words, Dask address, seed]) or `extend` (payload: the words), then
-    the report, as
-    the CLI does; prints the seconds of every step that ran and of the report, as JSON."""
+    the report, as the CLI does; prints the seconds of every step that ran and of the report, as JSON."""
     from flows.extend import extend
     from flows.pipeline import execute
     from flows.report import write_report
