@@ -188,10 +188,8 @@ def _world(store: SceneStore) -> Any:
     """The scene's procedural world as it now is (every stored segment's words replayed)."""
     from flows.inspect import run_config
     from tasks.attempts import video_model
-    from wonderverse.config import VideoSource
 
-    cfg = run_config(store)
-    return video_model(store, VideoSource(video=cfg.scene.video, prompt=cfg.scene.prompt, seed=cfg.scene.seed))
+    return video_model(store, run_config(store).scene.video_source)
 
 
 def shown_later(
@@ -213,17 +211,20 @@ def shown_later(
     model = _world(store) if world is None else world
     segments = sorted(segment_ids(store))  # ids count up as segments are made
     truth = {seg: attempt_path(store, seg).gt for seg in segments}
+    poses = {seg: store.array(truth[seg].poses) for seg in segments}
+    later: dict[str, list[tuple[np.ndarray, np.ndarray]]] = {}  # every other frame's pose and depth, read once
     out = {}
     for name, mask in changed.items():
         seg, frame = name.split("_")
-        pose = store.array(truth[seg].poses)[int(frame)]
+        pose = poses[seg][int(frame)]
         depth = model.render(pose)[1] if depth_now is None else depth_now[name]
         v, u = np.nonzero(mask & np.isfinite(depth))
         points = pixels_to_world(u + 0.5, v + 0.5, depth[v, u].astype(np.float64), model.K, pose)
         seen = np.zeros(len(points), bool)
         for other in (s for s in segments if s > seg):
-            poses, true_depth = store.array(truth[other].poses), store.array(truth[other].depth)
-            for w2c, d in zip(poses[::2], true_depth[::2], strict=True):
+            if other not in later:
+                later[other] = list(zip(poses[other][::2], store.array(truth[other].depth)[::2], strict=True))
+            for w2c, d in later[other]:
                 h, w = d.shape
                 pu, pv, z, framed = world_to_pixels(points, model.K, w2c, h, w)
                 at = d[pv[framed].astype(int), pu[framed].astype(int)]
